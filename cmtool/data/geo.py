@@ -1,0 +1,53 @@
+"""WGS84 latitude/longitude -> local metres, with a transverse Mercator projection.
+
+Both OpenStreetMap and Lanelet2 files give WGS84 coordinates. Like Lanelet2's own UTM projector we
+use a transverse Mercator projection (Krüger's series, accurate to well under a millimetre within
+a few hundred kilometres of the central meridian), but centred on an origin near the data: the
+origin maps to (0, 0), x points east and y north.
+"""
+
+from __future__ import annotations
+
+import math
+
+import numpy as np
+
+_A = 6378137.0  # WGS84 semi-major axis (m)
+_F = 1.0 / 298.257223563  # WGS84 flattening
+_N = _F / (2.0 - _F)
+_RECT = _A / (1.0 + _N) * (1.0 + _N**2 / 4.0 + _N**4 / 64.0)  # rectifying radius
+_ALPHA = (
+    _N / 2.0 - 2.0 * _N**2 / 3.0 + 5.0 * _N**3 / 16.0,
+    13.0 * _N**2 / 48.0 - 3.0 * _N**3 / 5.0,
+    61.0 * _N**3 / 240.0,
+)
+_E2N = 2.0 * math.sqrt(_N) / (1.0 + _N)  # used in the conformal latitude
+
+
+class LocalProjection:
+    """Transverse Mercator projection with its origin at ``(lat0, lon0)`` (degrees)."""
+
+    def __init__(self, lat0: float, lon0: float):
+        if not (-90.0 <= lat0 <= 90.0 and -180.0 <= lon0 <= 180.0):
+            raise ValueError(f"origin out of range: lat={lat0}, lon={lon0}")
+        self.lat0, self.lon0 = float(lat0), float(lon0)
+        self._x0, self._y0 = 0.0, 0.0
+        self._x0, self._y0 = self._raw(np.array([lat0]), np.array([lon0]))
+        self._x0, self._y0 = float(self._x0[0]), float(self._y0[0])
+
+    def _raw(self, lat, lon):
+        phi = np.radians(lat)
+        lam = np.radians(lon - self.lon0)
+        t = np.sinh(np.arctanh(np.sin(phi)) - _E2N * np.arctanh(_E2N * np.sin(phi)))
+        xi = np.arctan2(t, np.cos(lam))
+        eta = np.arctanh(np.sin(lam) / np.sqrt(1.0 + t * t))
+        north, east = xi.copy(), eta.copy()
+        for j, a in enumerate(_ALPHA, start=1):
+            north = north + a * np.sin(2 * j * xi) * np.cosh(2 * j * eta)
+            east = east + a * np.cos(2 * j * xi) * np.sinh(2 * j * eta)
+        return _RECT * east - self._x0, _RECT * north - self._y0
+
+    def to_metres(self, lat, lon) -> np.ndarray:
+        """Project latitude/longitude arrays (degrees) to (..., 2) arrays of [east, north] metres."""
+        x, y = self._raw(np.asarray(lat, dtype=np.float64), np.asarray(lon, dtype=np.float64))
+        return np.stack([x, y], axis=-1)

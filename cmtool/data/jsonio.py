@@ -1,0 +1,102 @@
+"""JSON file reading/writing with user-facing errors (shared by the map and lane graph formats)."""
+
+from __future__ import annotations
+
+import json
+import os
+import tempfile
+from pathlib import Path
+
+from cmtool.errors import CmtoolError
+
+
+def read_json(path: str | os.PathLike):
+    """Load a JSON file; a missing file or malformed JSON becomes a :class:`CmtoolError`."""
+    path = Path(path)
+    if not path.is_file():
+        raise CmtoolError(f"{path}: no such file")
+    try:
+        with path.open(encoding="utf-8") as f:
+            return json.load(f)
+    except json.JSONDecodeError as e:
+        raise CmtoolError(f"{path}: malformed JSON at line {e.lineno}, column {e.colno}: {e.msg}") from None
+    except UnicodeDecodeError:
+        raise CmtoolError(f"{path}: not a UTF-8 text file") from None
+
+
+def write_text_atomic(path: str | os.PathLike, text: str) -> None:
+    """Write ``text`` to ``path`` through a temporary file and a rename, so a crash never leaves a
+    half-written file behind."""
+    path = Path(path)
+    path.parent.mkdir(parents=True, exist_ok=True)
+    fd, tmp = tempfile.mkstemp(dir=path.parent, prefix=f".{path.name}.", suffix=".tmp")
+    try:
+        with os.fdopen(fd, "w", encoding="utf-8") as f:
+            f.write(text)
+        os.replace(tmp, path)
+    except BaseException:
+        if os.path.exists(tmp):
+            os.unlink(tmp)
+        raise
+
+
+def write_json(path: str | os.PathLike, obj) -> None:
+    write_text_atomic(path, json.dumps(obj, separators=(",", ":")) + "\n")
+
+
+class Fields:
+    """Typed access to a JSON object that names the offending field in its errors.
+
+    ``where`` is a prefix such as ``"map.json: lanes[3]"``; errors read
+    ``"map.json: lanes[3].width: expected a number, got 'wide'"``.
+    """
+
+    def __init__(self, obj, where: str):
+        if not isinstance(obj, dict):
+            raise CmtoolError(f"{where}: expected a JSON object, got {type(obj).__name__}")
+        self.obj, self.where = obj, where
+
+    def fail(self, key: str, msg: str):
+        raise CmtoolError(f"{self.where}.{key}: {msg}")
+
+    def get(self, key: str, types, default=..., allow_none: bool = False):
+        if key not in self.obj:
+            if default is ...:
+                self.fail(key, "missing")
+            return default
+        value = self.obj[key]
+        if value is None and allow_none:
+            return None
+        if isinstance(value, bool) and bool not in (types if isinstance(types, tuple) else (types,)):
+            self.fail(key, f"expected {_type_name(types)}, got {value!r}")
+        if not isinstance(value, types):
+            self.fail(key, f"expected {_type_name(types)}, got {_short(value)}")
+        if isinstance(value, float) and not (value == value and abs(value) != float("inf")):
+            self.fail(key, "NaN or infinite number")
+        return value
+
+    def number(self, key: str, default=...) -> float:
+        return float(self.get(key, (int, float), default))
+
+    def points(self, key: str, min_points: int = 2):
+        """A list of [x, y] pairs as a float64 (N, 2) array."""
+        from cmtool.geometry import as_polyline
+
+        value = self.get(key, list)
+        try:
+            return as_polyline(value, min_points=min_points)
+        except (ValueError, TypeError) as e:
+            self.fail(key, str(e))
+
+
+def _type_name(types) -> str:
+    names = {int: "an integer", float: "a number", str: "a string", list: "a list", dict: "an object", bool: "true/false"}
+    types = types if isinstance(types, tuple) else (types,)
+    if set(types) == {int, float}:
+        return "a number"
+    return " or ".join(names.get(t, t.__name__) for t in types)
+
+
+def _short(value) -> str:
+    text = json.dumps(value) if not isinstance(value, str) else repr(value)
+    return text if len(text) <= 40 else text[:37] + "..."

@@ -1,0 +1,133 @@
+"""The lane graph JSON format (DESIGN.md §4): one 64 m scene in the ego frame per JSON object.
+
+This is the interchange format: what the model emits as a map and what the metrics read. A set of
+scenes is JSON Lines (``.jsonl``), one object per line::
+
+    {"version": 1, "city": "SGP", "frame_m": 64.0,
+     "lanes": [[[x, y], ...], ...], "successors": [[i, j], ...],
+     "green_lights": [[[x, y], ...], ...], "red_lights": [[[x, y], ...], ...],
+     "meta": {"source": "...", "seed": 0, "cfg": 0.7}}
+
+Lanes are centerlines in driving direction (any number of points >= 2); ``successors`` are index
+pairs (lane i flows into lane j). Reading validates everything and names the line and field of the
+first problem; NaN and infinite coordinates are rejected.
+"""
+
+from __future__ import annotations
+
+import json
+import os
+from dataclasses import dataclass, field
+from pathlib import Path
+
+import numpy as np
+
+from cmtool.data.jsonio import Fields, write_text_atomic
+from cmtool.errors import CmtoolError
+
+
+@dataclass
+class LaneGraph:
+    lanes: list[np.ndarray]  # each (N, 2), N >= 2
+    successors: list[tuple[int, int]] = field(default_factory=list)
+    green_lights: list[np.ndarray] = field(default_factory=list)
+    red_lights: list[np.ndarray] = field(default_factory=list)
+    city: str | None = None
+    frame_m: float = 64.0
+    meta: dict = field(default_factory=dict)
+
+    def to_json(self) -> dict:
+        def lines(ls):
+            return [np.round(np.asarray(l, dtype=np.float64), 3).tolist() for l in ls]
+
+        return {
+            "version": 1,
+            "city": self.city,
+            "frame_m": float(self.frame_m),
+            "lanes": lines(self.lanes),
+            "successors": [[int(i), int(j)] for i, j in self.successors],
+            "green_lights": lines(self.green_lights),
+            "red_lights": lines(self.red_lights),
+            "meta": self.meta,
+        }
+
+    @classmethod
+    def from_json(cls, obj, where: str = "scene") -> "LaneGraph":
+        f = Fields(obj, where)
+        if f.get("version", int) != 1:
+            f.fail("version", "unsupported version (this cmtool reads version 1)")
+        frame_m = f.number("frame_m", 64.0)
+        if frame_m <= 0:
+            f.fail("frame_m", f"must be positive, got {frame_m}")
+        graph = cls(
+            lanes=_lines(f, "lanes"),
+            green_lights=_lines(f, "green_lights", required=False),
+            red_lights=_lines(f, "red_lights", required=False),
+            city=f.get("city", str, None, allow_none=True),
+            frame_m=frame_m,
+            meta=f.get("meta", dict, {}),
+        )
+        n = len(graph.lanes)
+        for k, pair in enumerate(f.get("successors", list, [])):
+            ok = isinstance(pair, list) and len(pair) == 2 and all(type(v) is int for v in pair)
+            if not ok:
+                f.fail(f"successors[{k}]", f"expected [i, j] lane indices, got {pair!r}")
+            if not all(0 <= v < n for v in pair):
+                f.fail(f"successors[{k}]", f"lane index out of range in {pair} ({n} lanes)")
+            graph.successors.append((pair[0], pair[1]))
+        return graph
+
+
+def _lines(f: Fields, key: str, required: bool = True) -> list[np.ndarray]:
+    items = f.get(key, list) if required else f.get(key, list, [])
+    out = []
+    for k, pts in enumerate(items):
+        out.append(Fields({"p": pts}, f"{f.where}.{key}[{k}]").points("p"))
+    return out
+
+
+def read_jsonl(path: str | os.PathLike) -> list[LaneGraph]:
+    """Read lane graphs from a ``.jsonl`` file (a ``.json`` file holding one object also works)."""
+    path = Path(path)
+    if not path.is_file():
+        raise CmtoolError(f"{path}: no such file")
+    graphs = []
+    with path.open(encoding="utf-8") as fh:
+        for lineno, line in enumerate(fh, start=1):
+            if not line.strip():
+                continue
+            try:
+                obj = json.loads(line)
+            except json.JSONDecodeError as e:
+                if lineno == 1 and path.suffix == ".json":  # a pretty-printed single scene
+                    return [LaneGraph.from_json(json.loads(path.read_text("utf-8")), f"{path}")]
+                raise CmtoolError(f"{path}: line {lineno}: malformed JSON at column {e.colno}: {e.msg}") from None
+            graphs.append(LaneGraph.from_json(obj, f"{path}: line {lineno}"))
+    return graphs
+
+
+def write_jsonl(path: str | os.PathLike, graphs) -> None:
+    """Write lane graphs as JSON Lines (atomically)."""
+    write_text_atomic(path, "".join(json.dumps(g.to_json(), separators=(",", ":")) + "\n" for g in graphs))
+
+
+def infer_successors(lanes, max_gap_m: float = 1.5, max_angle_deg: float = 60.0) -> list[tuple[int, int]]:
+    """Successor edges by endpoint proximity (DESIGN.md §4): the end of lane i lies within
+    ``max_gap_m`` of the start of lane j and their headings there differ by at most
+    ``max_angle_deg``."""
+    if len(lanes) == 0:
+        return []
+    ends = np.array([l[-1] for l in lanes])
+    starts = np.array([l[0] for l in lanes])
+    end_dir = np.array([_unit(l[-1] - l[-2]) for l in lanes])
+    start_dir = np.array([_unit(l[1] - l[0]) for l in lanes])
+    dist = np.linalg.norm(ends[:, None, :] - starts[None, :, :], axis=-1)
+    cos = end_dir @ start_dir.T
+    ok = (dist <= max_gap_m) & (cos >= np.cos(np.radians(max_angle_deg)))
+    np.fill_diagonal(ok, False)
+    return [(int(i), int(j)) for i, j in zip(*np.nonzero(ok))]
+
+
+def _unit(v: np.ndarray) -> np.ndarray:
+    n = np.linalg.norm(v)
+    return v / n if n > 0 else np.zeros(2)

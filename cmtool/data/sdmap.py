@@ -1,0 +1,105 @@
+"""The SD map type: an OpenStreetMap-like road skeleton, one polyline per road.
+
+SD maps come from OpenStreetMap files, from an HD map (as OSM would show it), or from a user's
+picture. They carry no lane geometry, only what OSM ways carry: the road's course, its class, its
+lane count when known and whether it is one-way.
+
+JSON schema (``*.json``)::
+
+    {"format": "cmtool.sdmap", "version": 1, "city": "PIT", "source": "...",
+     "roads": [{"id": "r1", "polyline": [[x, y], ...], "road_class": "primary",
+                "lanes": 4, "oneway": 0}, ...],
+     "meta": {}}
+
+``lanes`` is the total lane count over both directions, or null when unknown. ``oneway`` follows
+OSM: 0 two-way, 1 one-way in polyline order, -1 one-way against polyline order.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass, field
+
+import numpy as np
+
+from cmtool.data.jsonio import Fields, read_json, write_json
+
+ROAD_CLASSES = ("motorway", "trunk", "primary", "secondary", "tertiary", "unclassified", "residential", "service")
+FORMAT = "cmtool.sdmap"
+
+
+@dataclass
+class Road:
+    id: str
+    polyline: np.ndarray  # (N, 2) float64 metres
+    road_class: str = "residential"  # one of ROAD_CLASSES
+    lanes: int | None = None  # total over both directions; None = unknown
+    oneway: int = 0  # 0 two-way, 1 along the polyline, -1 against it
+
+    def travel_polyline(self) -> np.ndarray:
+        """The polyline in travel direction (reversed for ``oneway == -1``)."""
+        return self.polyline[::-1] if self.oneway == -1 else self.polyline
+
+
+@dataclass
+class SDMap:
+    city: str | None = None
+    roads: list[Road] = field(default_factory=list)
+    source: str = ""
+    meta: dict = field(default_factory=dict)
+
+    def to_json(self) -> dict:
+        return {
+            "format": FORMAT,
+            "version": 1,
+            "city": self.city,
+            "source": self.source,
+            "roads": [
+                {
+                    "id": r.id,
+                    "polyline": np.round(r.polyline, 3).tolist(),
+                    "road_class": r.road_class,
+                    "lanes": r.lanes,
+                    "oneway": r.oneway,
+                }
+                for r in self.roads
+            ],
+            "meta": self.meta,
+        }
+
+    @classmethod
+    def from_json(cls, obj, where: str = "sdmap") -> "SDMap":
+        top = Fields(obj, where)
+        if top.get("format", str) != FORMAT:
+            top.fail("format", f"expected {FORMAT!r} (is this an SD map file?)")
+        if top.get("version", int) != 1:
+            top.fail("version", "unsupported version (this cmtool reads version 1)")
+        sd = cls(
+            city=top.get("city", str, None, allow_none=True),
+            source=top.get("source", str, ""),
+            meta=top.get("meta", dict, {}),
+        )
+        seen = set()
+        for i, item in enumerate(top.get("roads", list)):
+            f = Fields(item, f"{where}: roads[{i}]")
+            road_class = f.get("road_class", str, "residential")
+            if road_class not in ROAD_CLASSES:
+                f.fail("road_class", f"expected one of {ROAD_CLASSES}, got {road_class!r}")
+            lanes = f.get("lanes", int, None, allow_none=True)
+            if lanes is not None and not 1 <= lanes <= 16:
+                f.fail("lanes", f"expected 1..16 or null, got {lanes}")
+            oneway = f.get("oneway", int, 0)
+            if oneway not in (-1, 0, 1):
+                f.fail("oneway", f"expected -1, 0 or 1, got {oneway}")
+            road = Road(f.get("id", str), f.points("polyline"), road_class, lanes, oneway)
+            if road.id in seen:
+                f.fail("id", f"duplicate road id {road.id!r}")
+            seen.add(road.id)
+            sd.roads.append(road)
+        return sd
+
+    def save(self, path) -> None:
+        write_json(path, self.to_json())
+
+    @classmethod
+    def load(cls, path) -> "SDMap":
+        return cls.from_json(read_json(path), where=str(path))

@@ -1,0 +1,75 @@
+"""Small polyline helpers shared across the pipeline (numpy arrays of shape (N, 2), metres)."""
+
+from __future__ import annotations
+
+import numpy as np
+
+
+def as_polyline(points, min_points: int = 2) -> np.ndarray:
+    """Return ``points`` as a float64 (N, 2) array, checking shape and finiteness."""
+    arr = np.asarray(points, dtype=np.float64)
+    if arr.ndim != 2 or arr.shape[1] != 2 or arr.shape[0] < min_points:
+        raise ValueError(f"expected at least {min_points} points of [x, y], got shape {arr.shape}")
+    if not np.all(np.isfinite(arr)):
+        raise ValueError("polyline has NaN or infinite coordinates")
+    return arr
+
+
+def segment_lengths(line: np.ndarray) -> np.ndarray:
+    return np.linalg.norm(np.diff(line, axis=0), axis=1)
+
+
+def polyline_length(line: np.ndarray) -> float:
+    return float(segment_lengths(line).sum())
+
+
+def resample(line: np.ndarray, n: int) -> np.ndarray:
+    """Resample a polyline to ``n`` points equally spaced along its arc length."""
+    cum = np.concatenate([[0.0], np.cumsum(segment_lengths(line))])
+    if cum[-1] <= 0.0:
+        return np.repeat(line[:1], n, axis=0)
+    s = np.linspace(0.0, cum[-1], n)
+    return np.stack([np.interp(s, cum, line[:, 0]), np.interp(s, cum, line[:, 1])], axis=1)
+
+
+def resample_step(line: np.ndarray, step: float) -> np.ndarray:
+    """Resample a polyline at (about) ``step`` metre spacing, keeping both end points."""
+    n = max(2, int(np.ceil(polyline_length(line) / step)) + 1)
+    return resample(line, n)
+
+
+def headings(line: np.ndarray) -> np.ndarray:
+    """Heading (radians, atan2(dy, dx)) of each point, from its neighbouring segments."""
+    d = np.gradient(line, axis=0)
+    return np.arctan2(d[:, 1], d[:, 0])
+
+
+def wrap_angle(a):
+    """Wrap angles to [-pi, pi)."""
+    return (np.asarray(a) + np.pi) % (2.0 * np.pi) - np.pi
+
+
+def to_frame(points: np.ndarray, x: float, y: float, yaw: float) -> np.ndarray:
+    """Express world points in the frame of a pose (x forward along ``yaw``, y left)."""
+    c, s = np.cos(yaw), np.sin(yaw)
+    d = np.asarray(points, dtype=np.float64) - np.array([x, y])
+    return np.stack([c * d[..., 0] + s * d[..., 1], -s * d[..., 0] + c * d[..., 1]], axis=-1)
+
+
+def from_frame(points: np.ndarray, x: float, y: float, yaw: float) -> np.ndarray:
+    """Inverse of :func:`to_frame`."""
+    c, s = np.cos(yaw), np.sin(yaw)
+    p = np.asarray(points, dtype=np.float64)
+    return np.stack([c * p[..., 0] - s * p[..., 1] + x, s * p[..., 0] + c * p[..., 1] + y], axis=-1)
+
+
+def offset(line: np.ndarray, distance: float) -> np.ndarray:
+    """Offset a polyline sideways by ``distance`` metres (positive = to the left of travel).
+
+    Uses per-vertex normals averaged over neighbouring segments (good for gently curved lines;
+    use shapely's ``offset_curve`` where corners are sharp).
+    """
+    d = np.gradient(line, axis=0)
+    d /= np.maximum(np.linalg.norm(d, axis=1, keepdims=True), 1e-12)
+    normal = np.stack([-d[:, 1], d[:, 0]], axis=1)
+    return line + distance * normal

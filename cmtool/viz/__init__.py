@@ -1,0 +1,1 @@
+"""Pictures and Rerun recordings of maps, scenes and (later) models."""
