@@ -164,7 +164,7 @@ class HDMap:
             meta=top.get("meta", dict, {}),
         )
         for i, item in enumerate(top.get("lanes", list)):
-            f = Fields(item, f"{where}: lanes[{i}]")
+            f = Fields(item, where, f"lanes[{i}]")
             lane_type = f.get("lane_type", str, "vehicle")
             if lane_type not in LANE_TYPES:
                 f.fail("lane_type", f"expected one of {LANE_TYPES}, got {lane_type!r}")
@@ -188,13 +188,13 @@ class HDMap:
                 f.fail("id", f"duplicate lane id {lane.id!r}")
             hd.lanes[lane.id] = lane
         for i, item in enumerate(top.get("stop_lines", list, [])):
-            f = Fields(item, f"{where}: stop_lines[{i}]")
+            f = Fields(item, where, f"stop_lines[{i}]")
             state = f.get("state", str, "unknown")
             if state not in LIGHT_STATES:
                 f.fail("state", f"expected one of {LIGHT_STATES}, got {state!r}")
             hd.stop_lines.append(StopLine(f.get("id", str), f.points("line"), state, _ids(f, "lane_ids")))
         for i, item in enumerate(top.get("crosswalks", list, [])):
-            f = Fields(item, f"{where}: crosswalks[{i}]")
+            f = Fields(item, where, f"crosswalks[{i}]")
             hd.crosswalks.append(Crosswalk(f.get("id", str), f.points("polygon", min_points=3)))
         errors = hd.reference_errors()
         if errors:

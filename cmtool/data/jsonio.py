@@ -47,17 +47,21 @@ def write_json(path: str | os.PathLike, obj) -> None:
 class Fields:
     """Typed access to a JSON object that names the offending field in its errors.
 
-    ``where`` is a prefix such as ``"map.json: lanes[3]"``; errors read
+    ``where`` names the file (and line), ``path`` the object inside it; errors read
     ``"map.json: lanes[3].width: expected a number, got 'wide'"``.
     """
 
-    def __init__(self, obj, where: str):
+    def __init__(self, obj, where: str, path: str = ""):
         if not isinstance(obj, dict):
-            raise CmtoolError(f"{where}: expected a JSON object, got {type(obj).__name__}")
-        self.obj, self.where = obj, where
+            raise CmtoolError(f"{where}: {path or 'top level'}: expected a JSON object, got {type(obj).__name__}")
+        self.obj, self.where, self.path = obj, where, path
+
+    def at(self, key: str) -> str:
+        """The path of ``key`` inside this object, e.g. ``lanes[3].width``."""
+        return f"{self.path}.{key}" if self.path else key
 
     def fail(self, key: str, msg: str):
-        raise CmtoolError(f"{self.where}.{key}: {msg}")
+        raise CmtoolError(f"{self.where}: {self.at(key)}: {msg}")
 
     def get(self, key: str, types, default=..., allow_none: bool = False):
         if key not in self.obj:
@@ -87,6 +91,18 @@ class Fields:
             return as_polyline(value, min_points=min_points)
         except (ValueError, TypeError) as e:
             self.fail(key, str(e))
+
+    def lines(self, key: str, default=...) -> list:
+        """A list of polylines, each a float64 (N, 2) array with N >= 2."""
+        from cmtool.geometry import as_polyline
+
+        out = []
+        for k, pts in enumerate(self.get(key, list, default)):
+            try:
+                out.append(as_polyline(pts))
+            except (ValueError, TypeError) as e:
+                self.fail(f"{key}[{k}]", str(e))
+        return out
 
 
 def _type_name(types) -> str:

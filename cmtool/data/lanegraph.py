@@ -60,9 +60,9 @@ class LaneGraph:
         if frame_m <= 0:
             f.fail("frame_m", f"must be positive, got {frame_m}")
         graph = cls(
-            lanes=_lines(f, "lanes"),
-            green_lights=_lines(f, "green_lights", required=False),
-            red_lights=_lines(f, "red_lights", required=False),
+            lanes=f.lines("lanes"),
+            green_lights=f.lines("green_lights", []),
+            red_lights=f.lines("red_lights", []),
             city=f.get("city", str, None, allow_none=True),
             frame_m=frame_m,
             meta=f.get("meta", dict, {}),
@@ -76,14 +76,6 @@ class LaneGraph:
                 f.fail(f"successors[{k}]", f"lane index out of range in {pair} ({n} lanes)")
             graph.successors.append((pair[0], pair[1]))
         return graph
-
-
-def _lines(f: Fields, key: str, required: bool = True) -> list[np.ndarray]:
-    items = f.get(key, list) if required else f.get(key, list, [])
-    out = []
-    for k, pts in enumerate(items):
-        out.append(Fields({"p": pts}, f"{f.where}.{key}[{k}]").points("p"))
-    return out
 
 
 def read_jsonl(path: str | os.PathLike) -> list[LaneGraph]:

@@ -80,7 +80,7 @@ class SDMap:
         )
         seen = set()
         for i, item in enumerate(top.get("roads", list)):
-            f = Fields(item, f"{where}: roads[{i}]")
+            f = Fields(item, where, f"roads[{i}]")
             road_class = f.get("road_class", str, "residential")
             if road_class not in ROAD_CLASSES:
                 f.fail("road_class", f"expected one of {ROAD_CLASSES}, got {road_class!r}")

@@ -1,0 +1,5 @@
+"""``python -m cmtool`` runs the command line."""
+
+from cmtool.cli import main
+
+main()

@@ -1,0 +1,194 @@
+"""The ``cmtool`` command line.
+
+Commands are thin: they parse options, call the library and print. Library modules are imported
+inside each command so ``cmtool --help`` stays fast. Every user error (a :class:`CmtoolError` or a
+bad option) ends with one ``Error: ...`` line on stderr and a non-zero exit, never a traceback.
+"""
+
+from __future__ import annotations
+
+import sys
+from pathlib import Path
+
+import click
+
+from cmtool import __version__
+from cmtool.errors import CmtoolError
+
+CITY_CHOICES = ("LAV", "PIT", "SGP", "BOS")
+
+
+@click.group(context_settings={"help_option_names": ["-h", "--help"]})
+@click.version_option(__version__, prog_name="cmtool")
+def cli():
+    """cmtool: controllable lane-level HD map generation from SD maps (ControlMap)."""
+
+
+@cli.group()
+def data():
+    """Maps and datasets: procedural cities, real-map import, SD maps, dataset cache."""
+
+
+@data.command()
+@click.option("--city", required=True, callback=lambda ctx, param, v: _city(v), help="City style: LAV, PIT, SGP or BOS.")
+@click.option("--seed", default=0, show_default=True, help="Random seed.")
+@click.option("--extent", default=800.0, show_default=True, help="Side of the square city, metres.")
+@click.option("--out", required=True, type=click.Path(dir_okay=False, path_type=Path), help="HD map JSON to write.")
+def synth(city, seed, extent, out):
+    """Generate a procedural city HD map in the style of a nuPlan city."""
+    from cmtool.data.synth import generate_city
+
+    hd = generate_city(city, seed=seed, extent=extent)
+    hd.save(out)
+    n_conn = sum(l.is_intersection for l in hd.lanes.values())
+    click.echo(
+        f"{out}: {city} seed {seed}, {len(hd.lanes)} lanes ({n_conn} connectors), "
+        f"{len(hd.stop_lines)} stop lines, {len(hd.crosswalks)} crosswalks, drives on the {hd.drives_on}"
+    )
+
+
+def _city(value: str) -> str:
+    if value.upper() not in CITY_CHOICES:
+        raise click.BadParameter(f"unknown city {value!r} (choose from {', '.join(CITY_CHOICES)})")
+    return value.upper()
+
+
+IMPORT_FORMATS = ("av2", "lanelet2", "nuplan", "osm")
+
+
+@data.command("import")
+@click.option("--format", "fmt", required=True, type=click.Choice(IMPORT_FORMATS),
+              help="av2, lanelet2, nuplan: HD maps; osm: an OpenStreetMap .osm/.osm.pbf file to an SD map.")
+@click.argument("file", type=click.Path(path_type=Path))
+@click.option("--out", required=True, type=click.Path(dir_okay=False, path_type=Path), help="Map JSON to write.")
+@click.option("--city", default=None, help="City code to record (default: from the file or format).")
+def import_(fmt, file, out, city):
+    """Import a real map into cmtool's HD (or, for osm, SD) map JSON."""
+    if fmt == "osm":
+        from cmtool.data.osm import read_osm
+
+        sd = read_osm(file)
+        if city:
+            sd.city = city
+        sd.save(out)
+        click.echo(f"{out}: SD map, {len(sd.roads)} roads")
+        return
+    from cmtool.data.importers import import_hd_map
+
+    hd = import_hd_map(fmt, file, city=city)
+    hd.save(out)
+    click.echo(
+        f"{out}: HD map of {hd.city}, {len(hd.lanes)} lanes, {sum(len(l.successors) for l in hd.lanes.values())} "
+        f"successor edges, {len(hd.stop_lines)} stop lines, {len(hd.crosswalks)} crosswalks"
+    )
+
+
+@data.command()
+@click.argument("hd_map", type=click.Path(path_type=Path))
+@click.option("--out", required=True, type=click.Path(dir_okay=False, path_type=Path), help="SD map JSON to write.")
+@click.option("--offset", default=0.0, show_default=True, help="Jitter: random shift of up to this many metres.")
+@click.option("--rotation", default=0.0, show_default=True, help="Jitter: random rotation of up to this many degrees.")
+@click.option("--drop-minor", default=0.0, show_default=True, help="Jitter: probability of dropping each minor road.")
+@click.option("--seed", default=0, show_default=True, help="Seed of the jitter.")
+def sd(hd_map, out, offset, rotation, drop_minor, seed):
+    """Derive the SD map (one polyline per road, as OpenStreetMap shows it) of an HD map."""
+    from cmtool.data.hdmap import HDMap
+    from cmtool.data.sd_derive import SDJitter, derive_sd
+
+    if offset < 0 or rotation < 0 or not 0.0 <= drop_minor <= 1.0:
+        raise CmtoolError("jitter must be non-negative and --drop-minor within [0, 1]")
+    jitter = SDJitter(offset, rotation, drop_minor) if (offset or rotation or drop_minor) else None
+    sd_map = derive_sd(HDMap.load(hd_map), jitter=jitter, seed=seed)
+    sd_map.save(out)
+    click.echo(f"{out}: SD map, {len(sd_map.roads)} roads")
+
+
+@data.command()
+@click.argument("maps", nargs=-1, type=click.Path(path_type=Path))
+@click.option("--seeds", default=2, show_default=True, help="Without MAPS: procedural seeds per city style.")
+@click.option("--extent", default=800.0, show_default=True, help="Without MAPS: side of each procedural city, metres.")
+def stats(maps, seeds, extent):
+    """Per-city statistics of HD maps: lanes per road, block length, intersection degree, curvature,
+    one-way share. Without MAPS, of procedural cities of all four styles."""
+    from cmtool.data.hdmap import HDMap
+    from cmtool.data.stats import map_stats
+
+    if maps:
+        rows = {}
+        for path in maps:
+            hd = HDMap.load(path)
+            rows.setdefault(hd.city, []).append(map_stats(hd))
+    else:
+        from cmtool.data.synth import generate_city
+
+        if seeds < 1:
+            raise CmtoolError("--seeds must be at least 1")
+        rows = {c: [map_stats(generate_city(c, seed=s, extent=extent)) for s in range(seeds)] for c in CITY_CHOICES}
+    click.echo(_stats_table(rows))
+
+
+def _stats_table(rows: dict[str, list[dict[str, float]]]) -> str:
+    """Mean of each statistic per city, as an aligned text table (cities as columns)."""
+    cities = list(rows)
+    keys = list(next(iter(rows.values()))[0])
+    width = max(len(k) for k in keys)
+    lines = [f"{'statistic':<{width}}  " + "  ".join(f"{c:>9}" for c in cities)]
+    for k in keys:
+        vals = [sum(r[k] for r in rows[c]) / len(rows[c]) for c in cities]
+        lines.append(f"{k:<{width}}  " + "  ".join(f"{v:>9.3f}" for v in vals))
+    counts = "  ".join(f"{len(rows[c]):>9d}" for c in cities)
+    lines.append(f"{'maps':<{width}}  {counts}")
+    return "\n".join(lines)
+
+
+@data.command()
+@click.option("--recipe", required=True, type=click.Path(path_type=Path), help="Recipe TOML (see recipes/).")
+@click.option("--out", required=True, type=click.Path(file_okay=False, path_type=Path), help="Dataset directory.")
+@click.option("--workers", default=None, type=click.IntRange(min=1), help="Worker processes [default: min(2, CPUs)].")
+def build(recipe, out, workers):
+    """Build (or resume building) a sharded dataset cache from a recipe."""
+    from cmtool.data.cache import build_dataset
+
+    summary = build_dataset(recipe, out, workers=workers)
+    for split, info in summary["splits"].items():
+        cities = ", ".join(f"{c} {n}" for c, n in info["cities"].items())
+        click.echo(f"{split}: {info['scenes']} scenes ({cities})")
+    click.echo(f"{out}: built in {summary['seconds']:.1f} s")
+
+
+@data.command()
+@click.argument("data_dir", type=click.Path(file_okay=False, path_type=Path))
+@click.option("--n", default=16, show_default=True, type=click.IntRange(min=1), help="Number of scenes.")
+@click.option("--png", type=click.Path(dir_okay=False, path_type=Path), help="Picture grid to write.")
+@click.option("--rrd", type=click.Path(dir_okay=False, path_type=Path), help="Rerun recording to write.")
+@click.option("--split", default=None, help="Split to show [default: all].")
+@click.option("--seed", default=0, show_default=True, help="Seed of the scene choice.")
+def show(data_dir, n, png, rrd, split, seed):
+    """Show scenes of a dataset: HD lanes beside their SD raster, as a PNG grid and/or a Rerun recording."""
+    from cmtool.viz.show import show_dataset
+
+    if png is None and rrd is None:
+        raise CmtoolError("nothing to write: give --png and/or --rrd")
+    show_dataset(data_dir, n=n, png=png, rrd=rrd, split=split, seed=seed)
+    for path in (png, rrd):
+        if path is not None:
+            click.echo(f"wrote {path}")
+
+
+def main(argv=None) -> None:
+    """Entry point: run the CLI, reducing user errors to one line and a non-zero exit."""
+    try:
+        cli.main(args=argv, prog_name="cmtool", standalone_mode=False)
+    except CmtoolError as e:
+        click.echo(f"Error: {e}", err=True)
+        sys.exit(1)
+    except click.exceptions.Abort:
+        click.echo("Aborted.", err=True)
+        sys.exit(130)
+    except click.UsageError as e:
+        hint = f" (see '{e.ctx.command_path} --help')" if e.ctx is not None else ""
+        click.echo(f"Error: {e.format_message()}{hint}", err=True)
+        sys.exit(2)
+    except click.ClickException as e:
+        click.echo(f"Error: {e.format_message()}", err=True)
+        sys.exit(e.exit_code)
