@@ -1,0 +1,67 @@
+"""The command line as a user runs it: outputs, and one-line errors without tracebacks."""
+
+import json
+
+import pytest
+
+from cmtool.data.hdmap import HDMap
+from conftest import SHARED_DATA
+
+
+def assert_one_line_error(result, *fragments):
+    assert result.returncode != 0
+    assert "Traceback" not in result.stderr
+    lines = result.stderr.strip().splitlines()
+    assert len(lines) == 1 and lines[0].startswith("Error: "), result.stderr
+    for f in fragments:
+        assert f in lines[0]
+
+
+def test_synth_writes_a_loadable_map(run_cli, tmp_path):
+    r = run_cli("data", "synth", "--city", "sgp", "--seed", "3", "--extent", "300", "--out", tmp_path / "c.json")
+    assert r.returncode == 0, r.stderr
+    hd = HDMap.load(tmp_path / "c.json")
+    assert hd.city == "SGP" and hd.drives_on == "left" and len(hd.lanes) > 10
+    assert "drives on the left" in r.stdout
+
+
+def test_sd_derives_from_a_synth_map(run_cli, tmp_path):
+    assert run_cli("data", "synth", "--city", "LAV", "--extent", "300", "--out", tmp_path / "c.json").returncode == 0
+    r = run_cli("data", "sd", tmp_path / "c.json", "--out", tmp_path / "sd.json")
+    assert r.returncode == 0, r.stderr
+    assert json.loads((tmp_path / "sd.json").read_text())["format"] == "cmtool.sdmap"
+
+
+@pytest.mark.parametrize(
+    "args, fragments",
+    [
+        (["data", "synth", "--city", "NYC", "--out", "x.json"], ["unknown city 'NYC'"]),
+        (["data", "import", "--format", "shapefile", "x", "--out", "y.json"], ["--format", "shapefile"]),
+        (["data", "import", "--format", "av2", "missing.json", "--out", "y.json"], ["missing.json", "no such file"]),
+        (["data", "import", "--format", "lanelet2", "missing.osm", "--out", "y.json"], ["missing.osm"]),
+        (["data", "stats", "missing.json"], ["missing.json: no such file"]),
+        (["data", "build", "--recipe", "missing.toml", "--out", "d"], ["missing.toml"]),
+        (["data", "show", "nodata", "--png", "g.png"], ["nodata"]),
+    ],
+)
+def test_user_errors_are_one_line(run_cli, tmp_path, args, fragments):
+    assert_one_line_error(run_cli(*args, cwd=tmp_path), *fragments)
+
+
+def test_malformed_inputs_are_one_line(run_cli, tmp_path):
+    (tmp_path / "bad.json").write_text('{"lane_segments": ')
+    assert_one_line_error(run_cli("data", "import", "--format", "av2", "bad.json", "--out", "o.json", cwd=tmp_path),
+                          "bad.json")
+    assert_one_line_error(run_cli("data", "stats", "bad.json", cwd=tmp_path), "bad.json", "malformed JSON")
+    (tmp_path / "bad.osm").write_text("<osm><node id='1' lat='1' lon='2'></osm>")
+    assert_one_line_error(run_cli("data", "import", "--format", "lanelet2", "bad.osm", "--out", "o.json", cwd=tmp_path),
+                          "bad.osm", "malformed XML")
+    assert not (tmp_path / "o.json").exists()
+
+
+def test_wrong_format_for_file(run_cli, tmp_path):
+    lanelet = SHARED_DATA / "lanelet2" / "mapping_example.osm"
+    if not lanelet.exists():
+        pytest.skip("shared sample data not present")
+    assert_one_line_error(run_cli("data", "import", "--format", "av2", lanelet, "--out", tmp_path / "o.json"),
+                          "mapping_example.osm")
