@@ -1,0 +1,120 @@
+"""OpenStreetMap files (``.osm`` XML, ``.osm.pbf``) -> :class:`SDMap` in local metres.
+
+Only drivable highway ways are kept: motorway, trunk, primary, secondary, tertiary, unclassified,
+residential, service (``*_link`` ways join their parent class, ``living_street`` counts as
+residential); footways, cycleways, paths, steps, tracks and the like are skipped. Tags read:
+``lanes`` (an integer 1-16, else unknown), ``oneway`` (yes/true/1 -> 1, -1/reverse -> -1, else 0;
+motorways, motorway links and roundabouts are one-way unless tagged otherwise). Coordinates are
+projected with a transverse Mercator projection centred on the mean of the nodes used. A way whose
+nodes are partly missing from the file (a clipped extract) keeps each run of >= 2 present nodes.
+"""
+
+from __future__ import annotations
+
+import os
+from pathlib import Path
+
+import numpy as np
+
+from cmtool.data.geo import LocalProjection
+from cmtool.data.osmxml import read_osm_xml
+from cmtool.data.sdmap import ROAD_CLASSES, Road, SDMap
+from cmtool.errors import CmtoolError
+
+_ALIASES = {"living_street": "residential"}
+_ONEWAY_BY_DEFAULT = ("motorway", "motorway_link")
+
+
+def road_class_of(highway: str | None) -> str | None:
+    """The SD road class of an OSM ``highway`` value, or None when it is not a drivable road."""
+    if highway is None:
+        return None
+    base = highway[: -len("_link")] if highway.endswith("_link") else highway
+    base = _ALIASES.get(base, base)
+    return base if base in ROAD_CLASSES else None
+
+
+def parse_lanes(value: str | None) -> int | None:
+    try:
+        lanes = int(value.strip())
+    except (AttributeError, ValueError):
+        return None
+    return lanes if 1 <= lanes <= 16 else None
+
+
+def parse_oneway(tags: dict[str, str]) -> int:
+    value = tags.get("oneway", "").strip().lower()
+    if value in ("yes", "true", "1"):
+        return 1
+    if value in ("-1", "reverse"):
+        return -1
+    if not value and (tags.get("highway") in _ONEWAY_BY_DEFAULT or tags.get("junction") == "roundabout"):
+        return 1
+    return 0
+
+
+def read_osm(path: str | os.PathLike) -> SDMap:
+    """Read the road network of an OpenStreetMap ``.osm`` or ``.osm.pbf`` file."""
+    path = Path(path)
+    if not path.is_file():
+        raise CmtoolError(f"{path}: no such file")
+    if path.name.endswith(".pbf"):
+        nodes, ways = _read_pbf(path)
+    elif path.suffix == ".osm" or path.name.endswith(".osm.xml"):
+        data = read_osm_xml(path)
+        nodes = {i: (n.lat, n.lon) for i, n in data.nodes.items()}
+        ways = [(i, w.nodes, w.tags) for i, w in data.ways.items() if road_class_of(w.tags.get("highway"))]
+    else:
+        raise CmtoolError(f"{path}: expected an OpenStreetMap .osm or .osm.pbf file")
+    runs = []  # (way id, part, node ids, tags)
+    for way_id, refs, tags in ways:
+        run: list[int] = []
+        parts = 0
+        for ref in list(refs) + [None]:
+            if ref is not None and ref in nodes:
+                run.append(ref)
+                continue
+            if len(run) >= 2:
+                runs.append((way_id, parts, run, tags))
+                parts += 1
+            run = []
+    sd = SDMap(city=None, source=f"osm:{path.name}")
+    if not runs:
+        return sd
+    used = np.array([nodes[r] for _, _, run, _ in runs for r in set(run)])
+    lat0, lon0 = used.mean(axis=0)
+    proj = LocalProjection(lat0, lon0)
+    sd.meta = {"lat0": float(lat0), "lon0": float(lon0)}
+    for way_id, part, run, tags in runs:
+        latlon = np.array([nodes[r] for r in run])
+        sd.roads.append(Road(
+            id=f"w{way_id}" + (f".{part}" if part else ""),
+            polyline=proj.to_metres(latlon[:, 0], latlon[:, 1]),
+            road_class=road_class_of(tags.get("highway")),
+            lanes=parse_lanes(tags.get("lanes")),
+            oneway=parse_oneway(tags),
+        ))
+    return sd
+
+
+def _read_pbf(path: Path) -> tuple[dict[int, tuple[float, float]], list[tuple[int, list[int], dict]]]:
+    """Highway ways, then the nodes they use, in two passes over a PBF file (via pyosmium)."""
+    try:
+        import osmium
+    except ImportError:
+        raise CmtoolError(f"{path}: reading .osm.pbf needs pyosmium: pip install 'cmtool[osm]'") from None
+    ways, wanted = [], set()
+    try:
+        for way in osmium.FileProcessor(str(path), osmium.osm.WAY):
+            tags = {t.k: t.v for t in way.tags}
+            if road_class_of(tags.get("highway")):
+                refs = [n.ref for n in way.nodes]
+                ways.append((way.id, refs, tags))
+                wanted.update(refs)
+        nodes = {}
+        for node in osmium.FileProcessor(str(path), osmium.osm.NODE):
+            if node.id in wanted and node.location.valid():
+                nodes[node.id] = (node.location.lat, node.location.lon)
+    except RuntimeError as e:
+        raise CmtoolError(f"{path}: cannot read OSM PBF: {e}") from None
+    return nodes, ways

@@ -1,0 +1,139 @@
+"""SD raster: the ControlMap control image, 128 x 128 x 3 uint8 RGB over the 64 m ego frame.
+
+Frame and orientation (DESIGN.md §3): x forward, y left; row 0 is the front edge (x = +32), column 0
+the left edge (y = +32); pixel (i, j) is centred at x = 32 - (i + 0.5) * px, y = 32 - (j + 0.5) * px
+with px = frame_m / size (0.5 m). Roads are drawn as polylines 4 px wide, without anti-aliasing, so
+every value is exact. Channels:
+
+- R (0), road presence: 255 on road pixels, 0 elsewhere.
+- G (1), lane count: ``32 * min(lanes, 7)`` on road pixels where the total lane count is known,
+  0 where it is unknown.
+- B (2), one-way travel direction: ``1 + round(254 * (theta + pi) / (2 pi))`` on one-way road
+  pixels, where theta in [-pi, pi) is the travel heading in the ego frame (0 = straight ahead,
+  pi/2 = to the left); 0 on two-way roads and where the direction is unknown.
+
+Two-way roads are drawn first and one-way roads over them, so a one-way direction survives at
+junctions. A plain black/white road drawing (bright roads on a dark background) converts to a raster
+with R only (:func:`sd_raster_from_image`).
+"""
+
+from __future__ import annotations
+
+import os
+from pathlib import Path
+
+import cv2
+import numpy as np
+
+from cmtool.data.sdmap import SDMap
+from cmtool.errors import CmtoolError
+from cmtool.geometry import to_frame
+
+SIZE = 128
+FRAME_M = 64.0
+THICKNESS_PX = 4
+ROAD_VALUE = 255
+LANE_STEP = 32  # G = LANE_STEP * min(lanes, MAX_LANES)
+MAX_LANES = 7
+_SHIFT = 4  # cv2 sub-pixel bits
+
+
+def lane_value(lanes: int | None) -> int:
+    """G-channel value of a road with ``lanes`` total lanes (None = unknown)."""
+    return 0 if lanes is None else LANE_STEP * min(int(lanes), MAX_LANES)
+
+
+def direction_value(theta) -> np.ndarray:
+    """B-channel value of a one-way travel heading ``theta`` (radians, ego frame)."""
+    theta = (np.asarray(theta, dtype=np.float64) + np.pi) % (2.0 * np.pi) - np.pi
+    return (1 + np.round(254.0 * (theta + np.pi) / (2.0 * np.pi))).astype(np.uint8)
+
+
+def decode_direction(value) -> np.ndarray:
+    """Inverse of :func:`direction_value` (to within half a step, about 0.7 degrees)."""
+    return (np.asarray(value, dtype=np.float64) - 1.0) / 254.0 * 2.0 * np.pi - np.pi
+
+
+def rasterize_sd(sd: SDMap, x: float, y: float, yaw: float, frame_m: float = FRAME_M, size: int = SIZE) -> np.ndarray:
+    """Draw the roads of ``sd`` around the ego pose (x, y, yaw) into a (size, size, 3) uint8 RGB raster."""
+    img = np.zeros((size, size, 3), dtype=np.uint8)
+    px = frame_m / size
+    half = frame_m / 2.0
+    reach = half * np.sqrt(2.0) + THICKNESS_PX * px
+    for oneway in (False, True):
+        for road in sd.roads:
+            if bool(road.oneway) != oneway:
+                continue
+            line = road.travel_polyline()
+            lo, hi = line.min(axis=0), line.max(axis=0)
+            if np.any(lo > [x + reach, y + reach]) or np.any(hi < [x - reach, y - reach]):
+                continue
+            ego = to_frame(line, x, y, yaw)
+            # image coordinates (column, row) of the points, in 1/16 px for cv2's sub-pixel drawing
+            cr = np.stack([(half - ego[:, 1]) / px - 0.5, (half - ego[:, 0]) / px - 0.5], axis=1)
+            pts = np.round(cr * (1 << _SHIFT)).astype(np.int32)
+            g = lane_value(road.lanes)
+            if not oneway:
+                cv2.polylines(img, [pts], False, (ROAD_VALUE, g, 0), THICKNESS_PX, cv2.LINE_8, _SHIFT)
+                continue
+            d = np.diff(ego, axis=0)
+            values = direction_value(np.arctan2(d[:, 1], d[:, 0]))
+            near = (np.minimum(ego[:-1], ego[1:]) <= half + 1.0).all(axis=1)
+            near &= (np.maximum(ego[:-1], ego[1:]) >= -half - 1.0).all(axis=1)
+            for k in np.flatnonzero(near):
+                b = values[k]
+                cv2.polylines(img, [pts[k:k + 2]], False, (ROAD_VALUE, g, int(b)), THICKNESS_PX, cv2.LINE_8, _SHIFT)
+    return img
+
+
+def sd_raster_from_image(image) -> np.ndarray:
+    """An SD raster from a picture: a path (PNG/JPG) or an array (RGB, or grey).
+
+    A 128 x 128 RGB image whose colour channels differ is taken to be a cmtool SD raster already and
+    returned as is. Anything else is a road drawing, light roads on dark or dark roads on light
+    (roads are taken to be the minority of pixels): converted to grey, split into road and background
+    at full resolution (Otsu's threshold), and resized to 128 x 128, where a pixel is road when at
+    least a fifth of it was (so thin strokes survive). Lane count and direction are unknown.
+    """
+    if isinstance(image, (str, os.PathLike)):
+        path = Path(image)
+        img = cv2.imread(str(path), cv2.IMREAD_COLOR) if path.is_file() else None
+        if img is None:
+            raise CmtoolError(f"{path}: cannot read image (missing file or not a PNG/JPG picture)")
+        img = cv2.cvtColor(img, cv2.COLOR_BGR2RGB)
+    else:
+        img = np.asarray(image)
+    if img.dtype == bool:
+        img = img.astype(np.uint8) * 255
+    elif img.dtype != np.uint8:
+        if not np.issubdtype(img.dtype, np.number) or not np.all(np.isfinite(img)):
+            raise CmtoolError(f"SD image: expected numeric pixel values, got dtype {img.dtype}")
+        scale = 255.0 if img.size and img.max() <= 1.0 else 1.0
+        img = np.clip(img * scale, 0, 255).astype(np.uint8)
+    if img.ndim == 3 and img.shape[2] == 4:
+        img = img[..., :3]
+    if img.ndim not in (2, 3) or (img.ndim == 3 and img.shape[2] != 3) or min(img.shape[:2]) < 1:
+        raise CmtoolError(f"SD image: expected a grey (H, W) or RGB (H, W, 3) picture, got shape {img.shape}")
+    if img.ndim == 3:
+        if img.shape[:2] == (SIZE, SIZE) and np.any(img != img[..., :1]):
+            return img.copy()
+        img = cv2.cvtColor(np.ascontiguousarray(img), cv2.COLOR_RGB2GRAY)
+    out = np.zeros((SIZE, SIZE, 3), dtype=np.uint8)
+    if img.min() == img.max():
+        return out  # a blank picture: no roads
+    _, mask = cv2.threshold(np.ascontiguousarray(img), 0, 1, cv2.THRESH_BINARY + cv2.THRESH_OTSU)
+    if mask.mean() > 0.5:
+        mask = 1 - mask
+    coverage = cv2.resize(mask.astype(np.float32), (SIZE, SIZE), interpolation=cv2.INTER_AREA)
+    out[..., 0] = np.where(coverage >= 0.2, ROAD_VALUE, 0)
+    return out
+
+
+def decode_sd(raster: np.ndarray) -> dict[str, np.ndarray]:
+    """Split a raster into ``road`` (bool), ``lanes`` (int, 0 = unknown) and ``heading`` (radians,
+    NaN where not one-way), for tests and pictures."""
+    raster = np.asarray(raster)
+    road = raster[..., 0] > 0
+    lanes = np.where(road, np.round(raster[..., 1] / LANE_STEP), 0).astype(int)
+    heading = np.where(road & (raster[..., 2] > 0), decode_direction(raster[..., 2]), np.nan)
+    return {"road": road, "lanes": lanes, "heading": heading}

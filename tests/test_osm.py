@@ -1,0 +1,114 @@
+from pathlib import Path
+
+import numpy as np
+import pytest
+
+from cmtool.data.osm import parse_lanes, parse_oneway, read_osm, road_class_of
+from cmtool.errors import CmtoolError
+
+FIXTURE = Path(__file__).resolve().parent / "fixtures" / "small.osm"
+
+
+def check_small(sd):
+    roads = {r.id: r for r in sd.roads}
+    assert sorted(roads) == ["w10", "w11", "w13", "w14"]  # footway 12 and building 15 skipped
+    main = roads["w10"]
+    assert (main.road_class, main.lanes, main.oneway) == ("primary", 4, 0)
+    # 0.001 degrees of latitude is about 111 m, northwards (+y); same longitude, so x does not move
+    steps = np.diff(main.polyline, axis=0)
+    np.testing.assert_allclose(steps[:, 1], 111.0, atol=0.5)
+    np.testing.assert_allclose(steps[:, 0], 0.0, atol=0.05)
+    res = roads["w11"]
+    assert (res.road_class, res.lanes, res.oneway) == ("residential", None, -1)
+    # travel runs against the way: from node 4 (east) to node 3 (west)
+    assert res.travel_polyline()[0, 0] > res.travel_polyline()[-1, 0]
+    # 0.001 degrees of longitude at 40.44 N is about 111 km * cos(40.44) = 84.8 m
+    assert abs(res.polyline[1, 0] - res.polyline[0, 0]) == pytest.approx(84.8, abs=0.5)
+    link = roads["w13"]  # node 99 is missing: the way keeps nodes 6, 7 (node 4 alone is dropped)
+    assert (link.road_class, link.lanes, link.oneway) == ("secondary", None, 0)
+    assert len(link.polyline) == 2
+    assert roads["w14"].oneway == 1 and roads["w14"].lanes == 3  # motorways are one-way by default
+    centre = np.concatenate([r.polyline for r in sd.roads]).mean(axis=0)
+    assert np.all(np.abs(centre) < 150.0)  # projected around the data
+    assert sd.meta["lat0"] == pytest.approx(40.4418, abs=1e-3)
+
+
+def test_read_osm_xml():
+    check_small(read_osm(FIXTURE))
+
+
+def test_read_osm_pbf(tmp_path):
+    osmium = pytest.importorskip("osmium")
+    pbf = tmp_path / "small.osm.pbf"
+    with osmium.SimpleWriter(str(pbf)) as writer:
+        for obj in osmium.FileProcessor(str(FIXTURE)):
+            writer.add(obj)
+    check_small(read_osm(pbf))
+
+
+def test_pbf_without_osmium_gives_install_hint(tmp_path, monkeypatch):
+    import builtins
+
+    real_import = builtins.__import__
+
+    def no_osmium(name, *args, **kwargs):
+        if name == "osmium":
+            raise ImportError("no osmium")
+        return real_import(name, *args, **kwargs)
+
+    pbf = tmp_path / "x.osm.pbf"
+    pbf.write_bytes(b"\0")
+    monkeypatch.setattr(builtins, "__import__", no_osmium)
+    with pytest.raises(CmtoolError, match=r"pip install 'cmtool\[osm\]'"):
+        read_osm(pbf)
+
+
+def test_malicious_xml_is_refused(tmp_path):
+    bomb = tmp_path / "bomb.osm"
+    bomb.write_text('<?xml version="1.0"?>\n<!DOCTYPE osm [<!ENTITY a "aaaaaaaaaa"><!ENTITY b "&a;&a;&a;&a;">]>\n'
+                    '<osm><node id="1" lat="0" lon="0"><tag k="name" v="&b;"/></node></osm>\n')
+    with pytest.raises(CmtoolError, match="bomb.osm"):
+        read_osm(bomb)
+
+
+@pytest.mark.parametrize("content, message", [
+    (None, "no such file"),
+    ("<osm><node id='1' lat='north' lon='0'/></osm>", "lacks a valid id"),
+    ("<osm><way id='1'>", "malformed XML"),
+])
+def test_bad_files_raise_cmtool_error(tmp_path, content, message):
+    path = tmp_path / "bad.osm"
+    if content is not None:
+        path.write_text(content)
+    with pytest.raises(CmtoolError, match=message):
+        read_osm(path)
+
+
+def test_bad_pbf_and_wrong_suffix(tmp_path):
+    pytest.importorskip("osmium")
+    junk = tmp_path / "junk.osm.pbf"
+    junk.write_bytes(b"this is not a pbf file at all")
+    with pytest.raises(CmtoolError, match="junk.osm.pbf"):
+        read_osm(junk)
+    other = tmp_path / "map.geojson"
+    other.write_text("{}")
+    with pytest.raises(CmtoolError, match="expected an OpenStreetMap"):
+        read_osm(other)
+
+
+def test_empty_file_gives_empty_map(tmp_path):
+    path = tmp_path / "empty.osm"
+    path.write_text("<osm version='0.6'><node id='1' lat='1' lon='2'/></osm>")
+    assert read_osm(path).roads == []
+
+
+def test_tag_parsing():
+    assert [road_class_of(h) for h in ("motorway_link", "footway", "living_street", None, "trunk")] == [
+        "motorway", None, "residential", None, "trunk"]
+    values = ("3", " 2 ", "2;3", "many", None, "0", "40")
+    assert [parse_lanes(v) for v in values] == [3, 2, None, None, None, None, None]
+    assert [parse_oneway({"oneway": v}) for v in ("yes", "True", "1", "-1", "reverse", "no", "maybe")] == [
+        1, 1, 1, -1, -1, 0, 0]
+    assert parse_oneway({"highway": "motorway"}) == 1
+    assert parse_oneway({"highway": "motorway", "oneway": "no"}) == 0
+    assert parse_oneway({"highway": "primary", "junction": "roundabout"}) == 1

@@ -1,0 +1,137 @@
+from pathlib import Path
+
+import numpy as np
+import pytest
+import shapely
+from fixtures.hdmaps import add_road, connect_intersection, crossroads
+
+from cmtool.data.hdmap import HDMap
+from cmtool.data.sd_derive import SDJitter, derive_sd, road_class, road_network
+from cmtool.data.sdmap import SDMap
+
+AV2 = Path(__file__).resolve().parents[1] / ".." / "shared" / "data" / "av2"
+
+
+def by_lanes(sd):
+    return {r.lanes: r for r in sd.roads}
+
+
+@pytest.mark.parametrize("kwargs", [
+    {},  # procedural style: road_id and intersection_id set
+    {"road_id": False, "pieces": 3},  # imported style: short lane pieces, no road ids
+    {"road_id": False, "pieces": 3, "with_id": False},  # and connectors without intersection ids
+])
+def test_crossroads_gives_two_continuous_roads(kwargs):
+    sd = derive_sd(crossroads(**kwargs))
+    assert len(sd.roads) == 2
+    roads = by_lanes(sd)
+    assert set(roads) == {2, 4}
+    ew, ns = roads[2], roads[4]
+    assert ew.oneway == 0 and ns.oneway == 0
+    assert (ew.road_class, ns.road_class) == ("residential", "secondary")
+    # one polyline each, on the road's midline, running through the intersection
+    assert np.abs(ew.polyline[:, 1]).max() < 0.3 and np.abs(ns.polyline[:, 0]).max() < 0.3
+    assert np.ptp(ew.polyline[:, 0]) > 195 and np.ptp(ns.polyline[:, 1]) > 195
+    for r in (ew, ns):
+        assert shapely.LineString(r.polyline).distance(shapely.Point(0, 0)) < 0.3
+
+
+def test_oneway_street_runs_in_travel_direction():
+    hd = HDMap(city="TST")
+    add_road(hd, "A", (100, 0), (12, 0), forward=2, backward=0)  # westbound one-way, two lanes
+    add_road(hd, "B", (-12, 0), (-100, 0), forward=2, backward=0)
+    add_road(hd, "S", (0, -100), (0, -12))
+    add_road(hd, "N", (0, 12), (0, 100))
+    connect_intersection(hd, "I", (0, 0))
+    sd = derive_sd(hd)
+    oneway = [r for r in sd.roads if r.oneway]
+    assert len(sd.roads) == 2 and len(oneway) == 1
+    west = oneway[0]
+    assert west.oneway == 1 and west.lanes == 2
+    assert west.polyline[0, 0] > 90 and west.polyline[-1, 0] < -90  # along travel (westwards)
+    assert np.all(np.diff(west.polyline[:, 0]) < 0)
+    assert np.abs(west.polyline[:, 1] - 3.5).max() < 0.3  # middle of its two lanes (right of travel = north)
+
+
+def test_median_road_uses_the_midline():
+    hd = HDMap(city="SGP")
+    add_road(hd, "M", (0, 0), (200, 0), forward=2, backward=2, median=4.0, width=3.2)
+    sd = derive_sd(hd)
+    assert len(sd.roads) == 1
+    r = sd.roads[0]
+    assert (r.lanes, r.oneway, r.road_class) == (4, 0, "secondary")
+    assert np.abs(r.polyline[:, 1]).max() < 0.3
+
+
+def test_turns_do_not_continue_a_road():
+    hd = HDMap(city="TST")
+    add_road(hd, "W", (-100, 0), (-12, 0))
+    add_road(hd, "N", (0, 12), (0, 100))
+    add_road(hd, "E", (12, 0), (100, 0), forward=2, backward=2)  # different lane count
+    connect_intersection(hd, "I", (0, 0))
+    sd = derive_sd(hd)
+    assert len(sd.roads) == 3
+    net = road_network(hd)
+    assert [p.ends for p in net.pieces] == [[None, "I"], ["I", None], ["I", None]]
+    centre = net.intersections["I"]
+    assert np.linalg.norm(centre) < 4.0  # centroid of the connector lanes
+    for r in sd.roads:  # each way ends at the junction node, like OSM ways at a T-junction
+        assert min(np.linalg.norm(r.polyline[[0, -1]] - centre, axis=1)) < 1e-9
+
+
+def test_jitter():
+    hd = crossroads()
+    base = derive_sd(hd)
+    for other in (derive_sd(hd), derive_sd(hd, SDJitter()), derive_sd(hd, None, seed=5)):
+        assert other.to_json() == base.to_json()
+    moved = derive_sd(hd, SDJitter(offset_m=5.0), seed=3)
+    assert moved.to_json() == derive_sd(hd, SDJitter(offset_m=5.0), seed=3).to_json()
+    shifts = np.concatenate([m.polyline - b.polyline for m, b in zip(moved.roads, base.roads)])
+    assert np.allclose(shifts, shifts[0]) and 0.0 < np.linalg.norm(shifts[0]) <= 5.0
+    other = derive_sd(hd, SDJitter(offset_m=5.0), seed=4)
+    assert not np.allclose(other.roads[0].polyline, moved.roads[0].polyline)
+    turned = derive_sd(hd, SDJitter(rotation_deg=10.0), seed=1)
+    for t, b in zip(turned.roads, base.roads):
+        np.testing.assert_allclose(np.linalg.norm(np.diff(t.polyline, axis=0), axis=1),
+                                   np.linalg.norm(np.diff(b.polyline, axis=0), axis=1))
+        h_t = np.arctan2(*(t.polyline[-1] - t.polyline[0])[::-1])
+        h_b = np.arctan2(*(b.polyline[-1] - b.polyline[0])[::-1])
+        assert 0.0 < abs(np.degrees(h_t - h_b)) <= 10.0
+    dropped = derive_sd(hd, SDJitter(drop_minor=1.0))
+    assert [r.road_class for r in dropped.roads] == ["secondary"]  # the residential road is gone
+
+
+def test_road_class_rule():
+    assert [road_class(n, 3.5) for n in (8, 6, 5, 4, 3, 2, 1)] == [
+        "primary", "primary", "secondary", "secondary", "tertiary", "residential", "residential"]
+    assert road_class(2, 2.5) == "service"
+
+
+def test_derived_map_is_valid_json():
+    sd = derive_sd(crossroads(road_id=False, pieces=2))
+    back = SDMap.from_json(sd.to_json())
+    assert [r.lanes for r in back.roads] == [r.lanes for r in sd.roads]
+
+
+def test_empty_map():
+    assert derive_sd(HDMap(city="X")).roads == []
+
+
+def test_argoverse2_maps():
+    files = sorted(AV2.glob("*.json"))
+    if not files:
+        pytest.skip("shared Argoverse 2 sample data not available")
+    importers = pytest.importorskip("cmtool.data.importers")
+    for path in files:
+        hd = importers.import_hd_map("av2", path)
+        sd = derive_sd(hd)
+        SDMap.from_json(sd.to_json())  # valid: lane counts 1..16, classes known, finite points
+        net = road_network(hd)
+        assert len(net.intersections) >= 5
+        road_lanes = sum(1 for l in hd.lanes.values() if not l.is_intersection)
+        assert 5 <= len(sd.roads) < road_lanes / 3  # far fewer roads than lane pieces
+        two_way = [r for r in sd.roads if r.oneway == 0]
+        assert two_way and all(r.lanes >= 2 for r in two_way)
+        pts = np.concatenate([r.polyline for r in sd.roads])
+        lo, hi = np.array(hd.bounds()[:2]), np.array(hd.bounds()[2:])
+        assert np.all(pts >= lo - 20.0) and np.all(pts <= hi + 20.0)
