@@ -1,0 +1,195 @@
+"""Scenes: 64 m crops of an HD map around an ego pose, as fixed-size SLEDGE-style vectors.
+
+A scene holds the drivable lane centerlines (vehicle and bus lanes, intersection connectors
+included) in the ego frame (x forward, y left), clipped to the square frame and split where a
+lane leaves and re-enters it. Pieces shorter than ``min_piece_m`` are dropped; the ``num_lines``
+pieces nearest the ego are kept, nearest first, each resampled to ``num_points`` points.
+Successor edges survive clipping: piece p -> piece q when p ends where its lane ends, q starts
+where its lane starts and the lanes are successors. Traffic-light lines are the pieces of the
+lanes that green / red stop lines control, nearest first, up to ``num_lights`` per state.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import numpy as np
+import shapely
+
+from cmtool.data.hdmap import HDMap
+from cmtool.data.lanegraph import LaneGraph
+from cmtool.geometry import from_frame, resample, to_frame
+
+DRIVABLE = ("vehicle", "bus")
+_END_TOL_M = 1e-3  # a clipped piece within this of its lane's end keeps that end
+
+
+@dataclass
+class Pose:
+    x: float
+    y: float
+    yaw: float  # radians, world frame
+
+    def as_array(self) -> np.ndarray:
+        return np.array([self.x, self.y, self.yaw], dtype=np.float64)
+
+
+@dataclass
+class Scene:
+    """Fixed-size scene vectors (padded; valid entries first) plus where they came from."""
+
+    lines: np.ndarray  # (L, P, 2) float32, ego frame metres
+    line_mask: np.ndarray  # (L,) bool
+    edges: np.ndarray  # (E, 2) int64, indices into lines
+    green: np.ndarray  # (K, P, 2) float32
+    green_mask: np.ndarray  # (K,) bool
+    red: np.ndarray  # (K, P, 2) float32
+    red_mask: np.ndarray  # (K,) bool
+    city: str
+    source: str
+    pose: Pose
+    frame_m: float = 64.0
+    sd: np.ndarray | None = None  # (128, 128, 3) uint8 SD raster of the same frame, when paired
+
+    def to_lanegraph(self) -> LaneGraph:
+        """The scene in the lane graph interchange format (DESIGN.md §4)."""
+        return LaneGraph(
+            lanes=[l.astype(np.float64) for l in self.lines[self.line_mask]],
+            successors=[(int(i), int(j)) for i, j in self.edges],
+            green_lights=[l.astype(np.float64) for l in self.green[self.green_mask]],
+            red_lights=[l.astype(np.float64) for l in self.red[self.red_mask]],
+            city=self.city,
+            frame_m=self.frame_m,
+            meta={"source": self.source, "pose": [round(float(v), 4) for v in self.pose.as_array()]},
+        )
+
+
+def drivable_lanes(hd: HDMap) -> list:
+    return [lane for lane in hd.lanes.values() if lane.lane_type in DRIVABLE]
+
+
+def sample_poses(hd: HDMap, n: int, rng: np.random.Generator, min_spacing_m: float = 16.0,
+                 oversample: int = 4) -> list[Pose]:
+    """``n`` ego poses on drivable lanes, uniform over lane length, heading along the lane.
+
+    ``oversample * n`` candidates are drawn; they are taken in order when at least
+    ``min_spacing_m`` from every pose already taken, and the rest fill up when too few are.
+    """
+    lanes = drivable_lanes(hd)
+    if n <= 0 or not lanes:
+        return []
+    starts = np.concatenate([l.centerline[:-1] for l in lanes])
+    vecs = np.concatenate([np.diff(l.centerline, axis=0) for l in lanes])
+    seglen = np.linalg.norm(vecs, axis=1)
+    cum = np.cumsum(seglen)
+    s = rng.uniform(0.0, cum[-1], size=n * oversample)
+    seg = np.minimum(np.searchsorted(cum, s, side="right"), len(cum) - 1)
+    t = (s - cum[seg] + seglen[seg]) / np.maximum(seglen[seg], 1e-12)
+    points = starts[seg] + np.clip(t, 0.0, 1.0)[:, None] * vecs[seg]
+    yaws = np.arctan2(vecs[seg, 1], vecs[seg, 0])
+
+    taken: list[int] = []
+    for k in range(len(points)):
+        if len(taken) == n:
+            break
+        if not taken or np.min(np.linalg.norm(points[taken] - points[k], axis=1)) >= min_spacing_m:
+            taken.append(k)
+    chosen = set(taken)
+    taken += [k for k in range(len(points)) if k not in chosen][: n - len(taken)]
+    return [Pose(float(points[k, 0]), float(points[k, 1]), float(yaws[k])) for k in taken]
+
+
+class SceneCropper:
+    """Crops scenes out of one HD map (the map's lane geometry is indexed once)."""
+
+    def __init__(self, hd: HDMap):
+        self.hd = hd
+        self.lanes = drivable_lanes(hd)
+        self.index = {lane.id: i for i, lane in enumerate(self.lanes)}
+        self.geoms = np.array([shapely.LineString(lane.centerline) for lane in self.lanes], dtype=object)
+        self.lengths = shapely.length(self.geoms)
+        self.bounds = np.array([(*l.centerline.min(0), *l.centerline.max(0)) for l in self.lanes]).reshape(-1, 4)
+        self.successors = [[self.index[s] for s in lane.successors if s in self.index] for lane in self.lanes]
+        self.lights = {
+            state: {self.index[i] for sl in hd.stop_lines if sl.state == state for i in sl.lane_ids if i in self.index}
+            for state in ("green", "red")
+        }
+
+    def extract(self, pose: Pose, num_lines: int = 30, num_points: int = 20, num_lights: int = 10,
+                frame_m: float = 64.0, min_piece_m: float = 2.0) -> Scene:
+        lane_of, lines, at_start, at_end = self._pieces(pose, frame_m / 2.0, min_piece_m)
+        kept = range(min(len(lines), num_lines))
+        out = np.zeros((num_lines, num_points, 2), np.float32)
+        for k in kept:
+            out[k] = resample(lines[k], num_points)
+        mask = np.arange(num_lines) < len(kept)
+
+        starting = {lane_of[k]: k for k in kept if at_start[k]}
+        edges = [
+            (k, starting[s])
+            for k in kept if at_end[k]
+            for s in self.successors[lane_of[k]] if s in starting and s != lane_of[k]
+        ]
+
+        lights = {}
+        for state in ("green", "red"):
+            arr = np.zeros((num_lights, num_points, 2), np.float32)
+            m = np.zeros(num_lights, bool)
+            chosen = [k for k in range(len(lines)) if lane_of[k] in self.lights[state]][:num_lights]
+            for row, k in enumerate(chosen):
+                arr[row] = resample(lines[k], num_points)
+                m[row] = True
+            lights[state] = (arr, m)
+
+        return Scene(
+            lines=out, line_mask=mask, edges=np.array(edges, np.int64).reshape(-1, 2),
+            green=lights["green"][0], green_mask=lights["green"][1],
+            red=lights["red"][0], red_mask=lights["red"][1],
+            city=self.hd.city, source=self.hd.source, pose=pose, frame_m=frame_m,
+        )
+
+    def _pieces(self, pose: Pose, half: float, min_piece_m: float):
+        """Clipped lane pieces in the ego frame, nearest the ego first.
+
+        Returns (lane index per piece, (N_k, 2) ego-frame polylines, starts-at-lane-start flags,
+        ends-at-lane-end flags).
+        """
+        reach = half * np.sqrt(2.0)
+        near = np.flatnonzero(
+            (self.bounds[:, 0] <= pose.x + reach) & (self.bounds[:, 2] >= pose.x - reach)
+            & (self.bounds[:, 1] <= pose.y + reach) & (self.bounds[:, 3] >= pose.y - reach)
+        )
+        if len(near) == 0:
+            return [], [], [], []
+        corners = np.array([[half, half], [-half, half], [-half, -half], [half, -half]])
+        square = shapely.Polygon(from_frame(corners, pose.x, pose.y, pose.yaw))
+        parts, src = shapely.get_parts(shapely.intersection(self.geoms[near], square), return_index=True)
+        keep = (shapely.get_type_id(parts) == 1) & (shapely.length(parts) >= max(min_piece_m, 1e-9))
+        parts, lane_idx = parts[keep], near[src[keep]]
+        if len(parts) == 0:
+            return [], [], [], []
+
+        coords, owner = shapely.get_coordinates(parts, return_index=True)
+        first = np.searchsorted(owner, np.arange(len(parts)))
+        last = np.append(first[1:], len(owner)) - 1
+        s0 = shapely.line_locate_point(self.geoms[lane_idx], shapely.points(coords[first]))
+        s1 = shapely.line_locate_point(self.geoms[lane_idx], shapely.points(coords[last]))
+        flipped = s1 < s0
+        lo, hi = np.minimum(s0, s1), np.maximum(s0, s1)
+        at_start = lo <= _END_TOL_M
+        at_end = hi >= self.lengths[lane_idx] - _END_TOL_M
+
+        dist = shapely.distance(parts, shapely.Point(pose.x, pose.y))
+        order = np.lexsort((lo, lane_idx, dist))
+        local = np.clip(to_frame(coords, pose.x, pose.y, pose.yaw), -half, half)
+        lines = []
+        for k in order:
+            line = local[first[k]: last[k] + 1]
+            lines.append(line[::-1] if flipped[k] else line)
+        return lane_idx[order].tolist(), lines, at_start[order], at_end[order]
+
+
+def extract_scene(hd: HDMap, pose: Pose, num_lines: int = 30, num_points: int = 20, num_lights: int = 10,
+                  frame_m: float = 64.0, min_piece_m: float = 2.0) -> Scene:
+    """Crop one scene around ``pose`` (see :class:`SceneCropper` to crop many from one map)."""
+    return SceneCropper(hd).extract(pose, num_lines, num_points, num_lights, frame_m, min_piece_m)

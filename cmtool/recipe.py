@@ -1,0 +1,192 @@
+"""Recipes: TOML files that fix every setting of a run (data set, later the models).
+
+Every field has a default here; a recipe file overrides any of them. A recipe has one table per
+stage (``[data]`` now; a new stage is a new dataclass and one more field of :class:`Recipe`).
+Unknown keys and wrong types raise :class:`CmtoolError` naming the file and the key::
+
+    [data]
+    name = "tiny"
+    maps_per_city = 1
+    [data.sd_jitter]
+    offset_m = 1.0
+    [[data.real_maps]]
+    format = "av2"
+    path = "../shared/data/av2/*.json"
+    split = "test"
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import glob
+import sys
+import types
+import typing
+from dataclasses import dataclass, field
+from pathlib import Path
+
+from cmtool.errors import CmtoolError
+
+if sys.version_info >= (3, 11):
+    import tomllib
+else:  # pragma: no cover
+    import tomli as tomllib
+
+REAL_FORMATS = ("av2", "lanelet2", "nuplan")
+
+
+@dataclass
+class SDJitterRecipe:
+    """Perturbations of the SD map derived from each HD map (all zero: off)."""
+
+    offset_m: float = 0.0  # random shift of the whole SD map (m)
+    rotation_deg: float = 0.0  # random rotation of the whole SD map (degrees)
+    drop_minor: float = 0.0  # probability of dropping each minor road
+
+    @property
+    def enabled(self) -> bool:
+        return self.offset_m > 0 or self.rotation_deg > 0 or self.drop_minor > 0
+
+
+@dataclass
+class RealMapsRecipe:
+    """Real HD maps to import: every file matching ``path`` becomes one work unit."""
+
+    format: str  # av2 | lanelet2 | nuplan
+    path: str  # file or glob, relative to the recipe's folder (or the current folder)
+    split: str = "train"
+    city: str | None = None  # city label; None keeps the importer's
+    scenes_per_map: int | None = None  # None: the data recipe's scenes_per_map
+
+
+@dataclass
+class DataRecipe:
+    """The scene data set: which maps, how many scenes, and the scene/raster geometry."""
+
+    name: str = "data"
+    seed: int = 0
+    train_cities: list[str] = field(default_factory=lambda: ["LAV", "PIT", "SGP"])
+    test_cities: list[str] = field(default_factory=lambda: ["BOS"])
+    maps_per_city: int = 4  # procedural maps per train city
+    test_maps_per_city: int = 1  # procedural maps per test city
+    scenes_per_map: int = 250
+    extent: float = 800.0  # side of each procedural city (m)
+    px_m: float = 0.5  # HD raster pixel size (m): 0.5 -> 128 px, 0.25 -> 256 px
+    frame_m: float = 64.0  # scene square side (m)
+    num_lines: int = 30
+    num_points: int = 20
+    num_lights: int = 10  # per light state (green, red)
+    min_piece_m: float = 2.0  # clipped lane pieces shorter than this are dropped
+    min_pose_spacing_m: float = 16.0  # ego poses of one map are kept this far apart when possible
+    shard_size: int = 250  # scenes per shard file
+    sd_jitter: SDJitterRecipe = field(default_factory=SDJitterRecipe)
+    real_maps: list[RealMapsRecipe] = field(default_factory=list)
+
+    def check(self, where: str) -> None:
+        """Reject values that are well-typed but meaningless."""
+        positive = ("extent", "px_m", "frame_m", "num_lines", "num_points", "shard_size")
+        for key in positive:
+            if getattr(self, key) <= 0:
+                raise CmtoolError(f"{where}: data.{key}: must be positive, got {getattr(self, key)}")
+        for key in ("maps_per_city", "test_maps_per_city", "scenes_per_map", "num_lights", "min_piece_m"):
+            if getattr(self, key) < 0:
+                raise CmtoolError(f"{where}: data.{key}: must not be negative, got {getattr(self, key)}")
+        if (self.frame_m / self.px_m) % 1:
+            raise CmtoolError(f"{where}: data.px_m: frame_m / px_m must be a whole number of pixels")
+        both = sorted(set(self.train_cities) & set(self.test_cities))
+        if both:
+            raise CmtoolError(f"{where}: data.test_cities: {both} also in train_cities (splits are by city)")
+        if not 0.0 <= self.sd_jitter.drop_minor <= 1.0:
+            raise CmtoolError(f"{where}: data.sd_jitter.drop_minor: must be a probability in [0, 1]")
+        for i, rm in enumerate(self.real_maps):
+            if rm.format not in REAL_FORMATS:
+                raise CmtoolError(f"{where}: data.real_maps[{i}].format: expected one of {REAL_FORMATS}, got {rm.format!r}")
+
+
+@dataclass
+class Recipe:
+    """A whole recipe: one section per stage."""
+
+    data: DataRecipe = field(default_factory=DataRecipe)
+    path: Path | None = field(default=None, metadata={"toml": False})  # the file it was read from
+
+    def to_dict(self) -> dict:
+        """The recipe's values as plain data (for manifests and checkpoints)."""
+        return {f.name: dataclasses.asdict(getattr(self, f.name)) for f in _toml_fields(Recipe)}
+
+    def real_map_files(self) -> list[tuple[RealMapsRecipe, Path]]:
+        """Every real-map file of the data section (sorted within each entry)."""
+        bases = ([self.path.parent] if self.path else []) + [Path.cwd()]
+        out = []
+        for i, rm in enumerate(self.data.real_maps):
+            for base in bases:
+                hits = sorted(glob.glob(str(base / rm.path)))
+                if hits:
+                    out += [(rm, Path(h)) for h in hits]
+                    break
+            else:
+                raise CmtoolError(f"{self.path or 'recipe'}: data.real_maps[{i}].path: no file matches {rm.path!r}")
+        return out
+
+
+def load_recipe(path) -> Recipe:
+    """Read a recipe TOML file; every missing field keeps its default."""
+    path = Path(path)
+    if not path.is_file():
+        raise CmtoolError(f"{path}: no such recipe file")
+    try:
+        table = tomllib.loads(path.read_text(encoding="utf-8"))
+    except tomllib.TOMLDecodeError as e:
+        raise CmtoolError(f"{path}: malformed TOML: {e}") from None
+    except UnicodeDecodeError:
+        raise CmtoolError(f"{path}: not a UTF-8 text file") from None
+    recipe = _build(Recipe, table, f"{path}: ", "")
+    recipe.path = path
+    recipe.data.check(str(path))
+    recipe.real_map_files()
+    return recipe
+
+
+def _toml_fields(cls) -> list[dataclasses.Field]:
+    return [f for f in dataclasses.fields(cls) if f.metadata.get("toml", True)]
+
+
+def _build(cls, table, where: str, prefix: str):
+    """Construct dataclass ``cls`` from a TOML table, checking keys and types."""
+    if not isinstance(table, dict):
+        raise CmtoolError(f"{where}{prefix.rstrip('.') or 'recipe'}: expected a table")
+    fields = {f.name: f for f in _toml_fields(cls)}
+    hints = typing.get_type_hints(cls)
+    unknown = sorted(set(table) - set(fields))
+    if unknown:
+        raise CmtoolError(f"{where}{prefix}{unknown[0]}: unknown key (known: {', '.join(fields)})")
+    missing = [n for n, f in fields.items() if n not in table and f.default is dataclasses.MISSING
+               and f.default_factory is dataclasses.MISSING]
+    if missing:
+        raise CmtoolError(f"{where}{prefix}{missing[0]}: missing")
+    return cls(**{k: _convert(hints[k], v, where, prefix + k) for k, v in table.items()})
+
+
+def _convert(tp, value, where: str, key: str):
+    """Check ``value`` against type hint ``tp`` (int/float/str/bool, lists, Optional, dataclasses)."""
+    origin, args = typing.get_origin(tp), typing.get_args(tp)
+    if origin in (typing.Union, types.UnionType):
+        if value is None and type(None) in args:  # TOML has no null; kept for completeness
+            return None
+        (inner,) = [a for a in args if a is not type(None)]
+        return _convert(inner, value, where, key)
+    if dataclasses.is_dataclass(tp):
+        return _build(tp, value, where, key + ".")
+    if origin is list:
+        if not isinstance(value, list):
+            raise CmtoolError(f"{where}{key}: expected a list, got {value!r}")
+        return [_convert(args[0], v, where, f"{key}[{i}]") for i, v in enumerate(value)]
+    ok = {
+        bool: isinstance(value, bool),
+        int: isinstance(value, int) and not isinstance(value, bool),
+        float: isinstance(value, (int, float)) and not isinstance(value, bool),
+        str: isinstance(value, str),
+    }[tp]
+    if not ok:
+        raise CmtoolError(f"{where}{key}: expected {tp.__name__}, got {value!r}")
+    return float(value) if tp is float else value

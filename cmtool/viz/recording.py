@@ -1,0 +1,58 @@
+"""Rerun recordings of scenes (DESIGN.md §6 layout), shared by ``data show`` and later sampling.
+
+Scene data is logged in ego-frame metres (x forward, y left) under ``<prefix>hd/...``; a transform
+on ``<prefix>hd`` maps it to the 2D view's screen axes (forward up, left left), and the SD raster
+at ``<prefix>control/sd`` is placed on the same 64 m square, so lanes draw over their control.
+"""
+
+from __future__ import annotations
+
+import numpy as np
+import rerun as rr
+import rerun.blueprint as rrb
+
+from cmtool.viz.draw import GREEN, RED, heading_colours, sd_panel
+
+# ego (x forward, y left) -> screen (u right, v down): u = -y, v = -x
+_EGO_TO_SCREEN = [[0.0, -1.0, 0.0], [-1.0, 0.0, 0.0], [0.0, 0.0, 1.0]]
+
+
+def open_recording(path, application_id: str = "cmtool") -> rr.RecordingStream:
+    """A recording stream that writes to ``path`` (an ``.rrd`` file)."""
+    rec = rr.RecordingStream(application_id)
+    rec.save(str(path))
+    return rec
+
+
+def log_scene(rec: rr.RecordingStream, prefix: str, scene) -> None:
+    """Log a scene's lanes, successor arrows, light lines and SD raster under ``prefix``."""
+    half = scene.frame_m / 2.0
+    rec.log(f"{prefix}hd", rr.Transform3D(mat3x3=_EGO_TO_SCREEN))
+    lines = scene.lines[scene.line_mask]
+    mid = lines[:, -1] - lines[:, 0] if len(lines) else np.zeros((0, 2))
+    rec.log(f"{prefix}hd/lanes", rr.LineStrips2D(list(lines), radii=0.25,
+                                                 colors=heading_colours(np.arctan2(mid[:, 1], mid[:, 0]))))
+    origins = np.array([lines[i][-3] for i, _ in scene.edges]).reshape(-1, 2)
+    targets = np.array([lines[j][2] for _, j in scene.edges]).reshape(-1, 2)
+    rec.log(f"{prefix}hd/successors", rr.Arrows2D(origins=origins, vectors=targets - origins, radii=0.15,
+                                                  colors=[255, 255, 255]))
+    for state, colour, vecs, mask in (("green", GREEN, scene.green, scene.green_mask),
+                                      ("red", RED, scene.red, scene.red_mask)):
+        rec.log(f"{prefix}hd/lights/{state}", rr.LineStrips2D(list(vecs[mask]), radii=0.8, colors=colour,
+                                                              draw_order=20.0))
+    if scene.sd is not None:
+        size = scene.sd.shape[0]
+        rec.log(f"{prefix}control/sd",
+                rr.Image(sd_panel(scene.sd, size), opacity=0.7, draw_order=-10.0, magnification_filter="Nearest"),
+                rr.Transform3D(translation=[-half, -half, 0.0], scale=scene.frame_m / size))
+
+
+def scenes_blueprint(names: list[str], half: float = 32.0, info: bool = True) -> rrb.Blueprint:
+    """A grid of 2D views, one per ``sample_{k}`` (titled by ``names``), plus the info text."""
+    bounds = rrb.VisualBounds2D(x_range=[-half, half], y_range=[-half, half])
+    views = [rrb.Spatial2DView(origin=f"/sample_{k}", name=name, visual_bounds=bounds) for k, name in enumerate(names)]
+    grid = rrb.Grid(*views, grid_columns=int(np.ceil(np.sqrt(max(len(views), 1)))))
+    if not info:
+        return rrb.Blueprint(grid, collapse_panels=True)
+    return rrb.Blueprint(rrb.Horizontal(grid, rrb.TextDocumentView(origin="/info", name="info"),
+                                        column_shares=[5, 1]), collapse_panels=True)

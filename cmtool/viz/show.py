@@ -1,0 +1,68 @@
+"""``cmtool data show``: a picture grid and a Rerun recording of scenes from a dataset cache."""
+
+from __future__ import annotations
+
+from pathlib import Path
+
+import cv2
+import numpy as np
+import rerun as rr
+
+from cmtool.data.cache import load_dataset
+from cmtool.errors import CmtoolError
+from cmtool.viz.draw import grid, lanes_panel, legend, sd_panel, title_strip
+from cmtool.viz.recording import log_scene, open_recording, scenes_blueprint
+
+PANEL = 256
+
+
+def pick(count: int, n: int, seed: int = 0) -> list[int]:
+    """``n`` distinct indices out of ``count`` (sorted; the same for the same seed)."""
+    return sorted(np.random.default_rng(seed).choice(count, size=min(n, count), replace=False).tolist())
+
+
+def scene_title(k: int, scene) -> str:
+    return f"#{k} {scene.city}  {scene.source}"
+
+
+def scene_tile(scene, title: str, panel: int = PANEL) -> np.ndarray:
+    """A title strip over the HD lanes panel and the SD raster panel side by side."""
+    sd = sd_panel(scene.sd, panel) if scene.sd is not None else np.zeros((panel, panel, 3), np.uint8)
+    body = np.concatenate([lanes_panel(scene, panel), np.full((panel, 2, 3), 60, np.uint8), sd], axis=1)
+    return np.concatenate([title_strip(title, body.shape[1]), body], axis=0)
+
+
+def write_png(path, image: np.ndarray) -> None:
+    path = Path(path)
+    path.parent.mkdir(parents=True, exist_ok=True)
+    if not cv2.imwrite(str(path), cv2.cvtColor(image, cv2.COLOR_RGB2BGR)):
+        raise CmtoolError(f"{path}: could not write the picture (is the extension .png?)")
+
+
+def show_dataset(data_dir, n: int = 16, png=None, rrd=None, split: str | None = None, seed: int = 0) -> None:
+    """Pick ``n`` scenes of ``split`` (all splits when None) and write a PNG grid and/or an .rrd."""
+    if png is None and rrd is None:
+        raise CmtoolError("nothing to write: give a PNG path, an .rrd path, or both")
+    if n < 1:
+        raise CmtoolError(f"n: must be at least 1, got {n}")
+    data = load_dataset(data_dir, split)
+    chosen = pick(len(data), n, seed)
+    scenes = [data.scene(i) for i in chosen]
+    titles = [scene_title(i, s) for i, s in zip(chosen, scenes)]
+    if png is not None:
+        tiles = [scene_tile(s, t) for s, t in zip(scenes, titles)]
+        picture = grid(tiles, columns=int(np.ceil(np.sqrt(len(tiles)))))
+        write_png(png, np.concatenate([picture, legend(picture.shape[1])], axis=0))
+    if rrd is not None:
+        Path(rrd).parent.mkdir(parents=True, exist_ok=True)
+        rec = open_recording(rrd)
+        rec.send_blueprint(scenes_blueprint(titles, data.frame_m / 2.0))
+        rec.log("info", rr.TextDocument(
+            f"# cmtool data show\n\ndataset: `{data_dir}`\n\nsplit: {split or 'all'}, seed {seed}\n\n"
+            + "\n".join(f"- sample_{k}: scene {t}" for k, t in enumerate(titles)), media_type="text/markdown"),
+            static=True)
+        for k, scene in enumerate(scenes):
+            rec.set_time("sample", sequence=k)
+            log_scene(rec, f"sample_{k}/", scene)
+        rec.flush()
+        rec.disconnect()

@@ -1,0 +1,180 @@
+"""Recipes and the dataset cache: determinism, resumability, split by city, real maps."""
+
+from pathlib import Path
+
+import numpy as np
+import pytest
+
+from cmtool.data import cache
+from cmtool.data.cache import build_dataset, load_dataset, load_manifest
+from cmtool.errors import CmtoolError
+from cmtool.recipe import load_recipe
+
+REPO = Path(__file__).resolve().parents[1]
+TINY = REPO / "recipes" / "data_tiny.toml"
+SHARED_DATA = REPO / ".." / "shared" / "data"
+
+
+@pytest.fixture(scope="module")
+def tiny(tmp_path_factory):
+    out = tmp_path_factory.mktemp("tiny")
+    summary = build_dataset(TINY, out, workers=2, progress=False)
+    return out, summary
+
+
+def arrays(out, split):
+    return load_dataset(out, split).arrays
+
+
+def test_tiny_build_is_split_by_city(tiny):
+    out, summary = tiny
+    assert summary["splits"]["train"] == {"scenes": 24, "cities": {"LAV": 8, "PIT": 8, "SGP": 8}}
+    assert summary["splits"]["test"] == {"scenes": 8, "cities": {"BOS": 8}}
+    manifest = load_manifest(out)
+    assert manifest["cities"] == ["LAV", "PIT", "SGP", "BOS"] and manifest["px_m"] == 0.5
+    train, test = load_dataset(out, "train"), load_dataset(out, "test")
+    assert set(train.city.tolist()) == {"LAV", "PIT", "SGP"} and set(test.city.tolist()) == {"BOS"}
+    assert test.city_index.tolist() == [3] * 8
+    assert train.lines.shape == (24, 30, 20, 2) and train.lines.dtype == np.float32
+    assert train.sd.shape == (24, 128, 128, 3) and train.sd.dtype == np.uint8
+    assert train.line_mask.sum(1).min() >= 1  # every scene has its ego lane
+    assert np.abs(train.lines).max() <= 32.0 + 1e-4
+    assert (train.sd[..., 0] > 0).any()
+
+
+def test_scenes_read_back_with_valid_edges(tiny):
+    out, _ = tiny
+    data = load_dataset(out)  # all splits
+    assert len(data) == 32
+    edges = 0
+    for scene in data:
+        graph = scene.to_lanegraph()  # validates indices through the interchange format
+        n = int(scene.line_mask.sum())
+        assert all(0 <= i < n and 0 <= j < n for i, j in graph.successors)
+        edges += len(graph.successors)
+        # the ego lane passes through the origin with heading +x
+        assert np.min(np.linalg.norm(scene.lines[scene.line_mask].reshape(-1, 2), axis=1)) < 3.0
+    assert edges > 0
+
+
+def test_build_is_deterministic(tiny, tmp_path):
+    out, _ = tiny
+    build_dataset(TINY, tmp_path, workers=1, progress=False)
+    for split in ("train", "test"):
+        a, b = arrays(out, split), arrays(tmp_path, split)
+        for key in a:
+            np.testing.assert_array_equal(a[key], b[key], err_msg=key)
+
+
+def test_resume_rebuilds_only_missing_shard(tmp_path):
+    build_dataset(TINY, tmp_path, workers=1, progress=False)
+    shards = sorted(tmp_path.glob("*/*.npz"))
+    assert len(shards) == 8  # 4 maps x 8 scenes, 4 scenes per shard
+    before = {p: p.stat().st_mtime_ns for p in shards}
+    reference = arrays(tmp_path, "train")
+    shards[3].unlink()
+    summary = build_dataset(TINY, tmp_path, workers=1, progress=False)
+    assert summary["units_built"] == 1 and summary["units_skipped"] == 3
+    assert [p for p in shards if p.stat().st_mtime_ns != before[p]] == [shards[3]]
+    again = arrays(tmp_path, "train")
+    for key in reference:
+        np.testing.assert_array_equal(reference[key], again[key], err_msg=key)
+    assert build_dataset(TINY, tmp_path, workers=1, progress=False)["units_built"] == 0
+
+
+def test_interrupted_build_leaves_no_partial_shard(tmp_path, monkeypatch):
+    calls = []
+
+    def failing(fh, **arrays):
+        calls.append(1)
+        if len(calls) == 3:
+            fh.write(b"PK partial")
+            raise KeyboardInterrupt
+        return np.savez(fh, **arrays)
+
+    monkeypatch.setattr(cache.np, "savez_compressed", failing)
+    with pytest.raises(KeyboardInterrupt):
+        build_dataset(TINY, tmp_path, workers=1, progress=False)
+    assert len(list(tmp_path.glob("*/*.npz"))) == 2
+    assert not list(tmp_path.glob("*/.*"))  # no temporary file left behind
+    with pytest.raises(CmtoolError, match="did not finish"):
+        load_manifest(tmp_path)
+    monkeypatch.undo()
+    summary = build_dataset(TINY, tmp_path, workers=1, progress=False)
+    assert summary["units_skipped"] == 1 and len(list(tmp_path.glob("*/*.npz"))) == 8
+
+
+def test_other_recipe_into_same_folder_is_refused(tiny, tmp_path):
+    out, _ = tiny
+    other = tmp_path / "other.toml"
+    other.write_text(TINY.read_text().replace("scenes_per_map = 8", "scenes_per_map = 6"))
+    with pytest.raises(CmtoolError, match="different recipe"):
+        build_dataset(other, out, workers=1, progress=False)
+    (tmp_path / "stuff").mkdir()
+    (tmp_path / "stuff" / "notes.txt").write_text("mine")
+    with pytest.raises(CmtoolError, match="not a cmtool dataset"):
+        build_dataset(other, tmp_path / "stuff", workers=1, progress=False)
+
+
+@pytest.mark.parametrize("text, match", [
+    ("[data]\nmaps_per_cty = 2\n", r"bad\.toml: data\.maps_per_cty: unknown key"),
+    ("[data]\nmaps_per_city = 'two'\n", r"bad\.toml: data\.maps_per_city: expected int"),
+    ("[data]\ntrain_cities = ['LAV', 3]\n", r"data\.train_cities\[1\]: expected str"),
+    ("[data.sd_jitter]\noffset = 1.0\n", r"data\.sd_jitter\.offset: unknown key"),
+    ("[dat]\n", r"bad\.toml: dat: unknown key"),
+    ("[data]\npx_m = 0.3\n", r"data\.px_m: frame_m / px_m must be a whole number"),
+    ("[data]\ntest_cities = ['PIT']\n", r"data\.test_cities: \['PIT'\] also in train_cities"),
+    ("[[data.real_maps]]\nformat = 'av2'\npath = 'nowhere/*.json'\n", r"data\.real_maps\[0\]\.path: no file matches"),
+    ("[[data.real_maps]]\npath = 'x.json'\n", r"data\.real_maps\[0\]\.format: missing"),
+    ("[data\n", r"bad\.toml: malformed TOML"),
+])
+def test_recipe_errors_name_file_and_key(tmp_path, text, match):
+    path = tmp_path / "bad.toml"
+    path.write_text(text)
+    with pytest.raises(CmtoolError, match=match):
+        load_recipe(path)
+
+
+def test_recipe_defaults_and_int_as_float(tmp_path):
+    path = tmp_path / "r.toml"
+    path.write_text("[data]\nextent = 500\n")
+    data = load_recipe(path).data
+    assert data.extent == 500.0 and isinstance(data.extent, float)
+    assert data.train_cities == ["LAV", "PIT", "SGP"] and data.test_cities == ["BOS"]
+    assert data.px_m == 0.5 and data.num_lines == 30 and not data.sd_jitter.enabled
+    for name in ("data_tiny", "data_cpu", "data_paper"):
+        assert load_recipe(REPO / "recipes" / f"{name}.toml").data.name == name.split("_")[1]
+
+
+def test_real_maps_join_the_split_they_name(tmp_path):
+    av2 = SHARED_DATA / "av2"
+    files = sorted(av2.glob("*.json")) if av2.is_dir() else []
+    if not files:
+        pytest.skip("shared Argoverse 2 sample maps not available")
+    recipe = tmp_path / "real.toml"
+    recipe.write_text(
+        "[data]\nmaps_per_city = 0\ntest_maps_per_city = 0\nscenes_per_map = 3\n"
+        f"[[data.real_maps]]\nformat = 'av2'\npath = '{files[0]}'\nsplit = 'real'\n"
+    )
+    summary = build_dataset(recipe, tmp_path / "out", workers=1, progress=False)
+    assert list(summary["splits"]) == ["real"] and summary["splits"]["real"]["scenes"] == 3
+    data = load_dataset(tmp_path / "out", "real")
+    assert data.source.tolist() == [f"av2:{files[0].name}"] * 3 and data.city.tolist() == ["PIT"] * 3
+    assert load_manifest(tmp_path / "out")["cities"] == ["LAV", "PIT", "SGP", "BOS"]
+    assert data.line_mask.sum() > 0
+
+
+def test_progress_line_reports_rate_and_eta():
+    import io
+
+    from cmtool.progress import Progress, format_seconds
+
+    stream = io.StringIO()
+    with Progress(total=10, label="build", unit="scenes", stream=stream) as bar:
+        bar.update(4, loss=0.25)
+        assert "4/10 scenes (40%)" in bar.line() and "scenes/s" in bar.line() and "ETA" in bar.line()
+        assert "loss=0.25" in bar.line()
+        bar.update(6)
+    lines = stream.getvalue().splitlines()
+    assert lines[0].startswith("build  4/10") and "10/10 scenes (100%)" in lines[-1] and "ETA" not in lines[-1]
+    assert format_seconds(75) == "1m15s" and format_seconds(3700) == "1h01m"
