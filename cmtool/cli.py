@@ -104,6 +104,32 @@ def sd(hd_map, out, offset, rotation, drop_minor, seed):
 
 
 @data.command()
+@click.argument("sd_map", type=click.Path(path_type=Path))
+@click.option("--x", "x", type=float, default=None, help="Frame centre x, metres [default: map centre].")
+@click.option("--y", "y", type=float, default=None, help="Frame centre y, metres [default: map centre].")
+@click.option("--yaw", default=90.0, show_default=True, help="Heading of the frame's forward axis, degrees (90 = north up).")
+@click.option("--png", required=True, type=click.Path(dir_okay=False, path_type=Path), help="SD raster PNG to write.")
+def raster(sd_map, x, y, yaw, png):
+    """Rasterise a 64 m window of an SD map into the 128 x 128 RGB control image (README: SD raster)."""
+    import cv2
+    import numpy as np
+
+    from cmtool.data.sd_raster import rasterize_sd
+    from cmtool.data.sdmap import SDMap
+
+    sd_obj = SDMap.load(sd_map)
+    if not sd_obj.roads:
+        raise CmtoolError(f"{sd_map}: the SD map has no roads")
+    pts = np.concatenate([r.polyline for r in sd_obj.roads])
+    cx, cy = (pts.min(0) + pts.max(0)) / 2.0
+    image = rasterize_sd(sd_obj, cx if x is None else x, cy if y is None else y, np.radians(yaw))
+    png.parent.mkdir(parents=True, exist_ok=True)
+    if not cv2.imwrite(str(png), cv2.cvtColor(image, cv2.COLOR_RGB2BGR)):
+        raise CmtoolError(f"{png}: could not write the picture (is the extension .png?)")
+    click.echo(f"{png}: SD raster, {int((image[..., 0] > 0).sum())} road pixels")
+
+
+@data.command()
 @click.argument("maps", nargs=-1, type=click.Path(path_type=Path))
 @click.option("--seeds", default=2, show_default=True, help="Without MAPS: procedural seeds per city style.")
 @click.option("--extent", default=800.0, show_default=True, help="Without MAPS: side of each procedural city, metres.")

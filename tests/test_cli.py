@@ -2,9 +2,11 @@
 
 import json
 
+import numpy as np
 import pytest
 
 from cmtool.data.hdmap import HDMap
+from cmtool.data.sd_raster import sd_raster_from_image
 from conftest import SHARED_DATA
 
 
@@ -30,6 +32,11 @@ def test_sd_derives_from_a_synth_map(run_cli, tmp_path):
     r = run_cli("data", "sd", tmp_path / "c.json", "--out", tmp_path / "sd.json")
     assert r.returncode == 0, r.stderr
     assert json.loads((tmp_path / "sd.json").read_text())["format"] == "cmtool.sdmap"
+    r = run_cli("data", "raster", tmp_path / "sd.json", "--png", tmp_path / "sd.png")
+    assert r.returncode == 0, r.stderr
+    image = sd_raster_from_image(tmp_path / "sd.png")
+    assert image.shape == (128, 128, 3) and image[..., 0].any()
+    assert set(np.unique(image[..., 0])) == {0, 255} and set(np.unique(image[..., 1])) <= {32 * k for k in range(8)}
 
 
 @pytest.mark.parametrize(
