@@ -25,7 +25,6 @@ from __future__ import annotations
 import json
 import multiprocessing
 import os
-import tempfile
 import time
 from collections import Counter
 from dataclasses import asdict, dataclass
@@ -33,7 +32,7 @@ from pathlib import Path
 
 import numpy as np
 
-from cmtool.data.jsonio import read_json, write_json
+from cmtool.data.jsonio import atomic_open, read_json, write_json
 from cmtool.data.scene import Pose, Scene, SceneCropper, sample_poses
 from cmtool.errors import CmtoolError
 from cmtool.progress import Progress
@@ -122,16 +121,9 @@ def pack_scenes(scenes: list[Scene]) -> dict[str, np.ndarray]:
     }
 
 
-def _write_npz_atomic(path: Path, arrays: dict) -> None:
-    fd, tmp = tempfile.mkstemp(dir=path.parent, prefix=f".{path.name}.", suffix=".tmp")
-    try:
-        with os.fdopen(fd, "wb") as fh:
-            np.savez_compressed(fh, **arrays)
-        os.replace(tmp, path)
-    except BaseException:
-        if os.path.exists(tmp):
-            os.unlink(tmp)
-        raise
+def _write_npz(path: Path, arrays: dict) -> None:
+    with atomic_open(path, "wb") as fh:
+        np.savez_compressed(fh, **arrays)
 
 
 def _build_unit(job) -> tuple[int, int]:
@@ -143,7 +135,7 @@ def _build_unit(job) -> tuple[int, int]:
     for p, name in enumerate(unit.shard_files(data.shard_size)):
         path = out_dir / name
         if not path.exists():
-            _write_npz_atomic(path, pack_scenes(scenes[p * data.shard_size:(p + 1) * data.shard_size]))
+            _write_npz(path, pack_scenes(scenes[p * data.shard_size:(p + 1) * data.shard_size]))
     return unit.index, len(scenes)
 
 
