@@ -150,10 +150,7 @@ class HDMap:
     @classmethod
     def from_json(cls, obj, where: str = "map") -> "HDMap":
         top = Fields(obj, where)
-        if top.get("format", str) != FORMAT:
-            top.fail("format", f"expected {FORMAT!r} (is this an HD map file?)")
-        if top.get("version", int) != 1:
-            top.fail("version", "unsupported version (this cmtool reads version 1)")
+        top.header(FORMAT, "an HD map file")
         drives_on = top.get("drives_on", str, "right")
         if drives_on not in ("right", "left"):
             top.fail("drives_on", f"expected 'right' or 'left', got {drives_on!r}")

@@ -93,6 +93,13 @@ class Fields:
             self.fail(key, "NaN or infinite number")
         return value
 
+    def header(self, fmt: str | None, kind: str, version: int = 1) -> None:
+        """Check a file's ``format`` tag (when ``fmt`` is given) and its ``version``."""
+        if fmt is not None and self.get("format", str) != fmt:
+            self.fail("format", f"expected {fmt!r} (is this {kind}?)")
+        if self.get("version", int) != version:
+            self.fail("version", f"unsupported version (this cmtool reads version {version})")
+
     def number(self, key: str, default=...) -> float:
         return float(self.get(key, (int, float), default))
 

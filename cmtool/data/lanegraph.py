@@ -54,8 +54,7 @@ class LaneGraph:
     @classmethod
     def from_json(cls, obj, where: str = "scene") -> "LaneGraph":
         f = Fields(obj, where)
-        if f.get("version", int) != 1:
-            f.fail("version", "unsupported version (this cmtool reads version 1)")
+        f.header(None, "a lane graph")
         frame_m = f.number("frame_m", 64.0)
         if frame_m <= 0:
             f.fail("frame_m", f"must be positive, got {frame_m}")

@@ -69,10 +69,7 @@ class SDMap:
     @classmethod
     def from_json(cls, obj, where: str = "sdmap") -> "SDMap":
         top = Fields(obj, where)
-        if top.get("format", str) != FORMAT:
-            top.fail("format", f"expected {FORMAT!r} (is this an SD map file?)")
-        if top.get("version", int) != 1:
-            top.fail("version", "unsupported version (this cmtool reads version 1)")
+        top.header(FORMAT, "an SD map file")
         sd = cls(
             city=top.get("city", str, None, allow_none=True),
             source=top.get("source", str, ""),
