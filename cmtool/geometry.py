@@ -19,13 +19,24 @@ def segment_lengths(line: np.ndarray) -> np.ndarray:
     return np.linalg.norm(np.diff(line, axis=0), axis=1)
 
 
+def arc_length(line: np.ndarray) -> np.ndarray:
+    """Cumulative arc length at each vertex (starts at 0)."""
+    return np.concatenate([[0.0], np.cumsum(segment_lengths(line))])
+
+
+def unit(v: np.ndarray) -> np.ndarray:
+    """Vectors (..., 2) scaled to length 1 along the last axis; zero vectors stay zero."""
+    v = np.asarray(v, dtype=np.float64)
+    return v / np.maximum(np.linalg.norm(v, axis=-1, keepdims=True), 1e-12)
+
+
 def polyline_length(line: np.ndarray) -> float:
     return float(segment_lengths(line).sum())
 
 
 def resample(line: np.ndarray, n: int) -> np.ndarray:
     """Resample a polyline to ``n`` points equally spaced along its arc length."""
-    cum = np.concatenate([[0.0], np.cumsum(segment_lengths(line))])
+    cum = arc_length(line)
     if cum[-1] <= 0.0:
         return np.repeat(line[:1], n, axis=0)
     s = np.linspace(0.0, cum[-1], n)

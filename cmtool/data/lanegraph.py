@@ -24,6 +24,7 @@ import numpy as np
 
 from cmtool.data.jsonio import Fields, write_text_atomic
 from cmtool.errors import CmtoolError
+from cmtool.geometry import unit
 
 
 @dataclass
@@ -110,15 +111,11 @@ def infer_successors(lanes, max_gap_m: float = 1.5, max_angle_deg: float = 60.0)
         return []
     ends = np.array([l[-1] for l in lanes])
     starts = np.array([l[0] for l in lanes])
-    end_dir = np.array([_unit(l[-1] - l[-2]) for l in lanes])
-    start_dir = np.array([_unit(l[1] - l[0]) for l in lanes])
+    end_dir = unit(np.array([l[-1] - l[-2] for l in lanes]))
+    start_dir = unit(np.array([l[1] - l[0] for l in lanes]))
     dist = np.linalg.norm(ends[:, None, :] - starts[None, :, :], axis=-1)
     cos = end_dir @ start_dir.T
     ok = (dist <= max_gap_m) & (cos >= np.cos(np.radians(max_angle_deg)))
     np.fill_diagonal(ok, False)
     return [(int(i), int(j)) for i, j in zip(*np.nonzero(ok))]
 
-
-def _unit(v: np.ndarray) -> np.ndarray:
-    n = np.linalg.norm(v)
-    return v / n if n > 0 else np.zeros(2)

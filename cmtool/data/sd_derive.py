@@ -36,7 +36,7 @@ from scipy.ndimage import median_filter
 
 from cmtool.data.hdmap import HDMap, Lane
 from cmtool.data.sdmap import Road, SDMap
-from cmtool.geometry import from_frame, headings, polyline_length, resample_step
+from cmtool.geometry import arc_length, from_frame, headings, polyline_length, resample_step, unit
 
 ROAD_LANE_TYPES = ("vehicle", "bus")
 MINOR_CLASSES = ("residential", "service", "unclassified")
@@ -288,7 +288,7 @@ def _carriageway(lanes: list[Lane]) -> _Carriageway:
     a = np.concatenate([l.centerline[:-1] for l in lanes])
     b = np.concatenate([l.centerline[1:] for l in lanes])
     lat, ok = _slice(samples, n, a, b)
-    ok &= (np.abs(lat) < 15.0) & ((d @ _unit(b - a).T) > np.cos(np.radians(PARALLEL_DEG)))
+    ok &= (np.abs(lat) < 15.0) & ((d @ unit(b - a).T) > np.cos(np.radians(PARALLEL_DEG)))
     offsets, counts = np.zeros(len(samples)), np.ones(len(samples), dtype=int)
     for m in range(len(samples)):
         lats = np.sort(lat[m, ok[m]])
@@ -355,10 +355,6 @@ def _slice(p: np.ndarray, n: np.ndarray, a: np.ndarray, b: np.ndarray) -> tuple[
     return lat, (np.abs(den) > 1e-9) & (t >= 0.0) & (t <= 1.0)
 
 
-def _unit(v: np.ndarray) -> np.ndarray:
-    return v / np.maximum(np.linalg.norm(v, axis=-1, keepdims=True), 1e-12)
-
-
 def _pair(cws: list[_Carriageway]) -> list[RoadPiece]:
     """Pair antiparallel carriageways into two-way pieces; the rest become one-way pieces."""
     half = np.array([c.lanes * c.width / 2.0 for c in cws])
@@ -409,7 +405,7 @@ def _across(line: np.ndarray, other: np.ndarray, reach: float) -> tuple[np.ndarr
     n = np.stack([-d[:, 1], d[:, 0]], axis=1)
     a, b = other[:-1], other[1:]
     lat, ok = _slice(line, n, a, b)
-    ok &= ((d @ _unit(b - a).T) < -np.cos(np.radians(PARALLEL_DEG))) & (np.abs(lat) <= reach)
+    ok &= ((d @ unit(b - a).T) < -np.cos(np.radians(PARALLEL_DEG))) & (np.abs(lat) <= reach)
     near = np.argmin(np.where(ok, np.abs(lat), np.inf), axis=1)
     rows = np.arange(len(line))
     return ok[rows, near], lat[rows, near]
@@ -488,7 +484,7 @@ def _compatible(p: RoadPiece, e: int, q: RoadPiece, f: int) -> bool:
 def _outward(line: np.ndarray, end: int) -> np.ndarray:
     """Unit direction leaving ``line`` at ``end`` (0 start, 1 end), over its last ~10 m."""
     pts = line if end == 1 else line[::-1]
-    cum = np.concatenate([[0.0], np.cumsum(np.linalg.norm(np.diff(pts, axis=0), axis=1))])
+    cum = arc_length(pts)
     k = int(np.searchsorted(cum, cum[-1] - 10.0, side="right")) - 1
     d = pts[-1] - pts[max(0, min(k, len(pts) - 2))]
     return d / max(float(np.linalg.norm(d)), 1e-9)

@@ -4,16 +4,13 @@ from __future__ import annotations
 
 import numpy as np
 
-
-def arc(line: np.ndarray) -> np.ndarray:
-    """Cumulative arc length at each vertex (starts at 0)."""
-    return np.concatenate([[0.0], np.cumsum(np.linalg.norm(np.diff(line, axis=0), axis=1))])
+from cmtool.geometry import arc_length, unit
 
 
 def cut(line: np.ndarray, s0: float, s1: float, eps: float = 0.1) -> np.ndarray:
     """The part of ``line`` between arc lengths ``s0 < s1``; vertices closer than ``eps`` to a cut
     point are dropped so the end segments keep a well-defined direction."""
-    cum = arc(line)
+    cum = arc_length(line)
     ends = np.stack([np.interp([s0, s1], cum, line[:, 0]), np.interp([s0, s1], cum, line[:, 1])], axis=1)
     inner = line[(cum > s0 + eps) & (cum < s1 - eps)]
     return np.concatenate([ends[:1], inner, ends[1:]])
@@ -21,15 +18,11 @@ def cut(line: np.ndarray, s0: float, s1: float, eps: float = 0.1) -> np.ndarray:
 
 def point_and_tangent(line: np.ndarray, s: float) -> tuple[np.ndarray, np.ndarray]:
     """Point at arc length ``s`` and the unit direction of the segment it lies on."""
-    cum = arc(line)
+    cum = arc_length(line)
     k = int(np.clip(np.searchsorted(cum, s, side="right") - 1, 0, len(line) - 2))
     d = line[k + 1] - line[k]
     p = np.array([np.interp(s, cum, line[:, 0]), np.interp(s, cum, line[:, 1])])
     return p, d / np.linalg.norm(d)
-
-
-def unit(v: np.ndarray) -> np.ndarray:
-    return v / np.linalg.norm(v, axis=-1, keepdims=True)
 
 
 def end_tangents(line: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
@@ -40,7 +33,7 @@ def end_tangents(line: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
 def bend(line: np.ndarray, amplitude: float) -> np.ndarray:
     """Displace ``line`` sideways by ``amplitude * sin^2(pi s / L)``: zero displacement and zero slope
     at both ends, so the road still meets its nodes head-on."""
-    cum = arc(line)
+    cum = arc_length(line)
     chord = unit(line[-1] - line[0])
     normal = np.array([-chord[1], chord[0]])
     return line + amplitude * np.sin(np.pi * cum / cum[-1])[:, None] ** 2 * normal
@@ -71,7 +64,7 @@ def hermite(p0: np.ndarray, d0: np.ndarray, p1: np.ndarray, d1: np.ndarray, step
 def round_corner(a: np.ndarray, b: np.ndarray, radius: float) -> np.ndarray:
     """Join ``a`` (ending at the corner) and ``b`` (starting there), rounding the corner with a
     quadratic Bezier that starts ``radius`` metres before it and ends ``radius`` metres after."""
-    la, lb = arc(a)[-1], arc(b)[-1]
+    la, lb = arc_length(a)[-1], arc_length(b)[-1]
     r = min(radius, 0.3 * la, 0.3 * lb)
     head, tail = cut(a, 0.0, la - r), cut(b, r, lb)
     t = np.linspace(0.0, 1.0, 7)[1:-1, None]

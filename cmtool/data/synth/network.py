@@ -15,9 +15,9 @@ import shapely
 from scipy.sparse import coo_matrix
 from scipy.sparse.csgraph import connected_components
 
-from cmtool.data.synth.curves import arc, bend, cut, round_corner, unit
+from cmtool.data.synth.curves import bend, cut, round_corner
 from cmtool.data.synth.styles import Style
-from cmtool.geometry import resample_step
+from cmtool.geometry import arc_length, resample_step, unit
 
 MIN_ANGLE = np.radians(30.0)  # arms meeting at a node closer than this are not allowed
 HAIRPIN = np.radians(60.0)  # degree-2 nodes whose arms meet closer than this are removed
@@ -42,7 +42,7 @@ class Road:
 
     @property
     def length(self) -> float:
-        return float(arc(self.line)[-1])
+        return float(arc_length(self.line)[-1])
 
     @property
     def half_width(self) -> float:
@@ -60,7 +60,7 @@ class Road:
     def direction_at(self, node: int, reach: float = 8.0) -> np.ndarray:
         """Unit direction of the arm leaving ``node`` (over its first ``reach`` metres)."""
         line = self.line if node == self.u else self.line[::-1]
-        cum = arc(line)
+        cum = arc_length(line)
         s = min(reach, cum[-1])
         p = np.array([np.interp(s, cum, line[:, 0]), np.interp(s, cum, line[:, 1])])
         return unit(p - line[0])
