@@ -67,6 +67,19 @@ def to_frame(points: np.ndarray, x: float, y: float, yaw: float) -> np.ndarray:
     return np.stack([c * d[..., 0] + s * d[..., 1], -s * d[..., 0] + c * d[..., 1]], axis=-1)
 
 
+CV_SHIFT = 4  # fraction bits of OpenCV's sub-pixel drawing coordinates
+
+
+def ego_to_pixel(points, px_m: float, frame_m: float = 64.0) -> np.ndarray:
+    """Ego-frame metres (..., 2) -> OpenCV fixed-point pixel coordinates (..., 2) int32, as
+    (column, row) with ``CV_SHIFT`` fraction bits. The raster convention of DESIGN.md §3: row 0 is
+    the front edge (x = +frame/2), column 0 the left edge (y = +frame/2)."""
+    half = frame_m / 2.0
+    p = np.asarray(points, dtype=np.float64)
+    cr = np.stack([(half - p[..., 1]) / px_m - 0.5, (half - p[..., 0]) / px_m - 0.5], axis=-1)
+    return np.round(cr * (1 << CV_SHIFT)).astype(np.int32)
+
+
 def from_frame(points: np.ndarray, x: float, y: float, yaw: float) -> np.ndarray:
     """Inverse of :func:`to_frame`."""
     c, s = np.cos(yaw), np.sin(yaw)

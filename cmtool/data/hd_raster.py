@@ -11,15 +11,7 @@ from __future__ import annotations
 import cv2
 import numpy as np
 
-_SHIFT = 4  # OpenCV fixed-point fraction bits for sub-pixel end points
-
-
-def scene_to_pixel(points: np.ndarray, px_m: float = 0.5, frame_m: float = 64.0) -> np.ndarray:
-    """Ego-frame metres (..., 2) -> continuous pixel coordinates (..., 2) as (column, row)."""
-    half = frame_m / 2.0
-    p = np.asarray(points, dtype=np.float64)
-    return np.stack([(half - p[..., 1]) / px_m - 0.5, (half - p[..., 0]) / px_m - 0.5], axis=-1)
-
+from cmtool.geometry import CV_SHIFT, ego_to_pixel
 
 def draw_direction_lines(canvas: np.ndarray, lines: np.ndarray, px_m: float, frame_m: float,
                          thickness: int) -> None:
@@ -30,10 +22,10 @@ def draw_direction_lines(canvas: np.ndarray, lines: np.ndarray, px_m: float, fra
     d = np.diff(lines, axis=1)
     h = np.arctan2(d[..., 1], d[..., 0])
     colour = 0.5 * np.stack([np.cos(h), np.sin(h)], axis=-1) + 0.5
-    pix = np.round(scene_to_pixel(lines, px_m, frame_m) * (1 << _SHIFT)).astype(np.int64)
+    pix = ego_to_pixel(lines, px_m, frame_m)
     n, k = np.nonzero(np.linalg.norm(d, axis=-1) > 1e-9)
     for a, b, c in zip(pix[n, k].tolist(), pix[n, k + 1].tolist(), colour[n, k].tolist()):
-        cv2.line(canvas, a, b, c, thickness, cv2.LINE_8, _SHIFT)
+        cv2.line(canvas, a, b, c, thickness, cv2.LINE_8, CV_SHIFT)
 
 
 def rasterize_scene(lines, line_mask, green, green_mask, red, red_mask, px_m: float = 0.5,

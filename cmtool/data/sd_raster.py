@@ -27,7 +27,7 @@ import numpy as np
 
 from cmtool.data.sdmap import SDMap
 from cmtool.errors import CmtoolError
-from cmtool.geometry import to_frame
+from cmtool.geometry import CV_SHIFT, ego_to_pixel, to_frame
 
 SIZE = 128
 FRAME_M = 64.0
@@ -35,7 +35,6 @@ THICKNESS_PX = 4
 ROAD_VALUE = 255
 LANE_STEP = 32  # G = LANE_STEP * min(lanes, MAX_LANES)
 MAX_LANES = 7
-_SHIFT = 4  # cv2 sub-pixel bits
 
 
 def lane_value(lanes: int | None) -> int:
@@ -69,12 +68,10 @@ def rasterize_sd(sd: SDMap, x: float, y: float, yaw: float, frame_m: float = FRA
             if np.any(lo > [x + reach, y + reach]) or np.any(hi < [x - reach, y - reach]):
                 continue
             ego = to_frame(line, x, y, yaw)
-            # image coordinates (column, row) of the points, in 1/16 px for cv2's sub-pixel drawing
-            cr = np.stack([(half - ego[:, 1]) / px - 0.5, (half - ego[:, 0]) / px - 0.5], axis=1)
-            pts = np.round(cr * (1 << _SHIFT)).astype(np.int32)
+            pts = ego_to_pixel(ego, px, frame_m)
             g = lane_value(road.lanes)
             if not oneway:
-                cv2.polylines(img, [pts], False, (ROAD_VALUE, g, 0), THICKNESS_PX, cv2.LINE_8, _SHIFT)
+                cv2.polylines(img, [pts], False, (ROAD_VALUE, g, 0), THICKNESS_PX, cv2.LINE_8, CV_SHIFT)
                 continue
             d = np.diff(ego, axis=0)
             values = direction_value(np.arctan2(d[:, 1], d[:, 0]))
@@ -82,7 +79,7 @@ def rasterize_sd(sd: SDMap, x: float, y: float, yaw: float, frame_m: float = FRA
             near &= (np.maximum(ego[:-1], ego[1:]) >= -half - 1.0).all(axis=1)
             for k in np.flatnonzero(near):
                 b = values[k]
-                cv2.polylines(img, [pts[k:k + 2]], False, (ROAD_VALUE, g, int(b)), THICKNESS_PX, cv2.LINE_8, _SHIFT)
+                cv2.polylines(img, [pts[k:k + 2]], False, (ROAD_VALUE, g, int(b)), THICKNESS_PX, cv2.LINE_8, CV_SHIFT)
     return img
 
 

@@ -12,12 +12,12 @@ import cv2
 import numpy as np
 
 from cmtool.data.sd_raster import decode_sd
+from cmtool.geometry import CV_SHIFT, ego_to_pixel
 
 BACKGROUND = (24, 24, 28)
 GREEN = (40, 200, 80)
 RED = (230, 50, 50)
 TEXT = (235, 235, 235)
-_SHIFT = 4
 
 
 def heading_colours(h) -> np.ndarray:
@@ -32,11 +32,7 @@ def heading_colours(h) -> np.ndarray:
 
 def _pix(points: np.ndarray, size: int, frame_m: float) -> np.ndarray:
     """Ego metres -> fixed-point pixel (col, row) for a ``size`` px panel."""
-    px = frame_m / size
-    half = frame_m / 2.0
-    p = np.asarray(points, dtype=np.float64)
-    cr = np.stack([(half - p[..., 1]) / px - 0.5, (half - p[..., 0]) / px - 0.5], axis=-1)
-    return np.round(cr * (1 << _SHIFT)).astype(np.int64)
+    return ego_to_pixel(points, frame_m / size, frame_m)
 
 
 def lanes_panel(scene, size: int = 256) -> np.ndarray:
@@ -52,7 +48,7 @@ def lanes_panel(scene, size: int = 256) -> np.ndarray:
         for line in lights:
             pix = _pix(line, size, fm)
             cv2.polylines(bands, [pix.reshape(-1, 1, 2)], False, colour, max(3, int(round(2.2 * scale))),
-                          cv2.LINE_AA, _SHIFT)
+                          cv2.LINE_AA, CV_SHIFT)
             stops.append((tuple(pix[0]), colour))
     img = cv2.addWeighted(bands, 0.55, img, 0.45, 0.0)
     lines = scene.lines[scene.line_mask]
@@ -63,20 +59,20 @@ def lanes_panel(scene, size: int = 256) -> np.ndarray:
         pix = _pix(line, size, fm)
         for k in range(len(d)):
             c = tuple(int(v) for v in colours[k])
-            cv2.line(img, tuple(pix[k]), tuple(pix[k + 1]), c, lw, cv2.LINE_AA, _SHIFT)
-        cv2.circle(img, tuple(pix[0]), int(1.2 * scale) << _SHIFT, (200, 200, 200), -1, cv2.LINE_AA, _SHIFT)
+            cv2.line(img, tuple(pix[k]), tuple(pix[k + 1]), c, lw, cv2.LINE_AA, CV_SHIFT)
+        cv2.circle(img, tuple(pix[0]), int(1.2 * scale) << CV_SHIFT, (200, 200, 200), -1, cv2.LINE_AA, CV_SHIFT)
         tip, tail = line[-1], line[-1] - 2.5 * _unit(line[-1] - line[-3])
         cv2.arrowedLine(img, tuple(_pix(tail, size, fm)), tuple(_pix(tip, size, fm)), tuple(int(v) for v in colours[-1]),
-                        lw, cv2.LINE_AA, _SHIFT, tipLength=0.8)
+                        lw, cv2.LINE_AA, CV_SHIFT, tipLength=0.8)
     for i, j in scene.edges:
         a, b = lines[i][-3], lines[j][2]
         cv2.arrowedLine(img, tuple(_pix(a, size, fm)), tuple(_pix(b, size, fm)), (255, 255, 255), 1, cv2.LINE_AA,
-                        _SHIFT, tipLength=0.35)
+                        CV_SHIFT, tipLength=0.35)
     for centre, colour in stops:  # a lamp where each light line starts (at its stop line)
-        cv2.circle(img, centre, int(1.3 * scale) << _SHIFT, (255, 255, 255), -1, cv2.LINE_AA, _SHIFT)
-        cv2.circle(img, centre, int(0.9 * scale) << _SHIFT, colour, -1, cv2.LINE_AA, _SHIFT)
+        cv2.circle(img, centre, int(1.3 * scale) << CV_SHIFT, (255, 255, 255), -1, cv2.LINE_AA, CV_SHIFT)
+        cv2.circle(img, centre, int(0.9 * scale) << CV_SHIFT, colour, -1, cv2.LINE_AA, CV_SHIFT)
     ego = np.array([[2.5, 0.0], [-1.5, 1.5], [-1.5, -1.5]])
-    cv2.fillPoly(img, [_pix(ego, size, fm).reshape(-1, 1, 2)], (255, 255, 255), cv2.LINE_AA, _SHIFT)
+    cv2.fillPoly(img, [_pix(ego, size, fm).reshape(-1, 1, 2)], (255, 255, 255), cv2.LINE_AA, CV_SHIFT)
     return img
 
 
