@@ -268,7 +268,10 @@ class SceneDataset:
 
 def shard_paths(data_dir, split: str | None = None) -> list[Path]:
     """Shard files of a split (all splits when None), in manifest order."""
-    manifest = load_manifest(data_dir)
+    return _shard_paths(load_manifest(data_dir), data_dir, split)
+
+
+def _shard_paths(manifest: dict, data_dir, split: str | None) -> list[Path]:
     splits = manifest["splits"]
     if split is not None and split not in splits:
         raise CmtoolError(f"{data_dir}: no split {split!r} (has {', '.join(splits)})")
@@ -280,7 +283,7 @@ def load_dataset(data_dir, split: str | None = None) -> SceneDataset:
     """Load all scenes of ``split`` (all splits when None) into memory."""
     manifest = load_manifest(data_dir)
     parts = []
-    for path in shard_paths(data_dir, split):
+    for path in _shard_paths(manifest, data_dir, split):
         try:
             with np.load(path) as z:
                 parts.append({k: z[k] for k in _ARRAYS})
