@@ -97,8 +97,8 @@ def sd(hd_map, out, offset, rotation, drop_minor, seed):
 
     if offset < 0 or rotation < 0 or not 0.0 <= drop_minor <= 1.0:
         raise CmtoolError("jitter must be non-negative and --drop-minor within [0, 1]")
-    jitter = SDJitter(offset, rotation, drop_minor) if (offset or rotation or drop_minor) else None
-    sd_map = derive_sd(HDMap.load(hd_map), jitter=jitter, seed=seed)
+    jitter = SDJitter(offset, rotation, drop_minor)
+    sd_map = derive_sd(HDMap.load(hd_map), jitter=jitter if jitter.enabled else None, seed=seed)
     sd_map.save(out)
     click.echo(f"{out}: SD map, {len(sd_map.roads)} roads")
 

@@ -25,28 +25,14 @@ import typing
 from dataclasses import dataclass, field
 from pathlib import Path
 
+from cmtool.data.importers import FORMATS as IMPORT_FORMATS
+from cmtool.data.sd_derive import SDJitter
 from cmtool.errors import CmtoolError
 
 if sys.version_info >= (3, 11):
     import tomllib
 else:  # pragma: no cover
     import tomli as tomllib
-
-REAL_FORMATS = ("av2", "lanelet2", "nuplan")
-
-
-@dataclass
-class SDJitterRecipe:
-    """Perturbations of the SD map derived from each HD map (all zero: off)."""
-
-    offset_m: float = 0.0  # random shift of the whole SD map (m)
-    rotation_deg: float = 0.0  # random rotation of the whole SD map (degrees)
-    drop_minor: float = 0.0  # probability of dropping each minor road
-
-    @property
-    def enabled(self) -> bool:
-        return self.offset_m > 0 or self.rotation_deg > 0 or self.drop_minor > 0
-
 
 @dataclass
 class RealMapsRecipe:
@@ -79,7 +65,7 @@ class DataRecipe:
     min_piece_m: float = 2.0  # clipped lane pieces shorter than this are dropped
     min_pose_spacing_m: float = 16.0  # ego poses of one map are kept this far apart when possible
     shard_size: int = 250  # scenes per shard file
-    sd_jitter: SDJitterRecipe = field(default_factory=SDJitterRecipe)
+    sd_jitter: SDJitter = field(default_factory=SDJitter)  # perturbs the derived SD maps (all 0: off)
     real_maps: list[RealMapsRecipe] = field(default_factory=list)
 
     def check(self, where: str) -> None:
@@ -99,8 +85,8 @@ class DataRecipe:
         if not 0.0 <= self.sd_jitter.drop_minor <= 1.0:
             raise CmtoolError(f"{where}: data.sd_jitter.drop_minor: must be a probability in [0, 1]")
         for i, rm in enumerate(self.real_maps):
-            if rm.format not in REAL_FORMATS:
-                raise CmtoolError(f"{where}: data.real_maps[{i}].format: expected one of {REAL_FORMATS}, got {rm.format!r}")
+            if rm.format not in IMPORT_FORMATS:
+                raise CmtoolError(f"{where}: data.real_maps[{i}].format: expected one of {IMPORT_FORMATS}, got {rm.format!r}")
 
 
 @dataclass

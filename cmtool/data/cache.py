@@ -79,7 +79,7 @@ def plan_units(recipe) -> list[WorkUnit]:
 
 def unit_scenes(unit: WorkUnit, data: DataRecipe) -> list[Scene]:
     """Make the map of ``unit`` and crop its scenes, each paired with its SD raster."""
-    from cmtool.data.sd_derive import SDJitter, derive_sd
+    from cmtool.data.sd_derive import derive_sd
     from cmtool.data.sd_raster import rasterize_sd
 
     if unit.fmt == "procedural":
@@ -90,7 +90,7 @@ def unit_scenes(unit: WorkUnit, data: DataRecipe) -> list[Scene]:
         from cmtool.data.importers import import_hd_map
 
         hd = import_hd_map(unit.fmt, unit.path, city=unit.city)
-    jitter = SDJitter(**asdict(data.sd_jitter)) if data.sd_jitter.enabled else None
+    jitter = data.sd_jitter if data.sd_jitter.enabled else None
     sd = derive_sd(hd, jitter, seed=unit.seed)
     rng = np.random.default_rng([data.seed, unit.index])
     cropper = SceneCropper(hd)

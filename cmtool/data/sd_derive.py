@@ -62,6 +62,10 @@ class SDJitter:
     rotation_deg: float = 0.0
     drop_minor: float = 0.0
 
+    @property
+    def enabled(self) -> bool:
+        return self.offset_m > 0 or self.rotation_deg > 0 or self.drop_minor > 0
+
 
 @dataclass
 class RoadPiece:
