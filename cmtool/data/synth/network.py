@@ -15,7 +15,7 @@ import shapely
 from scipy.sparse import coo_matrix
 from scipy.sparse.csgraph import connected_components
 
-from cmtool.data.synth.curves import bend, cut, round_corner
+from cmtool.data.synth.curves import bend, cut, point_and_tangent, round_corner
 from cmtool.data.synth.styles import Style
 from cmtool.geometry import arc_length, resample_step, unit
 
@@ -60,9 +60,7 @@ class Road:
     def direction_at(self, node: int, reach: float = 8.0) -> np.ndarray:
         """Unit direction of the arm leaving ``node`` (over its first ``reach`` metres)."""
         line = self.line if node == self.u else self.line[::-1]
-        cum = arc_length(line)
-        s = min(reach, cum[-1])
-        p = np.array([np.interp(s, cum, line[:, 0]), np.interp(s, cum, line[:, 1])])
+        p, _ = point_and_tangent(line, min(reach, arc_length(line)[-1]))
         return unit(p - line[0])
 
     def flows_in(self, node: int) -> bool:
@@ -123,7 +121,7 @@ def _grid(style: Style, rng: np.random.Generator, extent: float) -> tuple[list, 
     roads: list[Road] = []
 
     def add(a: int, b: int, attrs: dict) -> None:
-        line = warp(_straight(flat[a], flat[b], 5.0))
+        line = warp(resample_step(np.stack([flat[a], flat[b]]), 5.0))
         line[0], line[-1] = nodes[a], nodes[b]
         roads.append(Road(line=line, u=a, v=b, **attrs))
 
@@ -193,11 +191,6 @@ def _warp(style: Style, rng: np.random.Generator):
     dirs = unit(rng.normal(size=(2, 2)))
     phase = rng.uniform(0.0, 2 * np.pi, 2)
     return lambda p: p + style.warp * np.sin(k * (p @ dirs.T) + phase)
-
-
-def _straight(a: np.ndarray, b: np.ndarray, step: float) -> np.ndarray:
-    n = max(2, int(np.ceil(np.linalg.norm(b - a) / step)) + 1)
-    return a + np.linspace(0.0, 1.0, n)[:, None] * (b - a)
 
 
 # ---------------------------------------------------------------- topology clean-up
