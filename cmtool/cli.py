@@ -201,6 +201,53 @@ def show(data_dir, n, png, rrd, split, seed):
             click.echo(f"wrote {path}")
 
 
+@cli.command("train")
+@click.argument("stage", type=click.Choice(["rvae", "dit", "controlnet"]))
+@click.option("--recipe", required=True, type=click.Path(path_type=Path), help="Recipe TOML (see recipes/).")
+@click.option("--out", type=click.Path(file_okay=False, path_type=Path), help="Run folder [default: the recipe's train.out].")
+@click.option("--resume", is_flag=True, help="Continue from the run folder's newest checkpoint.")
+@click.option("--steps", type=click.IntRange(min=1), help="Override train.steps (e.g. for a quick try).")
+@click.option("--device", help="torch device [default: cuda when available, else cpu].")
+@click.option("--quiet", is_flag=True, help="No progress line.")
+def train_cmd(stage, recipe, out, resume, steps, device, quiet):
+    """Train one stage: rvae (stage 1), dit (stage 2) or controlnet (stage 3).
+
+    Multi-GPU / multi-node: launch with torchrun, e.g.
+    torchrun --nproc_per_node 8 -m cmtool train dit --recipe recipes/paper/dit-b.toml
+    """
+    from cmtool.recipe import load_recipe
+
+    rec = load_recipe(recipe)
+    if rec.train.stage and rec.train.stage != stage:
+        raise CmtoolError(f"{recipe}: a recipe for the {rec.train.stage} stage, not {stage}")
+    if steps is not None:
+        rec.train.steps = steps
+    run_dir = out or (Path(rec.train.out) if rec.train.out else None)
+    if run_dir is None:
+        raise CmtoolError(f"{recipe}: no run folder: give --out or set train.out")
+
+    import torch
+
+    from cmtool.train.loop import train
+    from cmtool.train.stages import STAGES
+
+    dev = torch.device(device) if device else torch.device("cuda" if torch.cuda.is_available() else "cpu")
+    if dev.type == "cuda" and not torch.cuda.is_available():
+        raise CmtoolError(f"--device {device}: CUDA is not available on this machine")
+    final = train(STAGES[stage](rec, dev), run_dir, resume=resume, progress=not quiet)
+    click.echo(f"checkpoint: {final}")
+
+
+@cli.command()
+@click.argument("path", type=click.Path(path_type=Path))
+@click.option("--json", "as_json", is_flag=True, help="Print the checkpoint's full config as JSON.")
+def info(path, as_json):
+    """What a checkpoint (or run folder) holds, or the model sizes a recipe defines."""
+    from cmtool.info import describe
+
+    click.echo(describe(path, as_json=as_json))
+
+
 def main(argv=None) -> None:
     """Entry point: run the CLI, reducing user errors to one line and a non-zero exit."""
     try:

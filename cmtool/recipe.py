@@ -28,6 +28,7 @@ from pathlib import Path
 from cmtool.data.importers import FORMATS as IMPORT_FORMATS
 from cmtool.data.sd_derive import SDJitter
 from cmtool.errors import CmtoolError
+from cmtool.model.config import ControlConfig, DiTConfig, RVAEConfig, RVAELossConfig, ScheduleConfig
 
 if sys.version_info >= (3, 11):
     import tomllib
@@ -90,10 +91,62 @@ class DataRecipe:
 
 
 @dataclass
+class TrainRecipe:
+    """How a stage trains: inputs, output, optimiser, schedule, checkpoints (``[train]``)."""
+
+    stage: str = ""  # rvae | dit | controlnet: the stage this recipe trains
+    data: str = ""  # dataset folder (cmtool data build --out)
+    out: str = ""  # run folder [default: --out]
+    rvae: str = ""  # RVAE run folder with its latent cache (dit, controlnet stages)
+    dit: str = ""  # DiT run or checkpoint folder (controlnet stage)
+    steps: int = 1000
+    batch_size: int = 32  # global: split over the processes of a torchrun launch
+    lr: float = 1e-4
+    lr_schedule: str = "cosine"  # cosine | constant (after the warm-up)
+    min_lr_ratio: float = 0.1  # the cosine decays to lr * min_lr_ratio
+    warmup_steps: int = 100
+    weight_decay: float = 0.0
+    betas: list[float] = field(default_factory=lambda: [0.9, 0.999])
+    grad_clip: float = 1.0
+    ema_decay: float = 0.999
+    label_dropout: float = 0.2  # probability of replacing the city label by the null label (dit, controlnet)
+    ckpt_every: int = 500
+    keep: int = 2  # checkpoints kept in the run folder
+    log_every: int = 10  # steps between scalar logs in the Rerun recording
+    preview_every: int = 500  # steps between decoded previews (0: off)
+    preview_steps: int = 25  # DDIM steps of the previews (dit, controlnet)
+    workers: int = 0  # DataLoader worker processes
+    seed: int = 0
+
+    def check(self, where: str) -> None:
+        for key in ("steps", "batch_size", "lr", "ckpt_every", "keep", "log_every", "preview_steps"):
+            if getattr(self, key) <= 0:
+                raise CmtoolError(f"{where}: train.{key}: must be positive, got {getattr(self, key)}")
+        for key in ("warmup_steps", "weight_decay", "grad_clip", "preview_every", "workers"):
+            if getattr(self, key) < 0:
+                raise CmtoolError(f"{where}: train.{key}: must not be negative, got {getattr(self, key)}")
+        if self.stage not in ("", "rvae", "dit", "controlnet"):
+            raise CmtoolError(f"{where}: train.stage: expected rvae, dit or controlnet, got {self.stage!r}")
+        if self.lr_schedule not in ("cosine", "constant"):
+            raise CmtoolError(f"{where}: train.lr_schedule: expected cosine or constant, got {self.lr_schedule!r}")
+        for key in ("ema_decay", "label_dropout", "min_lr_ratio"):
+            if not 0.0 <= getattr(self, key) <= 1.0:
+                raise CmtoolError(f"{where}: train.{key}: must lie in [0, 1], got {getattr(self, key)}")
+        if len(self.betas) != 2 or not all(0.0 <= b < 1.0 for b in self.betas):
+            raise CmtoolError(f"{where}: train.betas: expected two values in [0, 1), got {self.betas}")
+
+
+@dataclass
 class Recipe:
     """A whole recipe: one section per stage."""
 
     data: DataRecipe = field(default_factory=DataRecipe)
+    train: TrainRecipe = field(default_factory=TrainRecipe)
+    rvae: RVAEConfig = field(default_factory=RVAEConfig)
+    rvae_loss: RVAELossConfig = field(default_factory=RVAELossConfig)
+    dit: DiTConfig = field(default_factory=DiTConfig)
+    control: ControlConfig = field(default_factory=ControlConfig)
+    diffusion: ScheduleConfig = field(default_factory=ScheduleConfig)
     path: Path | None = field(default=None, metadata={"toml": False})  # the file it was read from
 
     def to_dict(self) -> dict:
@@ -126,9 +179,10 @@ def load_recipe(path) -> Recipe:
         raise CmtoolError(f"{path}: malformed TOML: {e}") from None
     except UnicodeDecodeError:
         raise CmtoolError(f"{path}: not a UTF-8 text file") from None
-    recipe = _build(Recipe, table, f"{path}: ", "")
+    recipe = from_table(Recipe, table, f"{path}: ")
     recipe.path = path
     recipe.data.check(str(path))
+    recipe.train.check(str(path))
     recipe.real_map_files()
     return recipe
 
@@ -137,7 +191,7 @@ def _toml_fields(cls) -> list[dataclasses.Field]:
     return [f for f in dataclasses.fields(cls) if f.metadata.get("toml", True)]
 
 
-def _build(cls, table, where: str, prefix: str):
+def from_table(cls, table, where: str, prefix: str = ""):
     """Construct dataclass ``cls`` from a TOML table, checking keys and types."""
     if not isinstance(table, dict):
         raise CmtoolError(f"{where}{prefix.rstrip('.') or 'recipe'}: expected a table")
@@ -154,7 +208,7 @@ def _build(cls, table, where: str, prefix: str):
 
 
 def _convert(tp, value, where: str, key: str):
-    """Check ``value`` against type hint ``tp`` (int/float/str/bool, lists, Optional, dataclasses)."""
+    """Check ``value`` against type hint ``tp`` (int/float/str/bool, lists, tuples, Optional, dataclasses)."""
     origin, args = typing.get_origin(tp), typing.get_args(tp)
     if origin in (typing.Union, types.UnionType):
         if value is None and type(None) in args:  # TOML has no null; kept for completeness
@@ -162,11 +216,12 @@ def _convert(tp, value, where: str, key: str):
         (inner,) = [a for a in args if a is not type(None)]
         return _convert(inner, value, where, key)
     if dataclasses.is_dataclass(tp):
-        return _build(tp, value, where, key + ".")
-    if origin is list:
-        if not isinstance(value, list):
+        return from_table(tp, value, where, key + ".")
+    if origin in (list, tuple):  # tuple[X, ...] fields take a TOML list too
+        if not isinstance(value, (list, tuple)):
             raise CmtoolError(f"{where}{key}: expected a list, got {value!r}")
-        return [_convert(args[0], v, where, f"{key}[{i}]") for i, v in enumerate(value)]
+        items = [_convert(args[0], v, where, f"{key}[{i}]") for i, v in enumerate(value)]
+        return items if origin is list else tuple(items)
     ok = {
         bool: isinstance(value, bool),
         int: isinstance(value, int) and not isinstance(value, bool),

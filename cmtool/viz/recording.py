@@ -24,27 +24,38 @@ def open_recording(path, application_id: str = "cmtool") -> rr.RecordingStream:
     return rec
 
 
+def log_lanes(rec: rr.RecordingStream, prefix: str, lines, green=(), red=(), edges=()) -> None:
+    """Log lane polylines (heading-coloured), successor arrows and light lines under ``<prefix>hd``."""
+    rec.log(f"{prefix}hd", rr.Transform3D(mat3x3=_EGO_TO_SCREEN))
+    lines = [np.asarray(l) for l in lines]
+    mid = np.array([l[-1] - l[0] for l in lines]).reshape(-1, 2)
+    rec.log(f"{prefix}hd/lanes", rr.LineStrips2D(lines, radii=0.25,
+                                                 colors=heading_colours(np.arctan2(mid[:, 1], mid[:, 0]))))
+    if len(edges):
+        origins = np.array([lines[i][-3] for i, _ in edges]).reshape(-1, 2)
+        targets = np.array([lines[j][2] for _, j in edges]).reshape(-1, 2)
+        rec.log(f"{prefix}hd/successors", rr.Arrows2D(origins=origins, vectors=targets - origins, radii=0.15,
+                                                      colors=[255, 255, 255]))
+    for state, colour, vecs in (("green", GREEN, green), ("red", RED, red)):
+        rec.log(f"{prefix}hd/lights/{state}", rr.LineStrips2D([np.asarray(v) for v in vecs], radii=0.8,
+                                                              colors=colour, draw_order=20.0))
+
+
+def log_sd(rec: rr.RecordingStream, prefix: str, sd: np.ndarray, frame_m: float = 64.0) -> None:
+    """Log an SD raster (H, W, 3) as a readable image on the scene's square at ``<prefix>control/sd``."""
+    size = sd.shape[0]
+    half = frame_m / 2.0
+    rec.log(f"{prefix}control/sd",
+            rr.Image(sd_panel(sd, size), opacity=0.7, draw_order=-10.0, magnification_filter="Nearest"),
+            rr.Transform3D(translation=[-half, -half, 0.0], scale=frame_m / size))
+
+
 def log_scene(rec: rr.RecordingStream, prefix: str, scene) -> None:
     """Log a scene's lanes, successor arrows, light lines and SD raster under ``prefix``."""
-    half = scene.frame_m / 2.0
-    rec.log(f"{prefix}hd", rr.Transform3D(mat3x3=_EGO_TO_SCREEN))
-    lines = scene.lines[scene.line_mask]
-    mid = lines[:, -1] - lines[:, 0] if len(lines) else np.zeros((0, 2))
-    rec.log(f"{prefix}hd/lanes", rr.LineStrips2D(list(lines), radii=0.25,
-                                                 colors=heading_colours(np.arctan2(mid[:, 1], mid[:, 0]))))
-    origins = np.array([lines[i][-3] for i, _ in scene.edges]).reshape(-1, 2)
-    targets = np.array([lines[j][2] for _, j in scene.edges]).reshape(-1, 2)
-    rec.log(f"{prefix}hd/successors", rr.Arrows2D(origins=origins, vectors=targets - origins, radii=0.15,
-                                                  colors=[255, 255, 255]))
-    for state, colour, vecs, mask in (("green", GREEN, scene.green, scene.green_mask),
-                                      ("red", RED, scene.red, scene.red_mask)):
-        rec.log(f"{prefix}hd/lights/{state}", rr.LineStrips2D(list(vecs[mask]), radii=0.8, colors=colour,
-                                                              draw_order=20.0))
+    log_lanes(rec, prefix, scene.lines[scene.line_mask], scene.green[scene.green_mask], scene.red[scene.red_mask],
+              scene.edges)
     if scene.sd is not None:
-        size = scene.sd.shape[0]
-        rec.log(f"{prefix}control/sd",
-                rr.Image(sd_panel(scene.sd, size), opacity=0.7, draw_order=-10.0, magnification_filter="Nearest"),
-                rr.Transform3D(translation=[-half, -half, 0.0], scale=scene.frame_m / size))
+        log_sd(rec, prefix, scene.sd, scene.frame_m)
 
 
 def scenes_blueprint(names: list[str], half: float = 32.0, info: bool = True) -> rrb.Blueprint:

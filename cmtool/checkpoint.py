@@ -1,0 +1,181 @@
+"""Checkpoints: safetensors weights + a JSON config, one directory per saved step.
+
+A *checkpoint directory* holds::
+
+    config.json              format, kind (rvae | dit | controlmap), model config, city labels,
+                             latent scale, recipe, step, training record
+    model.safetensors        the weights to use (EMA weights during training)
+    train_state.safetensors  raw weights + optimiser state, for ``--resume`` (training only)
+    train_state.json         optimiser hyper-parameters and the step counter (training only)
+
+A *run directory* (what ``cmtool train --out`` writes) keeps its checkpoints under
+``checkpoints/step_<step>/``. Each is written into a temporary directory and renamed into place,
+so a crash (even ``kill -9``) leaves either the complete new checkpoint or none; :func:`resolve`
+maps a run directory to its newest complete checkpoint. Nothing is unpickled when loading.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import json
+import os
+import shutil
+from pathlib import Path
+
+import torch
+from safetensors import SafetensorError
+from safetensors.torch import load_file, save_file
+
+from cmtool.data.jsonio import read_json
+from cmtool.errors import CmtoolError
+
+FORMAT = "cmtool.checkpoint"
+CONFIG, WEIGHTS = "config.json", "model.safetensors"
+STATE, STATE_META = "train_state.safetensors", "train_state.json"
+KINDS = ("rvae", "dit", "controlmap")
+
+
+def _fsync_dir(path: Path) -> None:
+    fd = os.open(path, os.O_RDONLY)
+    try:
+        os.fsync(fd)
+    finally:
+        os.close(fd)
+
+
+def _write_tensors(path: Path, tensors: dict[str, torch.Tensor]) -> None:
+    save_file({k: v.detach().contiguous().cpu() for k, v in tensors.items()}, str(path))
+    with open(path, "rb") as f:
+        os.fsync(f.fileno())
+
+
+def _write_json(path: Path, obj) -> None:
+    with open(path, "w", encoding="utf-8") as f:
+        json.dump(obj, f, indent=1, default=_plain)
+        f.write("\n")
+        f.flush()
+        os.fsync(f.fileno())
+
+
+def _plain(obj):
+    if dataclasses.is_dataclass(obj):
+        return dataclasses.asdict(obj)
+    if isinstance(obj, Path):
+        return str(obj)
+    raise TypeError(f"not JSON serialisable: {type(obj).__name__}")
+
+
+def save_checkpoint(target: Path, config: dict, weights: dict[str, torch.Tensor],
+                    state: dict[str, torch.Tensor] | None = None, state_meta: dict | None = None) -> Path:
+    """Write a checkpoint directory at ``target`` atomically (replacing an existing one)."""
+    target = Path(target)
+    target.parent.mkdir(parents=True, exist_ok=True)
+    tmp = target.with_name(f".{target.name}.tmp-{os.getpid()}")
+    shutil.rmtree(tmp, ignore_errors=True)
+    tmp.mkdir()
+    _write_tensors(tmp / WEIGHTS, weights)
+    if state is not None:
+        _write_tensors(tmp / STATE, state)
+        _write_json(tmp / STATE_META, state_meta or {})
+    _write_json(tmp / CONFIG, {"format": FORMAT, "version": 1, **config})
+    _fsync_dir(tmp)
+    if target.exists():
+        old = target.with_name(f".{target.name}.old-{os.getpid()}")
+        os.rename(target, old)
+        os.rename(tmp, target)
+        shutil.rmtree(old)
+    else:
+        os.rename(tmp, target)
+    _fsync_dir(target.parent)
+    return target
+
+
+def step_dir(run_dir: Path, step: int) -> Path:
+    return Path(run_dir) / "checkpoints" / f"step_{step:08d}"
+
+
+def run_checkpoints(run_dir: Path) -> list[Path]:
+    """Complete checkpoints of a run directory, oldest first."""
+    root = Path(run_dir) / "checkpoints"
+    if not root.is_dir():
+        return []
+    return sorted(p for p in root.glob("step_*") if (p / CONFIG).is_file() and (p / WEIGHTS).is_file())
+
+
+def prune(run_dir: Path, keep: int) -> None:
+    """Delete all but the newest ``keep`` checkpoints and any leftover temporary directories."""
+    for p in run_checkpoints(run_dir)[:-keep]:
+        shutil.rmtree(p)
+    root = Path(run_dir) / "checkpoints"
+    for p in root.glob(".step_*.*-*"):
+        shutil.rmtree(p, ignore_errors=True)
+
+
+def resolve(path) -> Path:
+    """A checkpoint directory, or a run directory -> its newest complete checkpoint."""
+    path = Path(path)
+    if (path / CONFIG).is_file() and (path / WEIGHTS).is_file():
+        return path
+    found = run_checkpoints(path)
+    if found:
+        return found[-1]
+    if not path.exists():
+        raise CmtoolError(f"{path}: no such checkpoint")
+    raise CmtoolError(f"{path}: not a checkpoint (no {CONFIG} + {WEIGHTS}, no checkpoints/step_*)")
+
+
+def load_config(path) -> dict:
+    """The config of a checkpoint (or of a run directory's newest checkpoint)."""
+    path = resolve(path) / CONFIG
+    config = read_json(path)
+    if not isinstance(config, dict) or config.get("format") != FORMAT:
+        raise CmtoolError(f"{path}: not a cmtool checkpoint config")
+    if config.get("kind") not in KINDS:
+        raise CmtoolError(f"{path}: unknown checkpoint kind {config.get('kind')!r} (known: {', '.join(KINDS)})")
+    return config
+
+
+def load_tensors(path: Path) -> dict[str, torch.Tensor]:
+    try:
+        return load_file(str(path))
+    except (SafetensorError, OSError, ValueError) as e:
+        raise CmtoolError(f"{path}: unreadable weights ({e})") from None
+
+
+def load_weights(module: torch.nn.Module, path: Path) -> None:
+    """Load a safetensors file into ``module``; a key or shape mismatch is a one-line error."""
+    tensors = load_tensors(path)
+    own = module.state_dict()
+    missing, unexpected = sorted(set(own) - set(tensors)), sorted(set(tensors) - set(own))
+    if missing or unexpected:
+        what = f"missing {missing[:3]}" if missing else f"unexpected {unexpected[:3]}"
+        raise CmtoolError(f"{path}: weights do not match the model in its config ({what})")
+    for k, v in tensors.items():
+        if v.shape != own[k].shape:
+            raise CmtoolError(f"{path}: weight {k} has shape {tuple(v.shape)}, the model expects {tuple(own[k].shape)}")
+    module.load_state_dict({k: v.to(own[k].dtype) for k, v in tensors.items()})
+
+
+def build_model(config: dict, where: str = "checkpoint") -> torch.nn.Module:
+    """An untrained model of the kind and configuration a checkpoint config describes."""
+    from cmtool.model.controlmap import ControlConfig, ControlMap
+    from cmtool.model.dit import DiT, DiTConfig
+    from cmtool.model.rvae import RVAE, RVAEConfig
+    from cmtool.recipe import from_table
+
+    kind = config["kind"]
+    if kind == "rvae":
+        return RVAE(from_table(RVAEConfig, config["model"], f"{where}: ", "model."))
+    dit = DiT(from_table(DiTConfig, config["model"], f"{where}: ", "model."))
+    if kind == "dit":
+        return dit
+    return ControlMap(dit, from_table(ControlConfig, config["control"], f"{where}: ", "control."))
+
+
+def load_model(path, device="cpu") -> tuple[torch.nn.Module, dict]:
+    """The model of a checkpoint (or a run's newest one) with its weights, in eval mode."""
+    path = resolve(path)
+    config = load_config(path)
+    model = build_model(config, str(path / CONFIG))
+    load_weights(model, path / WEIGHTS)
+    return model.to(device).eval(), config

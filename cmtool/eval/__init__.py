@@ -1,0 +1,1 @@
+"""Evaluation metrics: generated maps against ground truth and SD control."""

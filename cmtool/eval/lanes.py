@@ -1,0 +1,66 @@
+"""Lane geometry metrics between a predicted and a reference set of polylines (ego-frame metres).
+
+Both sets are resampled at a fixed spacing and every sample point is scored by its distance to the
+nearest segment of the other set. Conventions for empty sets: a score over zero points is vacuously
+1 (an empty prediction has precision 1, an empty reference gives recall 1), so both empty -> 1/1/1,
+and when exactly one set is empty the score of the side that has points is 0 and F1 is 0.
+"""
+
+from __future__ import annotations
+
+from typing import Sequence
+
+import numpy as np
+
+from cmtool.geometry import as_polyline, resample_step
+
+_CHUNK = 4096  # points per block of the point-to-segment distance matrix
+
+
+def sample_points(polylines: Sequence[np.ndarray], step: float) -> np.ndarray:
+    """All polylines resampled every ``step`` metres, stacked into (N, 2) points."""
+    pts = [resample_step(as_polyline(p), step) for p in polylines]
+    return np.concatenate(pts) if pts else np.zeros((0, 2))
+
+
+def segments(polylines: Sequence[np.ndarray]) -> tuple[np.ndarray, np.ndarray]:
+    """Segment start points and vectors, each (M, 2), of all polylines."""
+    lines = [as_polyline(p) for p in polylines]
+    if not lines:
+        return np.zeros((0, 2)), np.zeros((0, 2))
+    return np.concatenate([p[:-1] for p in lines]), np.concatenate([np.diff(p, axis=0) for p in lines])
+
+
+def distance_to_polylines(points: np.ndarray, polylines: Sequence[np.ndarray]) -> np.ndarray:
+    """Distance (N,) from each point (N, 2) to the nearest segment of ``polylines`` (inf if none)."""
+    points = np.asarray(points, dtype=np.float64).reshape(-1, 2)
+    start, vec = segments(polylines)
+    if len(start) == 0:
+        return np.full(len(points), np.inf)
+    length2 = np.maximum((vec ** 2).sum(-1), 1e-12)
+    out = np.empty(len(points))
+    for i in range(0, len(points), _CHUNK):
+        rel = points[i:i + _CHUNK, None] - start  # (n, M, 2)
+        t = np.clip((rel * vec).sum(-1) / length2, 0.0, 1.0)
+        out[i:i + _CHUNK] = np.linalg.norm(rel - t[..., None] * vec, axis=-1).min(axis=1)
+    return out
+
+
+def covered_share(points: np.ndarray, polylines: Sequence[np.ndarray], tol: float) -> float:
+    """Share of ``points`` within ``tol`` of ``polylines``; 1.0 when there are no points."""
+    if len(points) == 0:
+        return 1.0
+    return float(np.mean(distance_to_polylines(points, polylines) <= tol))
+
+
+def lane_scores(pred: Sequence[np.ndarray], gt: Sequence[np.ndarray], tol: float = 1.0, step: float = 0.5) -> dict:
+    """Point precision / recall / F1 of predicted lanes against reference lanes at tolerance ``tol`` m.
+
+    precision: share of predicted sample points within ``tol`` of a reference polyline; recall: share
+    of reference sample points within ``tol`` of a predicted polyline (see the module docstring for
+    empty sets). Returns ``{"precision", "recall", "f1"}`` floats.
+    """
+    precision = covered_share(sample_points(pred, step), gt, tol)
+    recall = covered_share(sample_points(gt, step), pred, tol)
+    f1 = 2.0 * precision * recall / (precision + recall) if precision + recall > 0 else 0.0
+    return {"precision": precision, "recall": recall, "f1": f1}

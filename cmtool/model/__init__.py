@@ -1,0 +1,1 @@
+"""Neural networks: the RVAE (stage 1), the DiT (stage 2) and the ControlMap branch (stage 3)."""

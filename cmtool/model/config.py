@@ -1,0 +1,107 @@
+"""Model and schedule configurations: plain dataclasses, built from recipe TOML tables and stored
+in checkpoint configs. No torch here, so reading a recipe stays cheap."""
+
+from __future__ import annotations
+
+from dataclasses import dataclass, replace
+
+from cmtool.errors import CmtoolError
+
+
+@dataclass
+class RVAEConfig:
+    """RVAE hyper-parameters (plain fields: built from a TOML table)."""
+
+    backbone: str = "resnet18"
+    in_channels: int = 6
+    raster_px: int = 128
+    latent_channels: int = 64
+    latent_size: int = 8
+    d_model: int = 256
+    decoder_layers: int = 4
+    heads: int = 8
+    ffn: int = 1024
+    dropout: float = 0.1
+    num_lines: int = 30
+    num_lights: int = 10
+    num_points: int = 20
+    frame_m: float = 64.0
+
+    @property
+    def queries(self) -> dict[str, int]:
+        """Number of decoder queries per element type."""
+        return {"lines": self.num_lines, "green": self.num_lights, "red": self.num_lights}
+
+
+@dataclass
+class RVAELossConfig:
+    """Loss and matching-cost weights (SLEDGE's, see cmtool.model.rvae_loss) and the frame size."""
+
+    l1_weight: float = 64.0
+    existence_weight: float = 5.0
+    kl_weight: float = 0.1
+    frame_m: float = 64.0
+
+
+# DiT sizes (depth, hidden, heads), DESIGN.md §5. XL uses hidden 1024 (about 531M parameters, the
+# paper reports about 487M); B lands at about 130M (SLEDGE reports about 138M).
+SIZES = {"tiny": (8, 192, 4), "S": (12, 384, 6), "B": (12, 768, 12), "L": (24, 1024, 16), "XL": (28, 1024, 16)}
+
+
+@dataclass
+class DiTConfig:
+    """DiT hyper-parameters; ``depth``/``hidden``/``heads`` override ``SIZES[size]`` when > 0."""
+
+    size: str = "tiny"
+    depth: int = 0
+    hidden: int = 0
+    heads: int = 0
+    mlp_ratio: float = 4.0
+    latent_channels: int = 64
+    latent_size: int = 8
+    num_classes: int = 3
+
+    def resolved(self) -> DiTConfig:
+        """A copy with depth/hidden/heads filled from ``SIZES``, validated."""
+        if self.size not in SIZES:
+            raise CmtoolError(f"dit.size: unknown size {self.size!r} (choose from {', '.join(SIZES)})")
+        depth, hidden, heads = SIZES[self.size]
+        cfg = replace(self, depth=self.depth or depth, hidden=self.hidden or hidden, heads=self.heads or heads)
+        if min(cfg.depth, cfg.hidden, cfg.heads, cfg.latent_channels, cfg.latent_size, cfg.num_classes) <= 0:
+            raise CmtoolError("dit: depth, hidden, heads, latent_channels, latent_size, num_classes must be > 0")
+        if cfg.hidden % cfg.heads or cfg.hidden % 4:
+            raise CmtoolError(f"dit.hidden: {cfg.hidden} must be divisible by 4 and by heads ({cfg.heads})")
+        if cfg.mlp_ratio <= 0:
+            raise CmtoolError(f"dit.mlp_ratio: must be > 0, got {cfg.mlp_ratio}")
+        return cfg
+
+
+@dataclass
+class ScheduleConfig:
+    """Forward-process schedule: ``kind`` is "linear" (betas beta_start..beta_end) or "cosine"."""
+
+    kind: str = "linear"
+    train_steps: int = 1000
+    beta_start: float = 1e-4
+    beta_end: float = 0.02
+
+
+PAPER_CONTROL_WIDTHS = (256, 512, 1024, 1024)
+
+
+@dataclass
+class ControlConfig:
+    """Control branch hyper-parameters; the defaults suit the tiny DiT.
+
+    The paper-sized branch on DiT-B uses ``widths=PAPER_CONTROL_WIDTHS`` (about 234M parameters in
+    total, base included).
+    """
+
+    num_blocks: int = 6
+    in_channels: int = 3
+    image_px: int = 128
+    widths: tuple[int, ...] = (32, 64, 128, 192)
+    groups: int = 32
+
+    def __post_init__(self) -> None:
+        self.widths = tuple(self.widths)

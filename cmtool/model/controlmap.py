@@ -1,0 +1,128 @@
+"""ControlMap (stage 3): an SD-map ControlNet branch on a frozen, pretrained DiT.
+
+A convolutional control encoder turns the ``(B, 3, 128, 128)`` SD raster into a ``(B, 64, 8, 8)``
+map, adds 2D sine-cosine positions and flattens it to 64 tokens. Trainable copies of the first
+``M`` DiT blocks (initialised from the base) run on ``base tokens + proj(control tokens)``; the
+output of copy ``m`` passes a zero-initialised linear layer and is added to the output of base block
+``m``. Both projections start at zero, so a fresh ControlMap computes exactly the base DiT.
+"""
+
+from __future__ import annotations
+
+import copy
+
+import torch
+import torch.nn.functional as F
+from torch import Tensor, nn
+
+from cmtool.errors import CmtoolError
+from cmtool.model.config import ControlConfig
+from cmtool.model.dit import DiT, sincos_pos_embed_2d
+
+class EncoderStage(nn.Module):
+    """Strided 3x3 conv -> GroupNorm -> GELU, then a residual 3x3 conv -> GroupNorm -> GELU."""
+
+    def __init__(self, cin: int, cout: int, groups: int):
+        super().__init__()
+        self.down = nn.Conv2d(cin, cout, 3, stride=2, padding=1)
+        self.norm1 = nn.GroupNorm(groups, cout)
+        self.conv = nn.Conv2d(cout, cout, 3, padding=1)
+        self.norm2 = nn.GroupNorm(groups, cout)
+
+    def forward(self, x: Tensor) -> Tensor:
+        x = F.gelu(self.norm1(self.down(x)))
+        return x + F.gelu(self.norm2(self.conv(x)))
+
+
+class ControlEncoder(nn.Module):
+    """SD raster ``(B, 3, px, px)`` in [0, 1] -> control tokens ``(B, (px/16)**2, out_channels)``."""
+
+    def __init__(self, cfg: ControlConfig, out_channels: int):
+        super().__init__()
+        chans = (cfg.in_channels, *cfg.widths)
+        self.stages = nn.Sequential(*(EncoderStage(a, b, cfg.groups) for a, b in zip(chans, chans[1:])))
+        self.out = nn.Conv2d(cfg.widths[-1], out_channels, 1)
+        self.register_buffer("pos", sincos_pos_embed_2d(out_channels, cfg.image_px // 16), persistent=False)
+
+    def forward(self, image: Tensor) -> Tensor:
+        return self.out(self.stages(image)).flatten(2).transpose(1, 2) + self.pos
+
+
+class ControlMap(nn.Module):
+    """A frozen-able base DiT (``self.base``) plus the trainable SD-map control branch."""
+
+    def __init__(self, dit: DiT, cfg: ControlConfig):
+        super().__init__()
+        _validate(cfg, dit)
+        self.cfg = cfg
+        self.base = dit
+        hidden = dit.cfg.hidden
+        self.encoder = ControlEncoder(cfg, dit.cfg.latent_channels)
+        self.proj = nn.Linear(dit.cfg.latent_channels, hidden)
+        self.copies = copy.deepcopy(dit.blocks[: cfg.num_blocks]).requires_grad_(True)
+        self.zero = nn.ModuleList(nn.Linear(hidden, hidden) for _ in range(cfg.num_blocks))
+        for layer in (self.proj, *self.zero):
+            nn.init.zeros_(layer.weight)
+            nn.init.zeros_(layer.bias)
+
+    @property
+    def latent_shape(self) -> tuple[int, int, int]:
+        """Shape ``(C, H, W)`` of one latent."""
+        return self.base.latent_shape
+
+    def freeze_base(self) -> None:
+        """Stop gradients into the base DiT and put it in eval mode."""
+        self.base.requires_grad_(False)
+        self.base.eval()
+
+    def branch_parameters(self) -> list[nn.Parameter]:
+        """Every parameter outside the base DiT (what stage 3 trains)."""
+        return [p for name, p in self.named_parameters() if not name.startswith("base.")]
+
+    def forward(self, x: Tensor, t: Tensor, y: Tensor, control: Tensor | None = None) -> Tensor:
+        """Epsilon for ``x`` (B, C, H, W); ``control`` None runs exactly the base DiT."""
+        if control is None:
+            return self.base(x, t, y)
+        return self._run(x, t, y, control)[0]
+
+    def forward_cfg(self, x: Tensor, t: Tensor, y: Tensor, control: Tensor) -> tuple[Tensor, Tensor, list[Tensor]]:
+        """One batched pass for guidance: ``(eps_cond, eps_uncond, residuals)``.
+
+        The first B of the 2B rows get the control residuals, the last B take the plain base path;
+        the control branch only runs on the B conditioned rows. ``residuals`` holds the M tensors
+        ``(B, T, hidden)`` added to the base blocks' outputs.
+        """
+        b = x.shape[0]
+        eps, residuals = self._run(torch.cat([x, x]), torch.cat([t, t]), torch.cat([y, y]), control)
+        return eps[:b], eps[b:], residuals
+
+    def _run(self, x: Tensor, t: Tensor, y: Tensor, control: Tensor) -> tuple[Tensor, list[Tensor]]:
+        """Base pass over all rows; the first ``len(control)`` rows get the control residuals."""
+        n = control.shape[0]
+        c = self.base.condition(t, y)
+        h = self.base.embed_tokens(x)
+        hc = h[:n] + self.proj(self.encoder(control))
+        residuals = []
+        for i, block in enumerate(self.base.blocks):
+            h = block(h, c)
+            if i < len(self.copies):
+                hc = self.copies[i](hc, c[:n])
+                residuals.append(self.zero[i](hc))
+                h = torch.cat([h[:n] + residuals[-1], h[n:]])
+        return self.base.final(h, c), residuals
+
+
+def _validate(cfg: ControlConfig, dit: DiT) -> None:
+    """Raise CmtoolError for a control config that does not fit ``dit``."""
+    if not 1 <= cfg.num_blocks <= dit.cfg.depth:
+        raise CmtoolError(f"control.num_blocks: must be in 1..{dit.cfg.depth} (the DiT depth), got {cfg.num_blocks}")
+    if cfg.groups <= 0 or len(cfg.widths) != 4 or any(w <= 0 or w % cfg.groups for w in cfg.widths):
+        raise CmtoolError(f"control.widths: need 4 positive multiples of groups ({cfg.groups}), got {list(cfg.widths)}")
+    if cfg.image_px != 16 * dit.cfg.latent_size:
+        raise CmtoolError(f"control.image_px: must be 16 x latent_size = {16 * dit.cfg.latent_size}, "
+                          f"got {cfg.image_px}")
+    if dit.cfg.latent_channels % 4:
+        raise CmtoolError(f"dit.latent_channels: must be divisible by 4 for the control tokens, got "
+                          f"{dit.cfg.latent_channels}")
+    if cfg.in_channels <= 0:
+        raise CmtoolError(f"control.in_channels: must be > 0, got {cfg.in_channels}")

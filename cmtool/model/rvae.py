@@ -1,0 +1,128 @@
+"""The raster-to-vector autoencoder (RVAE, stage 1), after SLEDGE.
+
+The encoder is a torchvision ResNet trunk (random init, GroupNorm instead of BatchNorm) that maps the
+HD raster (DESIGN.md §3) to a Gaussian posterior over a ``latent_channels x latent_size x latent_size``
+latent. The decoder is DETR-style: one learned query per output slot (lines, green-light lines,
+red-light lines) attends to the latent tokens through a pre-norm transformer decoder; per element type
+an MLP head regresses the polyline points (ego-frame metres, tanh-bounded to the frame) and a linear
+layer its existence logit.
+"""
+
+from __future__ import annotations
+
+import math
+from functools import partial
+
+import numpy as np
+import torch
+import torchvision
+from torch import Tensor, nn
+
+from cmtool.errors import CmtoolError
+from cmtool.model.config import RVAEConfig
+
+ELEMENTS = ("lines", "green", "red")
+BACKBONES = ("resnet18", "resnet34", "resnet50")
+_RESNET_STRIDE = 32
+_STRIDED_LAYERS = ("layer4", "layer3", "layer2")  # whose stride 2 can be dropped, last first
+
+
+def encoder_trunk(backbone: str, in_channels: int, raster_px: int, latent_size: int) -> tuple[nn.Sequential, int]:
+    """A ResNet trunk reducing ``raster_px`` to ``latent_size``; returns it and its output channels.
+
+    Strides of the last stages are set to 1 until the total stride is ``raster_px / latent_size``.
+    """
+    if backbone not in BACKBONES:
+        raise CmtoolError(f"rvae.backbone: must be one of {', '.join(BACKBONES)}, got {backbone!r}")
+    stride = raster_px / latent_size
+    drop = math.log2(_RESNET_STRIDE / stride) if stride > 0 else -1.0
+    if raster_px % latent_size or drop != int(drop) or not 0 <= drop <= len(_STRIDED_LAYERS):
+        raise CmtoolError(f"rvae.raster_px: {raster_px} cannot be reduced to latent_size {latent_size}: "
+                         "raster_px / latent_size must be 4, 8, 16 or 32")
+    net = getattr(torchvision.models, backbone)(weights=None, norm_layer=partial(nn.GroupNorm, 32))
+    net.conv1 = nn.Conv2d(in_channels, 64, kernel_size=7, stride=2, padding=3, bias=False)
+    for name in _STRIDED_LAYERS[:int(drop)]:
+        for m in getattr(net, name)[0].modules():
+            if isinstance(m, nn.Conv2d) and m.stride == (2, 2):
+                m.stride = (1, 1)
+    trunk = nn.Sequential(net.conv1, net.bn1, net.relu, net.maxpool, net.layer1, net.layer2, net.layer3, net.layer4)
+    return trunk, net.fc.in_features
+
+
+def sine_position_encoding(size: int, dim: int, temperature: float = 10000.0) -> Tensor:
+    """Fixed 2D sine/cosine encoding (DETR) of a ``size x size`` grid -> (size * size, dim), row-major."""
+    if dim % 4:
+        raise CmtoolError(f"rvae.d_model: must be divisible by 4 for the 2D sine encoding, got {dim}")
+    quarter = dim // 4
+    freq = temperature ** (-torch.arange(quarter, dtype=torch.float64) / quarter)
+    pos = torch.arange(size, dtype=torch.float64)[:, None] * freq  # (size, quarter)
+    enc = torch.cat([pos.sin(), pos.cos()], dim=1)  # (size, dim / 2)
+    rows = enc[:, None].expand(size, size, dim // 2)
+    cols = enc[None, :].expand(size, size, dim // 2)
+    return torch.cat([rows, cols], dim=-1).reshape(size * size, dim).float()
+
+
+class LineHead(nn.Module):
+    """Queries -> polylines (B, Q, P, 2) in metres (tanh * frame / 2) and existence logits (B, Q)."""
+
+    def __init__(self, d_model: int, num_points: int, frame_m: float):
+        super().__init__()
+        self.points = nn.Sequential(nn.Linear(d_model, d_model), nn.ReLU(), nn.Linear(d_model, num_points * 2))
+        self.logit = nn.Linear(d_model, 1)
+        self.num_points = num_points
+        self.half_frame = frame_m / 2.0
+
+    def forward(self, h: Tensor) -> tuple[Tensor, Tensor]:
+        b, q = h.shape[:2]
+        points = self.points(h).tanh().reshape(b, q, self.num_points, 2) * self.half_frame
+        return points, self.logit(h).squeeze(-1)
+
+
+class RVAE(nn.Module):
+    """HD raster (B, C, H, W) -> latent posterior (B, 64, 8, 8) -> scene vectors."""
+
+    def __init__(self, cfg: RVAEConfig):
+        super().__init__()
+        self.cfg = cfg
+        self.trunk, trunk_channels = encoder_trunk(cfg.backbone, cfg.in_channels, cfg.raster_px, cfg.latent_size)
+        self.to_latent = nn.Conv2d(trunk_channels, 2 * cfg.latent_channels, kernel_size=3, padding=1)
+
+        self.token_proj = nn.Linear(cfg.latent_channels, cfg.d_model)
+        self.register_buffer("pos", sine_position_encoding(cfg.latent_size, cfg.d_model), persistent=False)
+        self.query = nn.Embedding(sum(cfg.queries.values()), cfg.d_model)
+        layer = nn.TransformerDecoderLayer(cfg.d_model, cfg.heads, cfg.ffn, cfg.dropout, batch_first=True,
+                                           norm_first=True)
+        self.decoder = nn.TransformerDecoder(layer, cfg.decoder_layers, norm=nn.LayerNorm(cfg.d_model))
+        self.heads = nn.ModuleDict({name: LineHead(cfg.d_model, cfg.num_points, cfg.frame_m) for name in ELEMENTS})
+
+    def encode(self, raster: Tensor) -> tuple[Tensor, Tensor]:
+        """Raster (B, C, H, W) -> posterior mean and log-variance, each (B, latent_channels, S, S)."""
+        if tuple(raster.shape[1:]) != (self.cfg.in_channels, self.cfg.raster_px, self.cfg.raster_px):
+            raise ValueError(f"expected rasters of shape (B, {self.cfg.in_channels}, {self.cfg.raster_px}, "
+                             f"{self.cfg.raster_px}), got {tuple(raster.shape)}")
+        mean, logvar = self.to_latent(self.trunk(raster)).chunk(2, dim=1)
+        return mean, logvar
+
+    def decode(self, z: Tensor) -> dict[str, Tensor]:
+        """Latent (B, latent_channels, S, S) -> {"lines", "lines_logit", "green", "green_logit", "red", "red_logit"}."""
+        b = z.shape[0]
+        memory = self.token_proj(z.flatten(2).transpose(1, 2)) + self.pos
+        h = self.decoder(self.query.weight.expand(b, -1, -1), memory)
+        out = {}
+        for name, part in zip(ELEMENTS, h.split(list(self.cfg.queries.values()), dim=1)):
+            out[name], out[f"{name}_logit"] = self.heads[name](part)
+        return out
+
+    def forward(self, raster: Tensor, sample: bool = True) -> tuple[dict[str, Tensor], Tensor, Tensor]:
+        """Encode, take z (reparameterised sample, or the mean when ``sample`` is False), decode."""
+        mean, logvar = self.encode(raster)
+        z = mean + torch.exp(0.5 * logvar) * torch.randn_like(mean) if sample else mean
+        return self.decode(z), mean, logvar
+
+
+def decoded_elements(decoded: dict[str, Tensor], threshold: float = 0.5) -> list[dict[str, np.ndarray]]:
+    """Per batch item, the polylines whose existence probability exceeds ``threshold``:
+    ``{"lines": (n, P, 2) float32, "green": ..., "red": ...}``."""
+    keep = {name: (torch.sigmoid(decoded[f"{name}_logit"]) > threshold).cpu().numpy() for name in ELEMENTS}
+    points = {name: decoded[name].detach().float().cpu().numpy() for name in ELEMENTS}
+    return [{name: points[name][i][keep[name][i]] for name in ELEMENTS} for i in range(len(points["lines"]))]

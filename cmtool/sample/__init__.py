@@ -1,0 +1,1 @@
+"""Diffusion sampling: noise schedules and DDIM/DDPM samplers with classifier-free guidance."""

@@ -1,0 +1,154 @@
+"""Noise schedules and the DDIM / DDPM samplers with classifier-free guidance on the SD-map control.
+
+Training uses the DDPM forward process ``x_t = sqrt(abar_t) x0 + sqrt(1 - abar_t) eps`` over
+``train_steps`` steps (SLEDGE: linear betas 1e-4 .. 0.02). Sampling runs on ``steps`` evenly spaced
+timesteps; DDPM uses the respaced betas ``1 - abar_t / abar_prev`` (``steps == train_steps`` is
+plain DDPM), DDIM interpolates between deterministic (``eta = 0``) and ancestral (``eta = 1``).
+
+Guidance (ControlMap paper, eq. 1): ``eps = eps_uncond + w (eps_cond - eps_uncond)``, where the
+conditioned prediction uses the SD map and the unconditioned one is the frozen base DiT; ``w = 0``
+runs the base DiT alone and reproduces its samples exactly.
+"""
+
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass
+from typing import Callable
+
+import numpy as np
+import torch
+from torch import Tensor, nn
+
+from cmtool.errors import CmtoolError
+from cmtool.model.config import ScheduleConfig
+from cmtool.model.controlmap import ControlMap
+
+SAMPLERS = ("ddim", "ddpm")
+
+
+class SamplingError(CmtoolError, ValueError):
+    """A bad schedule or sampling argument (also a ValueError for library callers)."""
+
+
+class NoiseSchedule:
+    """The forward process: ``betas`` and ``alphas_cumprod`` (float64, CPU, length train_steps)."""
+
+    def __init__(self, cfg: ScheduleConfig):
+        if cfg.train_steps < 1:
+            raise SamplingError(f"schedule.train_steps: must be >= 1, got {cfg.train_steps}")
+        if cfg.kind == "linear":
+            if not 0 < cfg.beta_start <= cfg.beta_end < 1:
+                raise SamplingError("schedule: need 0 < beta_start <= beta_end < 1, "
+                                    f"got {cfg.beta_start}, {cfg.beta_end}")
+            betas = np.linspace(cfg.beta_start, cfg.beta_end, cfg.train_steps)
+        elif cfg.kind == "cosine":
+            f = np.cos((np.arange(cfg.train_steps + 1) / cfg.train_steps + 0.008) / 1.008 * math.pi / 2) ** 2
+            betas = np.minimum(1 - f[1:] / f[:-1], 0.999)
+        else:
+            raise SamplingError(f"schedule.kind: unknown kind {cfg.kind!r} (choose linear or cosine)")
+        self.cfg = cfg
+        self.train_steps = cfg.train_steps
+        self.betas = torch.from_numpy(betas)
+        self.alphas_cumprod = torch.cumprod(1 - self.betas, dim=0)
+
+    def _at(self, values: Tensor, t: Tensor, like: Tensor) -> Tensor:
+        """``values[t]`` shaped to broadcast over ``like`` (B, ...), on its device and dtype."""
+        return values[t.cpu().long()].to(like.device, like.dtype).reshape(-1, *[1] * (like.ndim - 1))
+
+    def q_sample(self, x0: Tensor, t: Tensor, noise: Tensor) -> Tensor:
+        """Noisy ``x_t`` for clean ``x0`` at timesteps ``t`` (B,)."""
+        ab = self._at(self.alphas_cumprod, t, x0)
+        return ab.sqrt() * x0 + (1 - ab).sqrt() * noise
+
+    def predict_x0(self, x_t: Tensor, t: Tensor, eps: Tensor) -> Tensor:
+        """Clean estimate from ``x_t`` and predicted noise ``eps`` at timesteps ``t`` (B,)."""
+        ab = self._at(self.alphas_cumprod, t, x_t)
+        return (x_t - (1 - ab).sqrt() * eps) / ab.sqrt()
+
+    def timesteps(self, num_steps: int) -> list[int]:
+        """``num_steps`` evenly spaced timesteps, descending from ``train_steps - 1`` to 0."""
+        if not 1 <= num_steps <= self.train_steps:
+            raise SamplingError(f"steps: must be in 1..{self.train_steps}, got {num_steps}")
+        return [int(t) for t in np.linspace(self.train_steps - 1, 0, num_steps).round()]
+
+
+@dataclass
+class StepInfo:
+    """What one sampling step saw and predicted (handed to the callback after the step)."""
+
+    step: int
+    t: int
+    x_t: Tensor
+    x0: Tensor
+    eps_cond: Tensor | None
+    eps_uncond: Tensor | None
+    eps: Tensor
+    residuals: list[Tensor] | None
+
+
+@torch.no_grad()
+def sample(model: nn.Module, schedule: NoiseSchedule, y: Tensor, *, control: Tensor | None = None,
+           cfg: float = 1.0, steps: int = 50, sampler: str = "ddim", eta: float = 0.0,
+           generator: torch.Generator | None = None, noise: Tensor | None = None,
+           callback: Callable[[StepInfo], None] | None = None) -> Tensor:
+    """Denoise from ``x_T`` to a clean latent ``(B, C, H, W)`` for labels ``y`` (B,).
+
+    ``model`` is a DiT (or any ``eps = model(x, t, y)`` with ``latent_shape``) or a ControlMap. With
+    a ControlMap, a ``control`` image (B, 3, px, px) and ``cfg > 0``, each step makes one batched
+    guided pass; ``cfg == 0`` or no control runs the base DiT only. All randomness comes from
+    ``generator`` (which must live on ``y``'s device), including ``x_T`` unless ``noise`` is given.
+    """
+    if not (math.isfinite(cfg) and cfg >= 0):
+        raise SamplingError(f"cfg: guidance scale must be finite and >= 0, got {cfg}")
+    if sampler not in SAMPLERS:
+        raise SamplingError(f"sampler: unknown sampler {sampler!r} (choose {' or '.join(SAMPLERS)})")
+    if not (math.isfinite(eta) and eta >= 0):
+        raise SamplingError(f"eta: must be finite and >= 0, got {eta}")
+    if control is not None and not isinstance(model, ControlMap):
+        raise SamplingError("control: a control image needs a ControlMap model")
+    shape = (y.shape[0], *model.latent_shape)
+    if noise is not None and tuple(noise.shape) != shape:
+        raise SamplingError(f"noise: expected shape {shape}, got {tuple(noise.shape)}")
+    ts = schedule.timesteps(steps)
+    guided = control is not None and cfg > 0
+    x = noise.clone() if noise is not None else torch.randn(shape, generator=generator, device=y.device)
+    for i, t in enumerate(ts):
+        tt = torch.full((shape[0],), t, dtype=torch.long, device=x.device)
+        if guided:
+            eps_cond, eps_uncond, residuals = model.forward_cfg(x, tt, y, control)
+            eps = eps_uncond + cfg * (eps_cond - eps_uncond)
+        else:
+            eps_cond, residuals = None, None
+            eps = eps_uncond = model(x, tt, y)
+        x0 = schedule.predict_x0(x, tt, eps)
+        x_t = x
+        ab_t = float(schedule.alphas_cumprod[t])
+        ab_prev = float(schedule.alphas_cumprod[ts[i + 1]]) if i + 1 < len(ts) else 1.0
+        if sampler == "ddim":
+            x = _ddim_step(x0, eps, ab_t, ab_prev, eta, generator)
+        else:
+            x = _ddpm_step(x, eps, ab_t, ab_prev, generator)
+        if callback is not None:
+            callback(StepInfo(i, t, x_t, x0, eps_cond, eps_uncond, eps, residuals))
+    return x
+
+
+def _ddim_step(x0: Tensor, eps: Tensor, ab_t: float, ab_prev: float, eta: float,
+               generator: torch.Generator | None) -> Tensor:
+    """DDIM update to the previous timestep; ``eta = 1`` matches DDPM's posterior variance."""
+    sigma = eta * math.sqrt((1 - ab_prev) / (1 - ab_t) * (1 - ab_t / ab_prev))
+    x = math.sqrt(ab_prev) * x0 + math.sqrt(max(1 - ab_prev - sigma**2, 0.0)) * eps
+    return x + sigma * _randn_like(x, generator) if sigma > 0 else x
+
+
+def _ddpm_step(x: Tensor, eps: Tensor, ab_t: float, ab_prev: float, generator: torch.Generator | None) -> Tensor:
+    """Ancestral DDPM update with the respaced beta ``1 - ab_t / ab_prev`` and posterior variance."""
+    beta = 1 - ab_t / ab_prev
+    mean = (x - beta / math.sqrt(1 - ab_t) * eps) / math.sqrt(1 - beta)
+    var = beta * (1 - ab_prev) / (1 - ab_t)
+    return mean + math.sqrt(var) * _randn_like(x, generator) if var > 0 else mean
+
+
+def _randn_like(x: Tensor, generator: torch.Generator | None) -> Tensor:
+    return torch.randn(x.shape, generator=generator, device=x.device, dtype=x.dtype)

@@ -1,0 +1,84 @@
+"""Torch datasets of the three stages, and the step-indexed batch order shared by all of them.
+
+Batches are a pure function of (seed, step, rank): each epoch is a ``DistributedSampler``
+shuffle cut into fixed batches, so a resumed run sees exactly the batches the crashed run would
+have seen, whatever the number of DataLoader workers.
+"""
+
+from __future__ import annotations
+
+import numpy as np
+import torch
+from torch.utils.data import Dataset, DistributedSampler, Sampler
+
+from cmtool.data.cache import SceneDataset
+from cmtool.data.hd_raster import rasterize_scene
+from cmtool.errors import CmtoolError
+
+
+class SceneRasters(Dataset):
+    """Stage 1 items: the HD raster of a scene and its vector targets (metres, ego frame)."""
+
+    def __init__(self, scenes: SceneDataset):
+        self.scenes = scenes
+
+    def __len__(self) -> int:
+        return len(self.scenes)
+
+    def __getitem__(self, i: int) -> dict[str, torch.Tensor]:
+        a = self.scenes.arrays
+        raster = rasterize_scene(a["lines"][i], a["line_mask"][i], a["green"][i], a["green_mask"][i],
+                                 a["red"][i], a["red_mask"][i], px_m=self.scenes.px_m, frame_m=self.scenes.frame_m)
+        item = {"raster": torch.from_numpy(raster)}
+        for key in ("lines", "line_mask", "green", "green_mask", "red", "red_mask"):
+            item[key] = torch.from_numpy(np.ascontiguousarray(a[key][i]))
+        return item
+
+
+class Latents(Dataset):
+    """Stage 2/3 items: a latent posterior (mean, logvar), the city label and, for stage 3, the SD raster."""
+
+    def __init__(self, mean: np.ndarray, logvar: np.ndarray, label: np.ndarray, sd: np.ndarray | None = None):
+        self.mean, self.logvar, self.label, self.sd = mean, logvar, label, sd
+
+    def __len__(self) -> int:
+        return len(self.mean)
+
+    def __getitem__(self, i: int) -> dict[str, torch.Tensor]:
+        item = {"mean": torch.from_numpy(self.mean[i].astype(np.float32)),
+                "logvar": torch.from_numpy(self.logvar[i].astype(np.float32)),
+                "label": torch.tensor(int(self.label[i]))}
+        if self.sd is not None:
+            item["sd"] = sd_tensor(self.sd[i])
+        return item
+
+
+def sd_tensor(sd: np.ndarray) -> torch.Tensor:
+    """(H, W, 3) uint8 SD raster -> (3, H, W) float32 in [0, 1] (the control encoder's input)."""
+    return torch.from_numpy(np.ascontiguousarray(sd.transpose(2, 0, 1))).float().div_(255.0)
+
+
+class StepBatches(Sampler):
+    """Index batches of steps ``start .. total-1`` for one rank (drop-last epochs)."""
+
+    def __init__(self, dataset: Dataset, batch: int, rank: int, world: int, seed: int, start: int, total: int):
+        self.dataset, self.batch, self.rank, self.world = dataset, batch, rank, world
+        self.seed, self.start, self.total = seed, start, total
+        self.per_epoch = len(dataset) // world // batch
+        if self.per_epoch == 0:
+            raise CmtoolError(f"the training set has {len(dataset)} items, fewer than one batch of "
+                              f"{batch} per process x {world} processes; lower train.batch_size")
+
+    def __len__(self) -> int:
+        return self.total - self.start
+
+    def __iter__(self):
+        epoch, order = None, None
+        for step in range(self.start, self.total):
+            e, k = divmod(step, self.per_epoch)
+            if e != epoch:
+                sampler = DistributedSampler(self.dataset, num_replicas=self.world, rank=self.rank, shuffle=True,
+                                             seed=self.seed, drop_last=True)
+                sampler.set_epoch(e)
+                epoch, order = e, list(sampler)
+            yield order[k * self.batch:(k + 1) * self.batch]

@@ -1,0 +1,71 @@
+"""The latent cache: every scene of a dataset encoded once by the trained RVAE.
+
+Written by ``cmtool train rvae`` when it finishes, into ``<rvae run>/latents/<split>.npz``:
+``mean`` and ``logvar`` float16 (N, 64, 8, 8), ``city`` strings and ``pose`` float64 (N, 3) in
+the dataset's order (the poses let stage 3 check that its SD rasters line up). The latent scale
+(1 / std of the train means) goes into the RVAE checkpoint so the DiT sees unit variance.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+from pathlib import Path
+
+import numpy as np
+import torch
+from torch.utils.data import DataLoader
+
+from cmtool.data.cache import load_dataset, load_manifest
+from cmtool.data.jsonio import atomic_open
+from cmtool.errors import CmtoolError
+from cmtool.progress import Progress
+from cmtool.train.data import SceneRasters
+
+
+@dataclass
+class LatentSet:
+    mean: np.ndarray
+    logvar: np.ndarray
+    city: np.ndarray
+    pose: np.ndarray
+
+
+@torch.no_grad()
+def encode_split(rvae, data_dir, split: str, device, batch: int = 64, progress: bool = True) -> LatentSet:
+    """Encode every scene of ``split`` with ``rvae`` (posterior mean and log-variance)."""
+    scenes = load_dataset(data_dir, split)
+    loader = DataLoader(SceneRasters(scenes), batch_size=batch, shuffle=False)
+    means, logvars = [], []
+    rvae.eval()
+    with Progress(len(scenes), label=f"encode {split}", unit="scenes", enabled=progress) as bar:
+        for item in loader:
+            mean, logvar = rvae.encode(item["raster"].to(device))
+            means.append(mean.float().cpu().numpy().astype(np.float16))
+            logvars.append(logvar.float().cpu().numpy().astype(np.float16))
+            bar.update(len(mean))
+    return LatentSet(np.concatenate(means), np.concatenate(logvars), scenes.arrays["city"], scenes.arrays["pose"])
+
+
+def write_latents(rvae, data_dir, out_dir: Path, device, progress: bool = True) -> float:
+    """Encode all splits of a dataset into ``out_dir``; returns the latent scale."""
+    out_dir = Path(out_dir)
+    out_dir.mkdir(parents=True, exist_ok=True)
+    scale = None
+    for split in load_manifest(data_dir)["splits"]:
+        latents = encode_split(rvae, data_dir, split, device, progress=progress)
+        with atomic_open(out_dir / f"{split}.npz", "wb") as f:
+            np.savez(f, mean=latents.mean, logvar=latents.logvar, city=latents.city, pose=latents.pose)
+        if split == "train":
+            scale = float(1.0 / np.std(latents.mean.astype(np.float64)))
+    if scale is None:
+        raise CmtoolError(f"{data_dir}: the dataset has no train split to compute the latent scale from")
+    return scale
+
+
+def read_latents(out_dir: Path, split: str) -> LatentSet:
+    path = Path(out_dir) / f"{split}.npz"
+    if not path.is_file():
+        raise CmtoolError(f"{path}: no latent cache; `cmtool train rvae` writes it when it finishes "
+                          "(re-run it with --resume to finish an interrupted run)")
+    with np.load(path) as z:
+        return LatentSet(z["mean"], z["logvar"], z["city"], z["pose"])

@@ -1,0 +1,246 @@
+"""One training loop for all three stages.
+
+A :class:`Stage` says what is trained (model, data, loss, previews, what happens at the end);
+:func:`train` does the rest: AdamW with warm-up and cosine decay, gradient clipping, EMA
+weights, bf16 autocast on CUDA (fp32 on CPU), DistributedDataParallel under ``torchrun``,
+atomic checkpoints every ``ckpt_every`` steps with exact ``--resume``, a progress line and a
+Rerun recording of the run (``train/loss``, ``train/lr``, ``train/grad_norm``, previews).
+"""
+
+from __future__ import annotations
+
+import math
+import sys
+import time
+from pathlib import Path
+
+import rerun as rr
+import torch
+import torch.distributed as dist
+from torch.nn.parallel import DistributedDataParallel
+from torch.optim.swa_utils import AveragedModel, get_ema_multi_avg_fn
+from torch.utils.data import DataLoader, Dataset
+
+from cmtool import checkpoint as ckpt
+from cmtool.data.jsonio import read_json
+from cmtool.errors import CmtoolError
+from cmtool.progress import Progress
+from cmtool.recipe import Recipe, TrainRecipe
+from cmtool.train import dist as D
+from cmtool.train.data import StepBatches
+
+
+class Stage:
+    """What one training stage trains. Subclasses fill in every method."""
+
+    kind: str  # checkpoint kind: rvae | dit | controlmap
+
+    def __init__(self, recipe: Recipe, device: torch.device):
+        self.recipe, self.device = recipe, device
+
+    def model(self) -> torch.nn.Module:
+        """A fresh model; parameters with ``requires_grad`` are the ones trained."""
+        raise NotImplementedError
+
+    def dataset(self) -> Dataset:
+        raise NotImplementedError
+
+    def loss(self, model, batch: dict) -> tuple[torch.Tensor, dict[str, float]]:
+        """Loss of one batch (already on the device); extra scalars to log. Draw randomness from
+        torch's global generator: the loop seeds it per step and rank."""
+        raise NotImplementedError
+
+    def config(self) -> dict:
+        """Checkpoint config entries besides the training record (kind, model config, labels...)."""
+        raise NotImplementedError
+
+    def preview(self, model, rec: rr.RecordingStream) -> None:
+        """Log a few decoded samples of the (EMA) model at the current ``train_step``."""
+
+    def finish(self, model, run_dir: Path) -> dict:
+        """Work after the last step (e.g. the latent cache); returns extra config entries."""
+        return {}
+
+
+def lr_at(step: int, t: TrainRecipe) -> float:
+    """Linear warm-up to ``lr``, then constant or cosine decay to ``lr * min_lr_ratio``."""
+    if step < t.warmup_steps:
+        return t.lr * (step + 1) / t.warmup_steps
+    if t.lr_schedule == "constant":
+        return t.lr
+    span = max(t.steps - t.warmup_steps, 1)
+    progress = min((step - t.warmup_steps) / span, 1.0)
+    floor = t.lr * t.min_lr_ratio
+    return floor + 0.5 * (t.lr - floor) * (1.0 + math.cos(math.pi * progress))
+
+
+def _optimizer(params: list[torch.nn.Parameter], t: TrainRecipe) -> torch.optim.AdamW:
+    decay = [p for p in params if p.ndim >= 2]
+    rest = [p for p in params if p.ndim < 2]
+    groups = [{"params": decay, "weight_decay": t.weight_decay}, {"params": rest, "weight_decay": 0.0}]
+    return torch.optim.AdamW(groups, lr=t.lr, betas=tuple(t.betas))
+
+
+def _fingerprint(model: torch.nn.Module) -> torch.Tensor:
+    """Float64 sums of every parameter: replicas that agree here agree bit for bit in practice."""
+    sums = [torch.stack([p.detach().double().sum(), p.detach().double().square().sum()]) for p in model.parameters()]
+    return torch.cat(sums)
+
+
+def _check_replicas(model: torch.nn.Module, info: D.DistInfo) -> list[float]:
+    """All ranks' parameter fingerprints (reduced to one number each); raise if replicas differ."""
+    fp = _fingerprint(model).to(info.device)
+    if info.world == 1:
+        return [float(fp.sum())]
+    gathered = [torch.empty_like(fp) for _ in range(info.world)]
+    dist.all_gather(gathered, fp)
+    if not all(torch.equal(g, gathered[0]) for g in gathered):
+        raise CmtoolError("DDP replicas diverged: parameters differ between processes")
+    return [float(g.sum()) for g in gathered]
+
+
+def _state_tensors(model, opt) -> tuple[dict[str, torch.Tensor], dict]:
+    tensors = {f"model/{k}": v for k, v in model.state_dict().items()}
+    sd = opt.state_dict()
+    for i, st in sd["state"].items():
+        for k, v in st.items():
+            tensors[f"opt/{i}/{k}"] = v if torch.is_tensor(v) else torch.tensor(v)
+    return tensors, {"param_groups": sd["param_groups"]}
+
+
+def _load_state(model, opt, tensors: dict[str, torch.Tensor], meta: dict) -> None:
+    model.load_state_dict({k[6:]: v for k, v in tensors.items() if k.startswith("model/")})
+    state: dict[int, dict] = {}
+    for k, v in tensors.items():
+        if k.startswith("opt/"):
+            _, i, name = k.split("/", 2)
+            state.setdefault(int(i), {})[name] = v
+    opt.load_state_dict({"state": state, "param_groups": meta["param_groups"]})
+
+
+def _resume_point(run_dir: Path, resume: bool, kind: str, model_config: dict) -> Path | None:
+    found = ckpt.run_checkpoints(run_dir)
+    if found and not resume:
+        raise CmtoolError(f"{run_dir} already holds checkpoints; pass --resume to continue it or choose another --out")
+    if not found:
+        if resume:
+            print(f"{run_dir}: no checkpoint yet, starting from step 0", file=sys.stderr)
+        return None
+    last = found[-1]
+    config = ckpt.load_config(last)
+    if config["kind"] != kind or config.get("model") != model_config.get("model") \
+            or config.get("control") != model_config.get("control"):
+        raise CmtoolError(f"{last}: this run was trained with another model; --resume needs the same recipe")
+    if not (last / ckpt.STATE).is_file():
+        raise CmtoolError(f"{last}: no training state to resume from")
+    return last
+
+
+def train(stage: Stage, run_dir: Path, resume: bool = False, progress: bool = True) -> Path:
+    """Train ``stage`` into ``run_dir``; returns the final checkpoint directory."""
+    t = stage.recipe.train
+    info = D.setup(str(stage.device))
+    stage.device = info.device
+    if t.batch_size % info.world:
+        raise CmtoolError(f"train.batch_size {t.batch_size} is not divisible by the {info.world} processes")
+    torch.manual_seed(t.seed)  # identical initial weights on every rank
+    model = stage.model().to(info.device)
+    params = [p for p in model.parameters() if p.requires_grad]
+    opt = _optimizer(params, t)
+    ema = AveragedModel(model, multi_avg_fn=get_ema_multi_avg_fn(t.ema_decay), use_buffers=True)
+    base_config = stage.config()
+
+    start, record = 0, {"time_s": 0.0, "samples": 0}
+    last = _resume_point(run_dir, resume, stage.kind, base_config)
+    if last is not None:
+        config = ckpt.load_config(last)
+        _load_state(model, opt, ckpt.load_tensors(last / ckpt.STATE), read_json(last / ckpt.STATE_META))
+        ckpt.load_weights(ema.module, last / ckpt.WEIGHTS)
+        ema.n_averaged.fill_(config["step"])
+        start, record = config["step"], config["training"]
+        if config.get("complete"):
+            if info.main:
+                print(f"{run_dir}: training already complete at step {start}", file=sys.stderr)
+            D.cleanup()
+            return last
+
+    dataset = stage.dataset()
+    per_rank = t.batch_size // info.world
+    batches = StepBatches(dataset, per_rank, info.rank, info.world, t.seed, start, t.steps)
+    loader = DataLoader(dataset, batch_sampler=batches, num_workers=t.workers,
+                        pin_memory=info.device.type == "cuda", persistent_workers=t.workers > 0)
+    net = DistributedDataParallel(model, device_ids=[info.device.index] if info.device.type == "cuda" else None) \
+        if info.world > 1 else model
+    autocast = torch.autocast("cuda", dtype=torch.bfloat16) if info.device.type == "cuda" \
+        else torch.autocast("cpu", enabled=False)
+
+    rec = None
+    if info.main:
+        run_dir.mkdir(parents=True, exist_ok=True)
+        rec = rr.RecordingStream("cmtool")
+        rec.save(str(run_dir / ("train.rrd" if start == 0 else f"train_from_{start:08d}.rrd")))
+
+    def save(step: int, complete: bool = False, extra: dict | None = None) -> Path:
+        fingerprints = _check_replicas(model, info)
+        target = ckpt.step_dir(run_dir, step)
+        if info.main:
+            tensors, meta = _state_tensors(model, opt)
+            config = {**base_config, **(extra or {}), "step": step, "steps": t.steps, "complete": complete,
+                      "recipe": stage.recipe.to_dict(), "recipe_path": str(stage.recipe.path or ""),
+                      "training": {**record, "hardware": D.hardware(info), "world_size": info.world,
+                                   "torch": torch.__version__, "replica_fingerprints": fingerprints}}
+            ckpt.save_checkpoint(target, config, ema.module.state_dict(), tensors, meta)
+            ckpt.prune(run_dir, t.keep)
+        D.barrier()
+        return target
+
+    bar = Progress(t.steps - start, label=f"train {stage.kind}", unit="steps", enabled=progress and info.main)
+    t0, step = time.perf_counter() - record["time_s"], start
+    model.train()
+    for step, batch in enumerate(loader, start=start):
+        batch = {k: v.to(info.device, non_blocking=True) for k, v in batch.items()}
+        lr = lr_at(step, t)
+        for group in opt.param_groups:
+            group["lr"] = lr
+        torch.manual_seed(t.seed * 1_000_003 + info.rank * 7_919 + step)  # noise, dropout: exact on resume
+        with autocast:
+            loss, logs = stage.loss(net, batch)
+        if not torch.isfinite(loss):
+            raise CmtoolError(f"loss became {loss.item()} at step {step}; lower train.lr or raise train.warmup_steps "
+                              "(the last checkpoint is intact)")
+        opt.zero_grad(set_to_none=True)
+        loss.backward()
+        grad_norm = torch.nn.utils.clip_grad_norm_(params, t.grad_clip)
+        opt.step()
+        ema.update_parameters(model)
+        record["samples"] += t.batch_size
+        record["last_loss"] = loss.item()
+        record["time_s"] = time.perf_counter() - t0
+        done = step + 1
+        if info.main and (done % t.log_every == 0 or done == t.steps):
+            rec.set_time("train_step", sequence=done)
+            rec.log("train/loss", rr.Scalars(record["last_loss"]))
+            rec.log("train/lr", rr.Scalars(lr))
+            rec.log("train/grad_norm", rr.Scalars(grad_norm.item()))
+            for k, v in logs.items():
+                rec.log(f"train/{k}", rr.Scalars(v))
+        bar.update(1, loss=f"{record['last_loss']:.4f}", lr=f"{lr:.2e}",
+                   **{"samples/s": f"{record['samples'] / max(record['time_s'], 1e-9):.1f}"})
+        if info.main and t.preview_every and (done % t.preview_every == 0 or done == t.steps):
+            rec.set_time("train_step", sequence=done)
+            ema.module.eval()
+            stage.preview(ema.module, rec)
+        if done % t.ckpt_every == 0 and done < t.steps:
+            save(done)
+    bar.close()
+    extra = {}
+    if info.main:
+        ema.module.eval()
+        extra = stage.finish(ema.module, run_dir)
+    final = save(t.steps, complete=True, extra=extra)
+    if info.main:
+        rec.flush()
+        print(f"{stage.kind}: {t.steps} steps in {record['time_s']:.0f} s, last loss {record.get('last_loss', float('nan')):.4f} -> {final}",
+              file=sys.stderr)
+    D.cleanup()
+    return final

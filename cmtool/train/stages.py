@@ -1,0 +1,246 @@
+"""The three training stages: RVAE (1), DiT baseline (2), ControlMap's control branch (3)."""
+
+from __future__ import annotations
+
+import dataclasses
+from pathlib import Path
+
+import numpy as np
+import torch
+import torch.nn.functional as F
+
+from cmtool import checkpoint as ckpt
+from cmtool.data.cache import load_dataset, load_manifest
+from cmtool.errors import CmtoolError
+from cmtool.eval.lanes import lane_scores
+from cmtool.model.controlmap import ControlMap
+from cmtool.model.dit import DiT, DiTConfig
+from cmtool.model.rvae import RVAE, decoded_elements
+from cmtool.model.rvae_loss import rvae_loss
+from cmtool.sample.diffusion import NoiseSchedule, sample
+from cmtool.train.data import Latents, SceneRasters, sd_tensor
+from cmtool.train.latents import read_latents, write_latents
+from cmtool.train.loop import Stage
+from cmtool.viz.recording import log_lanes, log_sd
+
+PREVIEWS = 4  # scenes shown in the training recording's previews
+RECON_EVAL = 512  # held-out scenes scored after RVAE training
+
+
+def _path(value: str, key: str, where) -> Path:
+    if not value:
+        raise CmtoolError(f"{where}: train.{key} is not set (the recipe must name it)")
+    return Path(value)
+
+
+def _brief(cfg: dict) -> str:
+    return f"depth {cfg['depth']}, hidden {cfg['hidden']}, heads {cfg['heads']}"
+
+
+def _preview_split(data_dir) -> str:
+    return "test" if "test" in load_manifest(data_dir)["splits"] else "train"
+
+
+class RVAEStage(Stage):
+    """Stage 1: HD raster -> latent -> lane vectors."""
+
+    kind = "rvae"
+
+    def __init__(self, recipe, device):
+        super().__init__(recipe, device)
+        self.data_dir = _path(recipe.train.data, "data", recipe.path)
+        manifest = load_manifest(self.data_dir)
+        px = round(manifest["frame_m"] / manifest["px_m"])
+        if px != recipe.rvae.raster_px or manifest["frame_m"] != recipe.rvae.frame_m:
+            raise CmtoolError(f"{recipe.path}: rvae.raster_px {recipe.rvae.raster_px} / frame_m {recipe.rvae.frame_m} "
+                              f"do not match the dataset {self.data_dir} ({px} px over {manifest['frame_m']} m)")
+        self._preview = None
+
+    def model(self):
+        return RVAE(self.recipe.rvae)
+
+    def dataset(self):
+        return SceneRasters(load_dataset(self.data_dir, "train"))
+
+    def loss(self, model, batch):
+        decoded, mean, logvar = model(batch["raster"])
+        return rvae_loss(decoded, mean, logvar, batch, self.recipe.rvae_loss)
+
+    def config(self):
+        return {"kind": self.kind, "model": dataclasses.asdict(self.recipe.rvae),
+                "loss": dataclasses.asdict(self.recipe.rvae_loss), "data": str(self.data_dir.resolve())}
+
+    def preview(self, model, rec):
+        if self._preview is None:
+            scenes = load_dataset(self.data_dir, _preview_split(self.data_dir))
+            self._preview = [SceneRasters(scenes)[i] for i in range(min(PREVIEWS, len(scenes)))]
+        raster = torch.stack([item["raster"] for item in self._preview]).to(self.device)
+        with torch.no_grad():
+            mean, _ = model.encode(raster)
+            elements = decoded_elements(model.decode(mean))
+        for k, (item, el) in enumerate(zip(self._preview, elements)):
+            truth = item["lines"][item["line_mask"]].numpy()
+            log_lanes(rec, f"train/preview/sample_{k}/truth/", truth)
+            log_lanes(rec, f"train/preview/sample_{k}/decoded/", el["lines"], el["green"], el["red"])
+
+    def finish(self, model, run_dir):
+        scale = write_latents(model, self.data_dir, run_dir / "latents", self.device)
+        recon = reconstruction_scores(model, self.data_dir, _preview_split(self.data_dir), self.device)
+        print(f"rvae: latent scale {scale:.4f}; held-out reconstruction at 1 m: precision {recon['precision']:.3f} "
+              f"recall {recon['recall']:.3f} F1 {recon['f1']:.3f} ({recon['scenes']} scenes)")
+        return {"latent_scale": scale, "latents": "latents", "reconstruction": recon}
+
+
+@torch.no_grad()
+def reconstruction_scores(rvae, data_dir, split: str, device, n: int = RECON_EVAL, tol: float = 1.0) -> dict:
+    """Mean lane precision / recall / F1 at ``tol`` metres of RVAE reconstructions (posterior mean)."""
+    scenes = load_dataset(data_dir, split)
+    items = SceneRasters(scenes)
+    idx = np.linspace(0, len(scenes) - 1, min(n, len(scenes))).round().astype(int)
+    scores = []
+    for chunk in np.array_split(idx, max(1, len(idx) // 64)):
+        raster = torch.stack([items[int(i)]["raster"] for i in chunk]).to(device)
+        mean, _ = rvae.encode(raster)
+        for i, el in zip(chunk, decoded_elements(rvae.decode(mean))):
+            truth = scenes.arrays["lines"][i][scenes.arrays["line_mask"][i]]
+            scores.append(lane_scores(list(el["lines"]), list(truth), tol=tol))
+    out = {k: float(np.mean([s[k] for s in scores])) for k in ("precision", "recall", "f1")}
+    return {**out, "tol_m": tol, "split": split, "scenes": len(scores)}
+
+
+class _DiffusionStage(Stage):
+    """Shared by stages 2 and 3: epsilon-prediction DDPM loss on scaled RVAE latents."""
+
+    def __init__(self, recipe, device):
+        super().__init__(recipe, device)
+        self.rvae_run = _path(recipe.train.rvae, "rvae", recipe.path).resolve()
+        self.rvae_config = ckpt.load_config(self.rvae_run)
+        if self.rvae_config["kind"] != "rvae" or "latent_scale" not in self.rvae_config:
+            raise CmtoolError(f"{self.rvae_run}: not a finished RVAE run (no latent scale); finish it with "
+                              "`cmtool train rvae --resume`")
+        self.scale = float(self.rvae_config["latent_scale"])
+        self.schedule = NoiseSchedule(recipe.diffusion)
+        self._rvae = None
+
+    def rvae(self) -> RVAE:
+        if self._rvae is None:
+            self._rvae, _ = ckpt.load_model(self.rvae_run, self.device)
+        return self._rvae
+
+    def labels(self, cities: np.ndarray) -> np.ndarray:
+        lookup = {c: i for i, c in enumerate(self.cities)}
+        return np.array([lookup.get(str(c), len(self.cities)) for c in cities], np.int64)
+
+    def diffusion_loss(self, model, batch, **extra):
+        z = (batch["mean"] + torch.exp(0.5 * batch["logvar"]) * torch.randn_like(batch["mean"])) * self.scale
+        t = torch.randint(0, self.schedule.cfg.train_steps, (len(z),), device=z.device)
+        noise = torch.randn_like(z)
+        y = batch["label"]
+        drop = torch.rand(len(y), device=y.device) < self.recipe.train.label_dropout
+        y = torch.where(drop, torch.full_like(y, len(self.cities)), y)
+        eps = model(self.schedule.q_sample(z, t, noise), t, y, **extra)
+        return F.mse_loss(eps.float(), noise), {}
+
+    def decode(self, latents: torch.Tensor) -> list[dict]:
+        with torch.no_grad():
+            return decoded_elements(self.rvae().decode(latents / self.scale))
+
+    def common_config(self):
+        return {"cities": self.cities, "schedule": dataclasses.asdict(self.recipe.diffusion),
+                "latent_scale": self.scale, "rvae": str(self.rvae_run)}
+
+
+class DiTStage(_DiffusionStage):
+    """Stage 2: the SLEDGE baseline, a DiT over latents conditioned on the city label."""
+
+    kind = "dit"
+
+    def __init__(self, recipe, device):
+        super().__init__(recipe, device)
+        self.latents = read_latents(self.rvae_run / "latents", "train")
+        self.cities = sorted({str(c) for c in self.latents.city})
+        self.dit_config = dataclasses.replace(recipe.dit, num_classes=len(self.cities)).resolved()
+
+    def model(self):
+        return DiT(self.dit_config)
+
+    def dataset(self):
+        lat = self.latents
+        return Latents(lat.mean, lat.logvar, self.labels(lat.city))
+
+    def loss(self, model, batch):
+        return self.diffusion_loss(model, batch)
+
+    def config(self):
+        return {"kind": self.kind, "model": dataclasses.asdict(self.dit_config), **self.common_config()}
+
+    def preview(self, model, rec):
+        y = torch.arange(PREVIEWS, device=self.device) % (len(self.cities) + 1)
+        gen = torch.Generator(self.device).manual_seed(0)
+        z = sample(model, self.schedule, y, steps=self.recipe.train.preview_steps, generator=gen)
+        for k, el in enumerate(self.decode(z)):
+            name = self.cities[y[k]] if y[k] < len(self.cities) else "none"
+            log_lanes(rec, f"train/preview/sample_{k}_{name}/", el["lines"], el["green"], el["red"])
+
+
+class ControlNetStage(_DiffusionStage):
+    """Stage 3: ControlMap's control branch on the frozen DiT, conditioned on the SD raster."""
+
+    kind = "controlmap"
+
+    def __init__(self, recipe, device):
+        super().__init__(recipe, device)
+        self.dit_path = ckpt.resolve(_path(recipe.train.dit, "dit", recipe.path)).resolve()
+        dit_config = ckpt.load_config(self.dit_path)
+        if dit_config["kind"] != "dit":
+            raise CmtoolError(f"{self.dit_path}: a {dit_config['kind']} checkpoint, train.dit needs a DiT")
+        self.dit_config = dit_config
+        self.cities = dit_config["cities"]
+        wanted = dataclasses.asdict(dataclasses.replace(recipe.dit, num_classes=len(self.cities)).resolved())
+        have = dataclasses.asdict(DiTConfig(**dit_config["model"]).resolved())
+        if wanted != have:
+            raise CmtoolError(f"{recipe.path}: the [dit] section ({_brief(wanted)}) does not match the DiT "
+                              f"checkpoint {self.dit_path} ({_brief(have)})")
+        if dataclasses.asdict(recipe.diffusion) != dit_config["schedule"]:
+            raise CmtoolError(f"{recipe.path}: the [diffusion] schedule differs from the DiT checkpoint's "
+                              f"({dit_config['schedule']}); the control branch must train on the DiT's schedule")
+        self.data_dir = _path(recipe.train.data, "data", recipe.path)
+        self.latents = read_latents(self.rvae_run / "latents", "train")
+        self._preview = None
+
+    def model(self):
+        dit, _ = ckpt.load_model(self.dit_path, "cpu")
+        model = ControlMap(dit, self.recipe.control)
+        model.freeze_base()
+        return model
+
+    def dataset(self):
+        scenes = load_dataset(self.data_dir, "train")
+        lat = self.latents
+        if len(scenes) != len(lat.mean) or not np.array_equal(scenes.arrays["pose"], lat.pose):
+            raise CmtoolError(f"{self.data_dir}: its train split does not match the latent cache of {self.rvae_run} "
+                              "(train.data must be the dataset the RVAE was trained on)")
+        return Latents(lat.mean, lat.logvar, self.labels(lat.city), scenes.arrays["sd"])
+
+    def loss(self, model, batch):
+        return self.diffusion_loss(model, batch, control=batch["sd"])
+
+    def config(self):
+        return {"kind": self.kind, "model": self.dit_config["model"], "control": dataclasses.asdict(self.recipe.control),
+                **self.common_config(), "dit": str(self.dit_path)}
+
+    def preview(self, model, rec):
+        if self._preview is None:
+            scenes = load_dataset(self.data_dir, _preview_split(self.data_dir))
+            self._preview = [scenes.scene(i) for i in range(min(PREVIEWS, len(scenes)))]
+        control = torch.stack([sd_tensor(s.sd) for s in self._preview]).to(self.device)
+        y = torch.full((len(control),), len(self.cities), device=self.device)
+        gen = torch.Generator(self.device).manual_seed(0)
+        z = sample(model, self.schedule, y, control=control, cfg=1.0, steps=self.recipe.train.preview_steps,
+                   generator=gen)
+        for k, (scene, el) in enumerate(zip(self._preview, self.decode(z))):
+            log_sd(rec, f"train/preview/sample_{k}/", scene.sd, scene.frame_m)
+            log_lanes(rec, f"train/preview/sample_{k}/generated/", el["lines"], el["green"], el["red"])
+
+
+STAGES = {"rvae": RVAEStage, "dit": DiTStage, "controlnet": ControlNetStage}

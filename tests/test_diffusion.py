@@ -1,0 +1,175 @@
+"""Noise schedule and DDIM/DDPM sampling: determinism, exact CFG = 0 reproduction, Gaussian sanity."""
+
+import math
+
+import pytest
+import torch
+from torch import nn
+
+from cmtool.errors import CmtoolError
+from cmtool.model.config import ControlConfig, DiTConfig, ScheduleConfig
+from cmtool.model.controlmap import ControlMap
+from cmtool.model.dit import DiT
+from cmtool.sample.diffusion import NoiseSchedule, StepInfo, sample
+
+SCHEDULE = NoiseSchedule(ScheduleConfig())
+CONTROL = ControlConfig(num_blocks=2, widths=(16, 16, 32, 32), groups=8)
+
+
+@pytest.fixture(autouse=True, scope="module")
+def one_thread():
+    """Tiny models run fastest single-threaded on a shared CPU."""
+    threads = torch.get_num_threads()
+    torch.set_num_threads(1)
+    yield
+    torch.set_num_threads(threads)
+
+
+def perturb(model: nn.Module, scale: float = 0.05) -> None:
+    with torch.no_grad():
+        for p in model.parameters():
+            p.add_(scale * torch.randn_like(p))
+
+
+@pytest.fixture(scope="module")
+def models():
+    """A perturbed small DiT and a "trained-looking" ControlMap on it (branch perturbed too)."""
+    torch.manual_seed(0)
+    dit = DiT(DiTConfig(depth=3, hidden=64, heads=4))
+    perturb(dit)
+    cm = ControlMap(dit, CONTROL)
+    perturb(cm.encoder), perturb(cm.proj), perturb(cm.copies), perturb(cm.zero)
+    return dit, cm
+
+
+def gen(seed: int = 0) -> torch.Generator:
+    return torch.Generator().manual_seed(seed)
+
+
+Y = torch.tensor([0, 3])
+CTRL = torch.rand(2, 3, 128, 128, generator=gen(9))
+
+
+def test_linear_and_cosine_schedules():
+    assert SCHEDULE.betas[0].item() == pytest.approx(1e-4) and SCHEDULE.betas[-1].item() == pytest.approx(0.02)
+    for schedule in (SCHEDULE, NoiseSchedule(ScheduleConfig(kind="cosine"))):
+        ab = schedule.alphas_cumprod
+        assert ab.shape == (1000,) and (ab.diff() < 0).all() and 0 < ab[-1] < 0.01 and ab[0] > 0.99
+    with pytest.raises(CmtoolError, match="schedule.kind"):
+        NoiseSchedule(ScheduleConfig(kind="sigmoid"))
+
+
+def test_q_sample_predict_x0_roundtrip():
+    g = gen()
+    x0, noise = torch.randn(5, 64, 8, 8, generator=g), torch.randn(5, 64, 8, 8, generator=g)
+    t = torch.tensor([0, 1, 250, 500, 999])
+    x_t = SCHEDULE.q_sample(x0, t, noise)
+    assert torch.allclose(SCHEDULE.predict_x0(x_t, t, noise), x0, atol=1e-3)
+    ab = SCHEDULE.alphas_cumprod[500].item()
+    assert torch.allclose(x_t[3], math.sqrt(ab) * x0[3] + math.sqrt(1 - ab) * noise[3], atol=1e-6)
+
+
+def test_timesteps():
+    ts = SCHEDULE.timesteps(50)
+    assert len(ts) == 50 and ts[0] == 999 and ts[-1] == 0
+    steps = [a - b for a, b in zip(ts, ts[1:])]
+    assert min(steps) >= 20 and max(steps) <= 21
+    assert SCHEDULE.timesteps(1000) == list(range(999, -1, -1))
+    assert SCHEDULE.timesteps(1) == [999]
+    for bad in (0, 1001):
+        with pytest.raises(ValueError, match="steps"):
+            SCHEDULE.timesteps(bad)
+
+
+@pytest.mark.parametrize("sampler, eta", [("ddpm", 0.0), ("ddim", 0.5)])
+def test_same_seed_same_samples(models, sampler, eta):
+    dit, _ = models
+    run = lambda seed: sample(dit, SCHEDULE, Y, steps=6, sampler=sampler, eta=eta, generator=gen(seed))
+    a, b, c = run(1), run(1), run(2)
+    assert a.shape == (2, 64, 8, 8) and torch.isfinite(a).all()
+    assert torch.equal(a, b) and not torch.allclose(a, c)
+
+
+def test_ddim_eta0_is_deterministic_given_the_noise(models):
+    dit, _ = models
+    noise = torch.randn(2, 64, 8, 8, generator=gen(5))
+    a = sample(dit, SCHEDULE, Y, steps=6, noise=noise, generator=gen(1))
+    b = sample(dit, SCHEDULE, Y, steps=6, noise=noise, generator=gen(2))
+    assert torch.equal(a, b)
+
+
+def test_ddim_eta1_matches_ddpm(models):
+    dit, _ = models
+    a = sample(dit, SCHEDULE, Y, steps=8, sampler="ddim", eta=1.0, generator=gen(4))
+    b = sample(dit, SCHEDULE, Y, steps=8, sampler="ddpm", generator=gen(4))
+    assert torch.allclose(a, b, atol=1e-3, rtol=1e-3)
+
+
+@pytest.mark.parametrize("sampler", ["ddim", "ddpm"])
+def test_cfg_zero_reproduces_the_base_model_exactly(models, sampler):
+    dit, cm = models
+    kw = dict(steps=6, sampler=sampler, eta=0.7)
+    base = sample(dit, SCHEDULE, Y, generator=gen(3), **kw)
+    assert torch.equal(sample(cm, SCHEDULE, Y, control=CTRL, cfg=0.0, generator=gen(3), **kw), base)
+    assert torch.equal(sample(cm, SCHEDULE, Y, control=None, cfg=2.0, generator=gen(3), **kw), base)
+    assert not torch.allclose(sample(cm, SCHEDULE, Y, control=CTRL, cfg=1.0, generator=gen(3), **kw), base)
+
+
+def test_callback_sees_every_step_and_the_residuals(models):
+    _, cm = models
+    infos: list[StepInfo] = []
+    out = sample(cm, SCHEDULE, Y, control=CTRL, cfg=0.5, steps=5, generator=gen(), callback=infos.append)
+    assert [i.step for i in infos] == list(range(5)) and [i.t for i in infos] == SCHEDULE.timesteps(5)
+    for info in infos:
+        assert info.x_t.shape == info.x0.shape == info.eps.shape == info.eps_cond.shape == (2, 64, 8, 8)
+        assert torch.allclose(info.eps, info.eps_uncond + 0.5 * (info.eps_cond - info.eps_uncond))
+        assert len(info.residuals) == 2 and all(r.shape == (2, 64, 64) for r in info.residuals)
+        assert all(r.abs().sum() > 0 for r in info.residuals)
+    assert not torch.equal(infos[0].x_t, infos[1].x_t) and not torch.equal(infos[-1].x_t, out)
+    t = torch.full((2,), infos[2].t)
+    assert torch.allclose(infos[2].x0, SCHEDULE.predict_x0(infos[2].x_t, t, infos[2].eps))
+    plain: list[StepInfo] = []
+    sample(cm, SCHEDULE, Y, control=CTRL, cfg=0.0, steps=3, generator=gen(), callback=plain.append)
+    assert len(plain) == 3 and all(i.eps_cond is None and i.residuals is None for i in plain)
+    assert all(torch.equal(i.eps, i.eps_uncond) for i in plain)
+
+
+@pytest.mark.parametrize("cfg", [-0.1, float("nan"), float("inf")])
+def test_invalid_cfg_raises(models, cfg):
+    _, cm = models
+    with pytest.raises(ValueError, match="cfg"):
+        sample(cm, SCHEDULE, Y, control=CTRL, cfg=cfg, steps=2)
+
+
+def test_invalid_arguments_raise(models):
+    dit, _ = models
+    with pytest.raises(CmtoolError, match="control"):
+        sample(dit, SCHEDULE, Y, control=CTRL, steps=2)
+    with pytest.raises(CmtoolError, match="sampler"):
+        sample(dit, SCHEDULE, Y, sampler="euler", steps=2)
+    with pytest.raises(CmtoolError, match="noise"):
+        sample(dit, SCHEDULE, Y, noise=torch.zeros(3, 64, 8, 8), steps=2)
+
+
+class GaussianEps(nn.Module):
+    """The exact noise predictor E[eps | x_t] for data x0 ~ N(mu, s^2) per channel."""
+
+    latent_shape = (64, 8, 8)
+
+    def __init__(self, schedule: NoiseSchedule, mu: torch.Tensor, s: torch.Tensor):
+        super().__init__()
+        self.ab, self.mu, self.s = schedule.alphas_cumprod, mu.view(1, -1, 1, 1), s.view(1, -1, 1, 1)
+
+    def forward(self, x, t, y):
+        ab = self.ab[t].float().view(-1, 1, 1, 1)
+        return (1 - ab).sqrt() * (x - ab.sqrt() * self.mu) / (ab * self.s**2 + 1 - ab)
+
+
+@pytest.mark.parametrize("sampler", ["ddpm", "ddim"])
+def test_exact_predictor_recovers_a_gaussian(sampler):
+    mu, s = torch.linspace(-1.0, 2.0, 64), torch.linspace(0.2, 1.5, 64)
+    y = torch.zeros(64, dtype=torch.long)
+    out = sample(GaussianEps(SCHEDULE, mu, s), SCHEDULE, y, steps=1000, sampler=sampler, generator=gen(7))
+    per_channel = out.transpose(0, 1).reshape(64, -1)
+    assert torch.allclose(per_channel.mean(1), mu, atol=0.08)
+    assert torch.allclose(per_channel.std(1), s, rtol=0.06)

@@ -1,0 +1,53 @@
+"""Lane precision / recall / F1 (cmtool.eval.lanes) on hand-made polylines."""
+
+import numpy as np
+import pytest
+
+from cmtool.eval.lanes import distance_to_polylines, lane_scores
+
+STRAIGHT = np.array([[0.0, 0.0], [20.0, 0.0]])
+BEND = np.array([[0.0, 5.0], [10.0, 5.0], [10.0, 20.0]])
+CURVE = np.stack([np.linspace(-30, 30, 20), 10.0 * np.sin(np.linspace(0, 3, 20))], axis=1)
+
+
+def test_identical_sets_score_one():
+    scores = lane_scores([STRAIGHT, BEND, CURVE], [STRAIGHT, BEND, CURVE])
+    assert scores == {"precision": 1.0, "recall": 1.0, "f1": 1.0}
+
+
+def test_point_to_segment_distance():
+    pts = np.array([[5.0, 2.0], [-3.0, 4.0], [25.0, 0.0], [10.0, 0.0]])
+    np.testing.assert_allclose(distance_to_polylines(pts, [STRAIGHT]), [2.0, 5.0, 5.0, 0.0])
+    np.testing.assert_allclose(distance_to_polylines(pts, [STRAIGHT, BEND]), [2.0, np.sqrt(10.0), 5.0, 0.0])
+    assert np.isinf(distance_to_polylines(pts, [])).all()
+
+
+@pytest.mark.parametrize("shift, expected", [(0.5, 1.0), (2.0, 0.0)])
+def test_shifted_lane(shift, expected):
+    moved = STRAIGHT + [0.0, shift]
+    scores = lane_scores([moved], [STRAIGHT], tol=1.0)
+    assert scores["precision"] == expected and scores["recall"] == expected and scores["f1"] == expected
+
+
+def test_missing_lane_lowers_recall_only():
+    scores = lane_scores([STRAIGHT], [STRAIGHT, CURVE + [0.0, 40.0]])
+    assert scores["precision"] == 1.0
+    assert 0.0 < scores["recall"] < 0.5  # the missing curve is longer than the kept straight lane
+    assert scores["f1"] == pytest.approx(2 * scores["recall"] / (1 + scores["recall"]))
+
+
+def test_extra_lane_lowers_precision_only():
+    scores = lane_scores([STRAIGHT, BEND + [50.0, 0.0]], [STRAIGHT])
+    assert scores["recall"] == 1.0 and scores["precision"] == pytest.approx(20 / 45, abs=0.03)
+
+
+def test_points_are_resampled_so_long_lanes_weigh_more():
+    half_wrong = np.array([[0.0, 0.0], [20.0, 0.0], [40.0, 10.0]])  # second leg is off every reference
+    scores = lane_scores([half_wrong], [STRAIGHT], tol=1.0, step=0.5)
+    assert scores["precision"] == pytest.approx(20 / (20 + np.hypot(20, 10)), abs=0.03)
+
+
+def test_empty_sets():
+    assert lane_scores([], []) == {"precision": 1.0, "recall": 1.0, "f1": 1.0}
+    assert lane_scores([], [STRAIGHT]) == {"precision": 1.0, "recall": 0.0, "f1": 0.0}
+    assert lane_scores([STRAIGHT], []) == {"precision": 0.0, "recall": 1.0, "f1": 0.0}

@@ -1,0 +1,149 @@
+"""The RVAE (cmtool.model.rvae), its matching and loss (cmtool.model.rvae_loss), and an overfit run."""
+
+import numpy as np
+import pytest
+import torch
+
+from cmtool.data.hd_raster import rasterize_scene
+from cmtool.data.scene import SceneCropper, sample_poses
+from cmtool.data.synth import generate_city
+from cmtool.errors import CmtoolError
+from cmtool.eval.lanes import lane_scores
+from cmtool.model.config import RVAEConfig, RVAELossConfig
+from cmtool.model.rvae import ELEMENTS, RVAE, decoded_elements
+from cmtool.model.rvae_loss import kl_divergence, match, rvae_loss
+
+SMALL = dict(d_model=64, decoder_layers=1, heads=4, ffn=128)
+
+
+def random_batch(b: int, rng: np.random.Generator) -> dict[str, torch.Tensor]:
+    """Random scene vectors with random masks, shaped like a dataset batch."""
+    out = {}
+    for name, mask, n in (("lines", "line_mask", 30), ("green", "green_mask", 10), ("red", "red_mask", 10)):
+        out[name] = torch.from_numpy(rng.uniform(-30, 30, (b, n, 20, 2)).astype(np.float32))
+        out[mask] = torch.from_numpy(rng.random((b, n)) < 0.5)
+    return out
+
+
+@pytest.mark.parametrize("backbone, px, b", [("resnet18", 128, 2), ("resnet50", 256, 1)])
+def test_shapes(backbone, px, b):
+    torch.manual_seed(0)
+    model = RVAE(RVAEConfig(backbone=backbone, raster_px=px, **SMALL)).eval()
+    with torch.no_grad():
+        decoded, mean, logvar = model(torch.rand(b, 6, px, px))
+    assert mean.shape == logvar.shape == (b, 64, 8, 8)
+    assert decoded["lines"].shape == (b, 30, 20, 2) and decoded["lines_logit"].shape == (b, 30)
+    for name in ("green", "red"):
+        assert decoded[name].shape == (b, 10, 20, 2) and decoded[f"{name}_logit"].shape == (b, 10)
+    assert all(decoded[name].abs().max() <= 32.0 for name in ELEMENTS)
+
+
+def test_sample_flag_and_bad_sizes():
+    torch.manual_seed(0)
+    model = RVAE(RVAEConfig(**SMALL)).eval()
+    x = torch.rand(1, 6, 128, 128)
+    with torch.no_grad():
+        a, b = model(x, sample=False)[0], model(x, sample=False)[0]
+        c = model(x, sample=True)[0]
+    assert torch.equal(a["lines"], b["lines"]) and not torch.equal(a["lines"], c["lines"])
+    with pytest.raises(CmtoolError, match="raster_px"):
+        RVAE(RVAEConfig(raster_px=100))
+    with pytest.raises(ValueError, match="shape"):
+        model.encode(torch.rand(1, 6, 64, 64))
+
+
+def test_decoded_elements_thresholds_logits():
+    pts = torch.arange(2 * 30 * 20 * 2, dtype=torch.float32).reshape(2, 30, 20, 2)
+    logit = torch.full((2, 30), -5.0)
+    logit[0, [3, 7]] = 5.0
+    logit[1, 0] = 0.1  # probability 0.52
+    decoded = {"lines": pts, "lines_logit": logit}
+    for name in ("green", "red"):
+        decoded[name], decoded[f"{name}_logit"] = torch.zeros(2, 10, 20, 2), torch.full((2, 10), -5.0)
+    out = decoded_elements(decoded)
+    assert out[0]["lines"].dtype == np.float32
+    np.testing.assert_array_equal(out[0]["lines"], pts[0, [3, 7]].numpy())
+    assert len(out[1]["lines"]) == 1 and out[1]["green"].shape == (0, 20, 2)
+    assert len(decoded_elements(decoded, threshold=0.6)[1]["lines"]) == 0
+
+
+def test_match_recovers_permutation():
+    rng = np.random.default_rng(0)
+    gt = torch.from_numpy(rng.uniform(-30, 30, (2, 6, 20, 2)).astype(np.float32))
+    mask = torch.tensor([[True] * 6, [True, False, True, True, False, True]])
+    perm = rng.permutation(6)
+    pred = gt[:, perm] + 0.01  # query q predicts target perm[q]
+    pairs = match(pred, torch.zeros(2, 6), gt, mask, RVAELossConfig())
+    for (q, g), m in zip(pairs, mask.numpy()):
+        assert len(q) == m.sum() and m[g].all()
+        np.testing.assert_array_equal(perm[q], g)
+
+
+def test_loss_zero_when_prediction_is_permuted_target():
+    rng = np.random.default_rng(1)
+    batch = random_batch(2, rng)
+    decoded, cfg = {}, RVAELossConfig()
+    for name, mask in (("lines", "line_mask"), ("green", "green_mask"), ("red", "red_mask")):
+        perm = rng.permutation(batch[name].shape[1])
+        decoded[name] = batch[name][:, perm]
+        decoded[f"{name}_logit"] = torch.where(batch[mask][:, perm], 20.0, -20.0)
+    zeros = torch.zeros(2, 64, 8, 8)
+    total, parts = rvae_loss(decoded, zeros, zeros, batch, cfg)
+    assert total.item() < 1e-6 and set(parts) == {f"{k}/{n}" for k in ("l1", "exist") for n in ELEMENTS} | {"kl"}
+    decoded["lines"] = decoded["lines"] + 1.0  # 1 m off in x and y: L1 = 2 m = 1/16 half-frame, per valid line
+    total, parts = rvae_loss(decoded, zeros, zeros, batch, cfg)
+    valid = batch["line_mask"].float().mean().item()
+    assert parts["l1/lines"] == pytest.approx(valid / 16, rel=1e-5)
+    assert total.item() == pytest.approx(cfg.l1_weight * valid / 16, rel=1e-4)
+
+
+def test_kl_and_gradients():
+    zeros = torch.zeros(3, 64, 8, 8)
+    assert kl_divergence(zeros, zeros).item() == 0.0
+    assert kl_divergence(zeros + 1.0, zeros).item() == pytest.approx(0.5)
+    torch.manual_seed(0)
+    model = RVAE(RVAEConfig(**SMALL))
+    decoded, mean, logvar = model(torch.rand(2, 6, 128, 128))
+    total, parts = rvae_loss(decoded, mean, logvar, random_batch(2, np.random.default_rng(2)), RVAELossConfig())
+    total.backward()
+    assert torch.isfinite(total) and parts["kl"] > 0
+    assert all(p.grad is not None for p in model.parameters())
+
+
+def overfit_scenes(n: int = 8):
+    hd = generate_city("PIT", seed=0, extent=200.0)
+    cropper = SceneCropper(hd)
+    scenes = [cropper.extract(pose) for pose in sample_poses(hd, n, np.random.default_rng(0))]
+    rasters = np.stack([rasterize_scene(s.lines, s.line_mask, s.green, s.green_mask, s.red, s.red_mask, px_m=0.5)
+                        for s in scenes])
+    batch = {key: torch.from_numpy(np.stack([getattr(s, key) for s in scenes]))
+             for key in ("lines", "line_mask", "green", "green_mask", "red", "red_mask")}
+    return scenes, torch.from_numpy(rasters), batch
+
+
+def test_overfits_eight_scenes():
+    """A small RVAE memorises 8 procedural scenes: mean lane F1 at 1 m >= 0.95 (80-90 s on 2 cores).
+
+    Trained as a plain autoencoder (z = mean, no KL) so the check is about the architecture, the
+    matching and the loss, not about the prior.
+    """
+    torch.manual_seed(0)
+    scenes, rasters, batch = overfit_scenes()
+    model = RVAE(RVAEConfig(d_model=128, decoder_layers=2, heads=4, ffn=256, dropout=0.0))
+    cfg = RVAELossConfig(kl_weight=0.0)
+    steps = 200
+    opt = torch.optim.AdamW(model.parameters(), lr=3e-3, weight_decay=0.01)
+    sched = torch.optim.lr_scheduler.OneCycleLR(opt, max_lr=3e-3, total_steps=steps, pct_start=0.1)
+    for _ in range(steps):
+        decoded, mean, logvar = model(rasters, sample=False)
+        loss, _ = rvae_loss(decoded, mean, logvar, batch, cfg)
+        opt.zero_grad()
+        loss.backward()
+        torch.nn.utils.clip_grad_norm_(model.parameters(), 1.0)
+        opt.step()
+        sched.step()
+    model.eval()
+    with torch.no_grad():
+        elements = decoded_elements(model(rasters, sample=False)[0])
+    f1 = [lane_scores(e["lines"], s.lines[s.line_mask], tol=1.0)["f1"] for e, s in zip(elements, scenes)]
+    assert np.mean(f1) >= 0.95, f1
