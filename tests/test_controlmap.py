@@ -7,23 +7,11 @@ from cmtool.errors import CmtoolError
 from cmtool.model.config import PAPER_CONTROL_WIDTHS, ControlConfig, DiTConfig
 from cmtool.model.controlmap import ControlMap
 from cmtool.model.dit import DiT
+from tests.conftest import perturb
+
+pytestmark = pytest.mark.usefixtures("one_thread")  # tiny models run fastest single-threaded
 
 SMALL = ControlConfig(num_blocks=2, widths=(16, 16, 32, 32), groups=8)
-
-
-@pytest.fixture(autouse=True, scope="module")
-def one_thread():
-    """Tiny models run fastest single-threaded on a shared CPU."""
-    threads = torch.get_num_threads()
-    torch.set_num_threads(1)
-    yield
-    torch.set_num_threads(threads)
-
-
-def perturb(model: torch.nn.Module, scale: float = 0.05) -> None:
-    with torch.no_grad():
-        for p in model.parameters():
-            p.add_(scale * torch.randn_like(p))
 
 
 def small_dit() -> DiT:

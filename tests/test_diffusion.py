@@ -11,24 +11,12 @@ from cmtool.model.config import ControlConfig, DiTConfig, ScheduleConfig
 from cmtool.model.controlmap import ControlMap
 from cmtool.model.dit import DiT
 from cmtool.sample.diffusion import NoiseSchedule, StepInfo, sample
+from tests.conftest import perturb
+
+pytestmark = pytest.mark.usefixtures("one_thread")  # tiny models run fastest single-threaded
 
 SCHEDULE = NoiseSchedule(ScheduleConfig())
 CONTROL = ControlConfig(num_blocks=2, widths=(16, 16, 32, 32), groups=8)
-
-
-@pytest.fixture(autouse=True, scope="module")
-def one_thread():
-    """Tiny models run fastest single-threaded on a shared CPU."""
-    threads = torch.get_num_threads()
-    torch.set_num_threads(1)
-    yield
-    torch.set_num_threads(threads)
-
-
-def perturb(model: nn.Module, scale: float = 0.05) -> None:
-    with torch.no_grad():
-        for p in model.parameters():
-            p.add_(scale * torch.randn_like(p))
 
 
 @pytest.fixture(scope="module")

@@ -6,26 +6,14 @@ import torch
 from cmtool.errors import CmtoolError
 from cmtool.model.config import SIZES, DiTConfig
 from cmtool.model.dit import DiT, sincos_pos_embed_2d
+from tests.conftest import perturb
 
-
-@pytest.fixture(autouse=True, scope="module")
-def one_thread():
-    """Tiny models run fastest single-threaded on a shared CPU."""
-    threads = torch.get_num_threads()
-    torch.set_num_threads(1)
-    yield
-    torch.set_num_threads(threads)
+pytestmark = pytest.mark.usefixtures("one_thread")  # tiny models run fastest single-threaded
 
 
 def tiny(**kw) -> DiT:
     torch.manual_seed(0)
     return DiT(DiTConfig(depth=2, hidden=64, heads=4, **kw))
-
-
-def perturb(model: torch.nn.Module, scale: float = 0.05) -> None:
-    with torch.no_grad():
-        for p in model.parameters():
-            p.add_(scale * torch.randn_like(p))
 
 
 def inputs(b: int = 3, num_classes: int = 3):
