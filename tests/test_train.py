@@ -11,6 +11,7 @@ import time
 import numpy as np
 import pytest
 import torch
+from rerun.chunk import RrdReader
 from safetensors.torch import load_file
 
 from cmtool import checkpoint as ckpt
@@ -69,6 +70,28 @@ def test_rvae_run_writes_checkpoint_latents_and_recording(runs):
     assert (run / "train.rrd").stat().st_size > 0
     # older checkpoints are pruned to train.keep (2) and no temporary folders are left behind
     assert sorted(p.name for p in (run / "checkpoints").iterdir()) == ["step_00000002", "step_00000004"]
+
+
+def recording_steps(rrd) -> dict[str, set]:
+    """Entity path -> the train_step values it was logged at."""
+    steps = {}
+    for chunk in RrdReader(rrd).stream():
+        batch = chunk.to_record_batch()
+        if "train_step" in batch.schema.names:
+            steps.setdefault(chunk.entity_path, set()).update(batch.column("train_step").to_pylist())
+    return steps
+
+
+def test_training_recordings_hold_scalars_and_previews(runs):
+    steps = recording_steps(runs["rvae"] / "train.rrd")
+    for path in ("/train/loss", "/train/lr", "/train/grad_norm", "/train/kl", "/train/l1/lines"):
+        assert steps[path] == {1, 2, 3, 4}, path
+    assert steps["/train/preview/sample_0/decoded/hd/lanes"] == {4}
+    assert steps["/train/preview/sample_0/truth/hd/lanes"] == {4}
+    steps = recording_steps(runs["controlnet"] / "train.rrd")
+    assert steps["/train/loss"] == {1, 2, 3, 4}
+    assert steps["/train/preview/sample_0/control/sd"] == {4}
+    assert steps["/train/preview/sample_0/generated/hd/lanes"] == {4}
 
 
 def test_controlnet_keeps_the_dit_frozen(runs):
