@@ -10,6 +10,7 @@ Rerun recording of the run (``train/loss``, ``train/lr``, ``train/grad_norm``, p
 from __future__ import annotations
 
 import math
+from abc import ABC, abstractmethod
 import sys
 import time
 from pathlib import Path
@@ -30,29 +31,30 @@ from cmtool.train import dist as D
 from cmtool.train.data import StepBatches
 
 
-class Stage:
-    """What one training stage trains. Subclasses fill in every method."""
+class Stage(ABC):
+    """What one training stage trains: subclasses implement the abstract methods."""
 
     kind: str  # checkpoint kind: rvae | dit | controlmap
 
     def __init__(self, recipe: Recipe, device: torch.device):
         self.recipe, self.device = recipe, device
 
+    @abstractmethod
     def model(self) -> torch.nn.Module:
         """A fresh model; parameters with ``requires_grad`` are the ones trained."""
-        raise NotImplementedError
 
+    @abstractmethod
     def dataset(self) -> Dataset:
-        raise NotImplementedError
+        """The training set (items are dicts of tensors)."""
 
+    @abstractmethod
     def loss(self, model, batch: dict) -> tuple[torch.Tensor, dict[str, float]]:
         """Loss of one batch (already on the device); extra scalars to log. Draw randomness from
         torch's global generator: the loop seeds it per step and rank."""
-        raise NotImplementedError
 
+    @abstractmethod
     def config(self) -> dict:
         """Checkpoint config entries besides the training record (kind, model config, labels...)."""
-        raise NotImplementedError
 
     def preview(self, model, rec: rr.RecordingStream) -> None:
         """Log a few decoded samples of the (EMA) model at the current ``train_step``."""
