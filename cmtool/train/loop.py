@@ -120,7 +120,8 @@ def _load_state(model, opt, tensors: dict[str, torch.Tensor], meta: dict) -> Non
     opt.load_state_dict({"state": state, "param_groups": meta["param_groups"]})
 
 
-def _resume_point(run_dir: Path, resume: bool, kind: str, model_config: dict) -> Path | None:
+def _resume_point(run_dir: Path, resume: bool, kind: str, model_config: dict) -> tuple[Path, dict] | None:
+    """The newest checkpoint of ``run_dir`` and its config, checked against the model to train."""
     found = ckpt.run_checkpoints(run_dir)
     if found and not resume:
         raise CmtoolError(f"{run_dir} already holds checkpoints; pass --resume to continue it or choose another --out")
@@ -135,7 +136,7 @@ def _resume_point(run_dir: Path, resume: bool, kind: str, model_config: dict) ->
         raise CmtoolError(f"{last}: this run was trained with another model; --resume needs the same recipe")
     if not (last / ckpt.STATE).is_file():
         raise CmtoolError(f"{last}: no training state to resume from")
-    return last
+    return last, config
 
 
 def train(stage: Stage, run_dir: Path, resume: bool = False, progress: bool = True) -> Path:
@@ -153,9 +154,9 @@ def train(stage: Stage, run_dir: Path, resume: bool = False, progress: bool = Tr
     base_config = stage.config()
 
     start, record = 0, {"time_s": 0.0, "samples": 0}
-    last = _resume_point(run_dir, resume, stage.kind, base_config)
-    if last is not None:
-        config = ckpt.load_config(last)
+    point = _resume_point(run_dir, resume, stage.kind, base_config)
+    if point is not None:
+        last, config = point
         _load_state(model, opt, ckpt.load_tensors(last / ckpt.STATE), read_json(last / ckpt.STATE_META))
         ckpt.load_weights(ema.module, last / ckpt.WEIGHTS)
         ema.n_averaged.fill_(config["step"])
