@@ -36,3 +36,41 @@ def perturb(model: torch.nn.Module, scale: float = 0.05) -> None:
     with torch.no_grad():
         for p in model.parameters():
             p.add_(scale * torch.randn_like(p))
+
+
+@pytest.fixture(scope="session")
+def sampling_ckpt(tmp_path_factory):
+    """Small untrained RVAE, DiT and ControlMap checkpoints (branch weights perturbed so the control
+    changes the output), wired like a trained run: returns the ControlMap and DiT checkpoint dirs."""
+    import dataclasses
+
+    from cmtool import checkpoint as ckpt
+    from cmtool.model.config import ControlConfig, DiTConfig, RVAEConfig, ScheduleConfig
+    from cmtool.model.controlmap import ControlMap
+    from cmtool.model.dit import DiT
+    from cmtool.model.rvae import RVAE
+
+    root = tmp_path_factory.mktemp("ckpt")
+    torch.manual_seed(0)
+    rvae_cfg = RVAEConfig(d_model=32, decoder_layers=1, heads=2, ffn=64, dropout=0.0)
+    rvae = RVAE(rvae_cfg)
+    with torch.no_grad():  # existence logits around 0 so the decoded maps have lanes
+        for head in rvae.heads.values():
+            head.logit.bias.fill_(0.5)
+    ckpt.save_checkpoint(root / "rvae", {"kind": "rvae", "model": dataclasses.asdict(rvae_cfg), "latent_scale": 0.7},
+                         rvae.state_dict())
+    cities = ["LAV", "PIT", "SGP"]
+    dit_cfg = DiTConfig(size="tiny", depth=2, hidden=32, heads=2, num_classes=len(cities)).resolved()
+    dit = DiT(dit_cfg)
+    perturb(dit, 0.02)
+    common = {"cities": cities, "schedule": dataclasses.asdict(ScheduleConfig()), "latent_scale": 0.7,
+              "rvae": str(root / "rvae"), "model": dataclasses.asdict(dit_cfg)}
+    ckpt.save_checkpoint(root / "dit", {"kind": "dit", **common}, dit.state_dict())
+    control_cfg = ControlConfig(num_blocks=2, widths=(8, 8, 16, 16), groups=4)
+    cm = ControlMap(dit, control_cfg)
+    with torch.no_grad():
+        for p in cm.branch_parameters():
+            p.add_(0.05 * torch.randn_like(p))
+    ckpt.save_checkpoint(root / "controlmap", {"kind": "controlmap", "control": dataclasses.asdict(control_cfg),
+                                               "dit": str(root / "dit"), **common}, cm.state_dict())
+    return {"controlmap": root / "controlmap", "dit": root / "dit", "rvae": root / "rvae"}

@@ -13,8 +13,8 @@ every value is exact. Channels:
   pi/2 = to the left); 0 on two-way roads and where the direction is unknown.
 
 Two-way roads are drawn first and one-way roads over them, so a one-way direction survives at
-junctions. A plain black/white road drawing (bright roads on a dark background) converts to a raster
-with R only (:func:`sd_raster_from_image`).
+junctions. A plain black/white road drawing (light roads on dark or dark roads on light) converts to
+a raster with R only (:func:`sd_raster_from_image`).
 """
 
 from __future__ import annotations
@@ -83,47 +83,92 @@ def rasterize_sd(sd: SDMap, x: float, y: float, yaw: float, frame_m: float = FRA
     return img
 
 
-def sd_raster_from_image(image) -> np.ndarray:
-    """An SD raster from a picture: a path (PNG/JPG) or an array (RGB, or grey).
+def is_sd_raster(img: np.ndarray) -> bool:
+    """Whether an RGB uint8 picture follows the SD raster convention above (at any size): R is 0 or
+    255, G and B are 0 off the road, some G or B is set, and roads are the minority of pixels."""
+    if img.ndim != 3 or img.shape[2] != 3 or img.dtype != np.uint8:
+        return False
+    r, gb = img[..., 0], img[..., 1:]
+    road = r == ROAD_VALUE
+    return bool(np.all(road | (r == 0)) and not gb[~road].any() and gb[road].any() and road.mean() < 0.5)
 
-    A 128 x 128 RGB image whose colour channels differ is taken to be a cmtool SD raster already and
-    returned as is. Anything else is a road drawing, light roads on dark or dark roads on light
-    (roads are taken to be the minority of pixels): converted to grey, split into road and background
+
+def sd_raster_from_image(image) -> np.ndarray:
+    """An SD raster from a picture: a path (PNG/JPG/.npy) or an array (RGB, RGBA or grey).
+
+    An RGB image in the SD raster convention (:func:`is_sd_raster`) is returned as is, resampled
+    to 128 x 128 (nearest pixel) when it has another size. Anything else is a road drawing, light
+    roads on dark or dark roads on light (roads are taken to be the minority of pixels; on a
+    transparent background, the opaque strokes): converted to grey, split into road and background
     at full resolution (Otsu's threshold), and resized to 128 x 128, where a pixel is road when at
     least a fifth of it was (so thin strokes survive). Lane count and direction are unknown.
     """
-    if isinstance(image, (str, os.PathLike)):
-        path = Path(image)
-        img = cv2.imread(str(path), cv2.IMREAD_COLOR) if path.is_file() else None
-        if img is None:
-            raise CmtoolError(f"{path}: cannot read image (missing file or not a PNG/JPG picture)")
-        img = cv2.cvtColor(img, cv2.COLOR_BGR2RGB)
-    else:
-        img = np.asarray(image)
-    if img.dtype == bool:
-        img = img.astype(np.uint8) * 255
-    elif img.dtype != np.uint8:
-        if not np.issubdtype(img.dtype, np.number) or not np.all(np.isfinite(img)):
-            raise CmtoolError(f"SD image: expected numeric pixel values, got dtype {img.dtype}")
-        scale = 255.0 if img.size and img.max() <= 1.0 else 1.0
-        img = np.clip(img * scale, 0, 255).astype(np.uint8)
+    return convert_sd_image(image)[0]
+
+
+def read_sd_image(path) -> tuple[np.ndarray, str | None]:
+    """Read a picture file as an SD raster; also returns a note on what was converted (or None)."""
+    return convert_sd_image(path)
+
+
+def convert_sd_image(image) -> tuple[np.ndarray, str | None]:
+    """:func:`sd_raster_from_image` plus a one-line note saying what was converted (None: nothing)."""
+    img = _read_picture(image) if isinstance(image, (str, os.PathLike)) else np.asarray(image)
+    img = _as_uint8(img)
     if img.ndim == 3 and img.shape[2] == 4:
-        img = img[..., :3]
+        alpha = img[..., 3]
+        img = alpha if alpha.min() < alpha.max() else img[..., :3]  # transparent page: strokes = roads
     if img.ndim not in (2, 3) or (img.ndim == 3 and img.shape[2] != 3) or min(img.shape[:2]) < 1:
-        raise CmtoolError(f"SD image: expected a grey (H, W) or RGB (H, W, 3) picture, got shape {img.shape}")
+        raise CmtoolError(f"SD image: expected a grey (H, W), RGB (H, W, 3) or RGBA (H, W, 4) picture, "
+                          f"got shape {img.shape}")
+    if is_sd_raster(img):
+        if img.shape[:2] == (SIZE, SIZE):
+            return img.copy(), None
+        note = f"resampled the {img.shape[1]} x {img.shape[0]} SD raster to {SIZE} x {SIZE} (nearest pixel)"
+        return cv2.resize(img, (SIZE, SIZE), interpolation=cv2.INTER_NEAREST), note
     if img.ndim == 3:
-        if img.shape[:2] == (SIZE, SIZE) and np.any(img != img[..., :1]):
-            return img.copy()
         img = cv2.cvtColor(np.ascontiguousarray(img), cv2.COLOR_RGB2GRAY)
     out = np.zeros((SIZE, SIZE, 3), dtype=np.uint8)
     if img.min() == img.max():
-        return out  # a blank picture: no roads
+        return out, "a blank picture: no roads"
     _, mask = cv2.threshold(np.ascontiguousarray(img), 0, 1, cv2.THRESH_BINARY + cv2.THRESH_OTSU)
     if mask.mean() > 0.5:
         mask = 1 - mask
     coverage = cv2.resize(mask.astype(np.float32), (SIZE, SIZE), interpolation=cv2.INTER_AREA)
     out[..., 0] = np.where(coverage >= 0.2, ROAD_VALUE, 0)
-    return out
+    return out, (f"converted a {img.shape[1]} x {img.shape[0]} road drawing to an SD raster "
+                 "(road presence only; lane counts and directions unknown)")
+
+
+def _read_picture(path) -> np.ndarray:
+    """An image file as an RGB(A) or grey array (``.npy``: the stored array, no pickles)."""
+    path = Path(path)
+    if path.suffix.lower() == ".npy":
+        try:
+            return np.load(path, allow_pickle=False)
+        except (OSError, ValueError) as e:
+            raise CmtoolError(f"{path}: cannot read the array ({e})") from None
+    img = cv2.imread(str(path), cv2.IMREAD_UNCHANGED) if path.is_file() else None
+    if img is None or img.size == 0:
+        raise CmtoolError(f"{path}: cannot read image (missing or empty file, or not a PNG/JPG picture)")
+    if img.ndim == 3 and img.shape[2] == 3:
+        return cv2.cvtColor(img, cv2.COLOR_BGR2RGB)
+    if img.ndim == 3 and img.shape[2] == 4:
+        return cv2.cvtColor(img, cv2.COLOR_BGRA2RGBA)
+    return img
+
+
+def _as_uint8(img: np.ndarray) -> np.ndarray:
+    if img.dtype == np.uint8:
+        return img
+    if img.dtype == bool:
+        return img.astype(np.uint8) * 255
+    if img.dtype == np.uint16:
+        return (img >> 8).astype(np.uint8)
+    if not np.issubdtype(img.dtype, np.number) or not np.all(np.isfinite(img)):
+        raise CmtoolError(f"SD image: expected numeric pixel values, got dtype {img.dtype}")
+    scale = 255.0 if img.size and img.max() <= 1.0 else 1.0
+    return np.clip(img * scale, 0, 255).astype(np.uint8)
 
 
 def decode_sd(raster: np.ndarray) -> dict[str, np.ndarray]:

@@ -11,6 +11,7 @@ from __future__ import annotations
 
 import copy
 
+import numpy as np
 import torch
 import torch.nn.functional as F
 from torch import Tensor, nn
@@ -18,6 +19,12 @@ from torch import Tensor, nn
 from cmtool.errors import CmtoolError
 from cmtool.model.config import ControlConfig
 from cmtool.model.dit import DiT, sincos_pos_embed_2d
+
+
+def sd_tensor(sd: np.ndarray) -> Tensor:
+    """(H, W, 3) uint8 SD raster -> (3, H, W) float32 in [0, 1] (the control encoder's input)."""
+    return torch.from_numpy(np.ascontiguousarray(sd.transpose(2, 0, 1))).float().div_(255.0)
+
 
 class EncoderStage(nn.Module):
     """Strided 3x3 conv -> GroupNorm -> GELU, then a residual 3x3 conv -> GroupNorm -> GELU."""
@@ -79,29 +86,37 @@ class ControlMap(nn.Module):
         """Every parameter outside the base DiT (what stage 3 trains)."""
         return [p for name, p in self.named_parameters() if not name.startswith("base.")]
 
+    def encode_control(self, control: Tensor) -> Tensor:
+        """SD rasters ``(B, 3, px, px)`` -> control tokens ``(B, T, hidden)`` (fixed over a sampling run)."""
+        return self.proj(self.encoder(control))
+
     def forward(self, x: Tensor, t: Tensor, y: Tensor, control: Tensor | None = None) -> Tensor:
         """Epsilon for ``x`` (B, C, H, W); ``control`` None runs exactly the base DiT."""
         if control is None:
             return self.base(x, t, y)
-        return self._run(x, t, y, control)[0]
+        return self._run(x, t, y, self.encode_control(control))[0]
 
-    def forward_cfg(self, x: Tensor, t: Tensor, y: Tensor, control: Tensor) -> tuple[Tensor, Tensor, list[Tensor]]:
+    def forward_cfg(self, x: Tensor, t: Tensor, y: Tensor, control: Tensor | None = None, *,
+                    tokens: Tensor | None = None) -> tuple[Tensor, Tensor, list[Tensor]]:
         """One batched pass for guidance: ``(eps_cond, eps_uncond, residuals)``.
 
         The first B of the 2B rows get the control residuals, the last B take the plain base path;
-        the control branch only runs on the B conditioned rows. ``residuals`` holds the M tensors
+        the control branch only runs on the B conditioned rows. Give the SD raster ``control`` or its
+        precomputed :meth:`encode_control` ``tokens``. ``residuals`` holds the M tensors
         ``(B, T, hidden)`` added to the base blocks' outputs.
         """
+        if tokens is None:
+            tokens = self.encode_control(control)
         b = x.shape[0]
-        eps, residuals = self._run(torch.cat([x, x]), torch.cat([t, t]), torch.cat([y, y]), control)
+        eps, residuals = self._run(torch.cat([x, x]), torch.cat([t, t]), torch.cat([y, y]), tokens)
         return eps[:b], eps[b:], residuals
 
-    def _run(self, x: Tensor, t: Tensor, y: Tensor, control: Tensor) -> tuple[Tensor, list[Tensor]]:
-        """Base pass over all rows; the first ``len(control)`` rows get the control residuals."""
-        n = control.shape[0]
+    def _run(self, x: Tensor, t: Tensor, y: Tensor, tokens: Tensor) -> tuple[Tensor, list[Tensor]]:
+        """Base pass over all rows; the first ``len(tokens)`` rows get the control residuals."""
+        n = tokens.shape[0]
         c = self.base.condition(t, y)
         h = self.base.embed_tokens(x)
-        hc = h[:n] + self.proj(self.encoder(control))
+        hc = h[:n] + tokens
         residuals = []
         for i, block in enumerate(self.base.blocks):
             h = block(h, c)

@@ -112,11 +112,12 @@ def sample(model: nn.Module, schedule: NoiseSchedule, y: Tensor, *, control: Ten
         raise SamplingError(f"noise: expected shape {shape}, got {tuple(noise.shape)}")
     ts = schedule.timesteps(steps)
     guided = control is not None and cfg > 0
+    tokens = model.encode_control(control) if guided else None
     x = noise.clone() if noise is not None else torch.randn(shape, generator=generator, device=y.device)
     for i, t in enumerate(ts):
         tt = torch.full((shape[0],), t, dtype=torch.long, device=x.device)
         if guided:
-            eps_cond, eps_uncond, residuals = model.forward_cfg(x, tt, y, control)
+            eps_cond, eps_uncond, residuals = model.forward_cfg(x, tt, y, tokens=tokens)
             eps = eps_uncond + cfg * (eps_cond - eps_uncond)
         else:
             eps_cond, residuals = None, None

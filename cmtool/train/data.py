@@ -14,6 +14,7 @@ from torch.utils.data import Dataset, DistributedSampler, Sampler
 from cmtool.data.cache import SceneDataset
 from cmtool.data.hd_raster import rasterize_scene
 from cmtool.errors import CmtoolError
+from cmtool.model.controlmap import sd_tensor
 
 
 class SceneRasters(Dataset):
@@ -51,11 +52,6 @@ class Latents(Dataset):
         if self.sd is not None:
             item["sd"] = sd_tensor(self.sd[i])
         return item
-
-
-def sd_tensor(sd: np.ndarray) -> torch.Tensor:
-    """(H, W, 3) uint8 SD raster -> (3, H, W) float32 in [0, 1] (the control encoder's input)."""
-    return torch.from_numpy(np.ascontiguousarray(sd.transpose(2, 0, 1))).float().div_(255.0)
 
 
 class StepBatches(Sampler):

@@ -13,12 +13,12 @@ from cmtool import checkpoint as ckpt
 from cmtool.data.cache import load_dataset, load_manifest
 from cmtool.errors import CmtoolError
 from cmtool.eval.lanes import lane_scores
-from cmtool.model.controlmap import ControlMap
+from cmtool.model.controlmap import ControlMap, sd_tensor
 from cmtool.model.dit import DiT, DiTConfig
 from cmtool.model.rvae import RVAE, decoded_elements
 from cmtool.model.rvae_loss import rvae_loss
 from cmtool.sample.diffusion import NoiseSchedule, sample
-from cmtool.train.data import Latents, SceneRasters, sd_tensor
+from cmtool.train.data import Latents, SceneRasters
 from cmtool.train.latents import read_latents, write_latents
 from cmtool.train.loop import Stage
 from cmtool.viz.recording import log_lanes, log_sd

@@ -36,22 +36,33 @@ def _pix(points: np.ndarray, size: int, frame_m: float) -> np.ndarray:
 
 
 def lanes_panel(scene, size: int = 256) -> np.ndarray:
-    """The scene's HD vectors: light lines (wide green / red bands, a lamp where each starts) under
-    direction-coloured lanes with a dot at each lane start, an arrow head at each end, white
+    """The HD vectors of a :class:`~cmtool.data.scene.Scene` (see :func:`lanes_image`)."""
+    return lanes_image(scene.lines[scene.line_mask], scene.green[scene.green_mask], scene.red[scene.red_mask],
+                       scene.edges, scene.frame_m, size)
+
+
+def graph_panel(graph, size: int = 256) -> np.ndarray:
+    """The lanes of a :class:`~cmtool.data.lanegraph.LaneGraph` (see :func:`lanes_image`)."""
+    return lanes_image(graph.lanes, graph.green_lights, graph.red_lights, graph.successors, graph.frame_m, size)
+
+
+def lanes_image(lines, green, red, edges, frame_m: float = 64.0, size: int = 256) -> np.ndarray:
+    """HD vectors in ego metres: light lines (wide green / red bands, a lamp where each starts)
+    under direction-coloured lanes with a dot at each lane start, an arrow head at each end, white
     successor arrows across joints and the ego as a white triangle."""
     img = np.full((size, size, 3), BACKGROUND, np.uint8)
-    fm = scene.frame_m
+    fm = frame_m
     scale = size / fm
     bands = img.copy()
     stops = []
-    for lights, colour in ((scene.green[scene.green_mask], GREEN), (scene.red[scene.red_mask], RED)):
+    for lights, colour in ((green, GREEN), (red, RED)):
         for line in lights:
             pix = _pix(line, size, fm)
             cv2.polylines(bands, [pix.reshape(-1, 1, 2)], False, colour, max(3, int(round(2.2 * scale))),
                           cv2.LINE_AA, CV_SHIFT)
             stops.append((tuple(pix[0]), colour))
     img = cv2.addWeighted(bands, 0.55, img, 0.45, 0.0)
-    lines = scene.lines[scene.line_mask]
+    lines = [np.asarray(l, np.float64) for l in lines]
     lw = max(1, int(round(0.5 * scale)))
     for line in lines:
         d = np.diff(line, axis=0)
@@ -61,11 +72,11 @@ def lanes_panel(scene, size: int = 256) -> np.ndarray:
             c = tuple(int(v) for v in colours[k])
             cv2.line(img, tuple(pix[k]), tuple(pix[k + 1]), c, lw, cv2.LINE_AA, CV_SHIFT)
         cv2.circle(img, tuple(pix[0]), int(1.2 * scale) << CV_SHIFT, (200, 200, 200), -1, cv2.LINE_AA, CV_SHIFT)
-        tip, tail = line[-1], line[-1] - 2.5 * _unit(line[-1] - line[-3])
+        tip, tail = line[-1], line[-1] - 2.5 * _unit(line[-1] - line[max(-3, -len(line))])
         cv2.arrowedLine(img, tuple(_pix(tail, size, fm)), tuple(_pix(tip, size, fm)), tuple(int(v) for v in colours[-1]),
                         lw, cv2.LINE_AA, CV_SHIFT, tipLength=0.8)
-    for i, j in scene.edges:
-        a, b = lines[i][-3], lines[j][2]
+    for i, j in edges:
+        a, b = lines[i][max(-3, -len(lines[i]))], lines[j][min(2, len(lines[j]) - 1)]
         cv2.arrowedLine(img, tuple(_pix(a, size, fm)), tuple(_pix(b, size, fm)), (255, 255, 255), 1, cv2.LINE_AA,
                         CV_SHIFT, tipLength=0.35)
     for centre, colour in stops:  # a lamp where each light line starts (at its stop line)
@@ -109,23 +120,31 @@ def grid(tiles: list[np.ndarray], columns: int, gap: int = 6) -> np.ndarray:
     return out
 
 
-def legend(width: int, height: int = 40) -> np.ndarray:
-    """A strip explaining the colours: a hue wheel for lane heading (forward = up) and swatches."""
-    img = np.full((height, width, 3), (12, 12, 12), np.uint8)
-    r, cx, cy = height // 2 - 3, height // 2, height // 2
+def legend(width: int, row: int = 40) -> np.ndarray:
+    """A strip explaining the colours: a hue wheel for lane heading (forward = up) and swatches,
+    wrapped onto more rows of ``row`` px when ``width`` is too narrow for one."""
+    r = row // 2 - 3
+    items = [("lane colour = heading (up: forward)", None), ("green light", GREEN), ("red light", RED),
+             ("successor", (255, 255, 255)), ("SD: grey road (brighter = more lanes), colour = one-way", None)]
+    placed, x, y = [], 2 * r + 14, 0
+    for text, colour in items:
+        w = cv2.getTextSize(text, cv2.FONT_HERSHEY_SIMPLEX, 0.45, 1)[0][0] + (24 if colour is not None else 0)
+        if x + w > width and x > 2 * r + 14:
+            x, y = 2 * r + 14, y + 1
+        placed.append((text, colour, x, y))
+        x += w + 22
+    img = np.full(((y + 1) * row, width, 3), (12, 12, 12), np.uint8)
+    cx = cy = row // 2
     yy, xx = np.mgrid[-r:r + 1, -r:r + 1]
     inside = (xx ** 2 + yy ** 2 <= r * r) & (xx ** 2 + yy ** 2 >= (r // 3) ** 2)
     wheel = heading_colours(np.arctan2(-xx, -yy))  # up = forward (+x), left = +y
     img[cy - r: cy + r + 1, cx - r: cx + r + 1][inside] = wheel[inside]
-    x = 2 * r + 14
-    items = [("lane colour = heading (up: forward)", None), ("green light", GREEN), ("red light", RED),
-             ("successor", (255, 255, 255)), ("SD: grey road (brighter = more lanes), colour = one-way", None)]
-    for text, colour in items:
+    for text, colour, x, line in placed:
+        mid = line * row + cy
         if colour is not None:
-            cv2.line(img, (x, cy), (x + 18, cy), colour, 4, cv2.LINE_AA)
+            cv2.line(img, (x, mid), (x + 18, mid), colour, 4, cv2.LINE_AA)
             x += 24
-        cv2.putText(img, text, (x, cy + 5), cv2.FONT_HERSHEY_SIMPLEX, 0.45, TEXT, 1, cv2.LINE_AA)
-        x += cv2.getTextSize(text, cv2.FONT_HERSHEY_SIMPLEX, 0.45, 1)[0][0] + 22
+        cv2.putText(img, text, (x, mid + 5), cv2.FONT_HERSHEY_SIMPLEX, 0.45, TEXT, 1, cv2.LINE_AA)
     return img
 
 

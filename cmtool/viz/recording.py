@@ -24,21 +24,30 @@ def open_recording(path, application_id: str = "cmtool") -> rr.RecordingStream:
     return rec
 
 
-def log_lanes(rec: rr.RecordingStream, prefix: str, lines, green=(), red=(), edges=()) -> None:
+def log_ego_frame(rec: rr.RecordingStream, path: str) -> None:
+    """Make ``path`` an ego-frame space: children log metres (x forward, y left), shown forward-up."""
+    rec.log(path, rr.Transform3D(mat3x3=_EGO_TO_SCREEN), static=True)
+
+
+def lane_colours(lines) -> np.ndarray:
+    """One RGB colour per lane: the heading from its first to its last point."""
+    mid = np.array([np.asarray(l)[-1] - np.asarray(l)[0] for l in lines]).reshape(-1, 2)
+    return heading_colours(np.arctan2(mid[:, 1], mid[:, 0]))
+
+
+def log_lanes(rec: rr.RecordingStream, prefix: str, lines, green=(), red=(), edges=(), static: bool = False) -> None:
     """Log lane polylines (heading-coloured), successor arrows and light lines under ``<prefix>hd``."""
-    rec.log(f"{prefix}hd", rr.Transform3D(mat3x3=_EGO_TO_SCREEN))
+    log_ego_frame(rec, f"{prefix}hd")
     lines = [np.asarray(l) for l in lines]
-    mid = np.array([l[-1] - l[0] for l in lines]).reshape(-1, 2)
-    rec.log(f"{prefix}hd/lanes", rr.LineStrips2D(lines, radii=0.25,
-                                                 colors=heading_colours(np.arctan2(mid[:, 1], mid[:, 0]))))
+    rec.log(f"{prefix}hd/lanes", rr.LineStrips2D(lines, radii=0.25, colors=lane_colours(lines)), static=static)
     if len(edges):
-        origins = np.array([lines[i][-3] for i, _ in edges]).reshape(-1, 2)
-        targets = np.array([lines[j][2] for _, j in edges]).reshape(-1, 2)
+        origins = np.array([lines[i][max(-3, -len(lines[i]))] for i, _ in edges]).reshape(-1, 2)
+        targets = np.array([lines[j][min(2, len(lines[j]) - 1)] for _, j in edges]).reshape(-1, 2)
         rec.log(f"{prefix}hd/successors", rr.Arrows2D(origins=origins, vectors=targets - origins, radii=0.15,
-                                                      colors=[255, 255, 255]))
+                                                      colors=[255, 255, 255]), static=static)
     for state, colour, vecs in (("green", GREEN, green), ("red", RED, red)):
         rec.log(f"{prefix}hd/lights/{state}", rr.LineStrips2D([np.asarray(v) for v in vecs], radii=0.8,
-                                                              colors=colour, draw_order=20.0))
+                                                              colors=colour, draw_order=20.0), static=static)
 
 
 def log_sd(rec: rr.RecordingStream, prefix: str, sd: np.ndarray, frame_m: float = 64.0) -> None:
@@ -47,7 +56,7 @@ def log_sd(rec: rr.RecordingStream, prefix: str, sd: np.ndarray, frame_m: float 
     half = frame_m / 2.0
     rec.log(f"{prefix}control/sd",
             rr.Image(sd_panel(sd, size), opacity=0.7, draw_order=-10.0, magnification_filter="Nearest"),
-            rr.Transform3D(translation=[-half, -half, 0.0], scale=frame_m / size))
+            rr.Transform3D(translation=[-half, -half, 0.0], scale=frame_m / size), static=True)
 
 
 def log_scene(rec: rr.RecordingStream, prefix: str, scene) -> None:

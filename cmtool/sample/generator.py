@@ -1,0 +1,106 @@
+"""A trained checkpoint set ready to generate maps: ControlMap (or a plain DiT) plus its RVAE.
+
+``Generator.load(ckpt)`` reads a ControlMap or DiT checkpoint (a run folder or one checkpoint
+folder), finds the RVAE it was trained on (the path its config records, absolute or relative to
+the checkpoint) and checks that the pieces fit. ``sample`` denoises latents for a batch of SD
+rasters and city labels; ``lane_graph`` turns a decoded latent into the lane graph format.
+"""
+
+from __future__ import annotations
+
+from pathlib import Path
+
+import numpy as np
+import torch
+
+from cmtool import checkpoint as ckpt
+from cmtool.data.lanegraph import LaneGraph, infer_successors
+from cmtool.errors import CmtoolError
+from cmtool.model.config import ScheduleConfig
+from cmtool.model.controlmap import ControlMap, sd_tensor
+from cmtool.model.rvae import decoded_elements
+from cmtool.recipe import from_table
+from cmtool.sample.diffusion import NoiseSchedule, sample
+
+NONE = "none"  # the --city value for the null label
+
+
+class Generator:
+    """Sampling with a loaded checkpoint: labels, control rasters in, latents and lane graphs out."""
+
+    def __init__(self, model, rvae, config: dict, path: Path, device: torch.device):
+        self.model, self.rvae, self.config, self.path, self.device = model, rvae, config, path, device
+        self.cities: list[str] = list(config["cities"])
+        self.scale = float(config["latent_scale"])
+        self.schedule = NoiseSchedule(from_table(ScheduleConfig, config["schedule"], f"{path}: ", "schedule."))
+
+    @classmethod
+    def load(cls, path, device="cpu") -> "Generator":
+        path = ckpt.resolve(path)
+        config = ckpt.load_config(path)
+        if config["kind"] == "rvae":
+            raise CmtoolError(f"{path}: an RVAE checkpoint; sampling needs a ControlMap (or DiT) checkpoint")
+        for key in ("cities", "latent_scale", "schedule", "rvae"):
+            if key not in config:
+                raise CmtoolError(f"{path / ckpt.CONFIG}: no {key!r}; not a finished {config['kind']} checkpoint")
+        device = torch.device(device)
+        model, _ = ckpt.load_model(path, device)
+        rvae_path = Path(config["rvae"])
+        if not rvae_path.is_absolute():
+            rvae_path = path / rvae_path
+        rvae, rvae_config = ckpt.load_model(rvae_path, device)
+        if rvae_config["kind"] != "rvae":
+            raise CmtoolError(f"{path}: its rvae {rvae_path} is a {rvae_config['kind']} checkpoint")
+        have = (rvae.cfg.latent_channels, rvae.cfg.latent_size, rvae.cfg.latent_size)
+        if have != tuple(model.latent_shape):
+            raise CmtoolError(f"{path}: the model's latent {tuple(model.latent_shape)} does not match its RVAE "
+                              f"{rvae_path} ({have})")
+        return cls(model, rvae, config, path, device)
+
+    @property
+    def has_control(self) -> bool:
+        return isinstance(self.model, ControlMap)
+
+    @property
+    def control_blocks(self) -> int:
+        """Number of DiT blocks that receive control residuals (0 for a plain DiT)."""
+        return len(self.model.copies) if self.has_control else 0
+
+    def label(self, city: str | None) -> int:
+        """The label index of ``city`` (None or "none": the null label); unknown names are an error."""
+        if city is None or city.lower() == NONE:
+            return len(self.cities)
+        for i, name in enumerate(self.cities):
+            if name.upper() == city.upper():
+                return i
+        raise CmtoolError(f"unknown city {city!r} for {self.path.name} (choose from {', '.join(self.cities)}, {NONE})")
+
+    def city_name(self, label: int) -> str | None:
+        return self.cities[label] if label < len(self.cities) else None
+
+    def sample(self, sd: np.ndarray | None, labels, *, cfg: float, steps: int, sampler: str = "ddim",
+               eta: float = 0.0, generator: torch.Generator | None = None, callback=None) -> torch.Tensor:
+        """Clean latents (B, C, H, W) in the DiT's scaled space for SD rasters ``sd`` (B, 128, 128, 3)
+        uint8 (None: no control) and label indices ``labels`` (B,)."""
+        y = torch.as_tensor(np.asarray(labels, np.int64), device=self.device)
+        control = None
+        if sd is not None:
+            if not self.has_control:
+                raise CmtoolError(f"{self.path}: a DiT checkpoint has no control branch; give a ControlMap "
+                                  "checkpoint or leave out the SD input")
+            control = torch.stack([sd_tensor(s) for s in sd]).to(self.device)
+        return sample(self.model, self.schedule, y, control=control, cfg=cfg, steps=steps, sampler=sampler, eta=eta,
+                      generator=generator, callback=callback)
+
+    @torch.no_grad()
+    def decode(self, latents: torch.Tensor, threshold: float = 0.5) -> list[dict[str, np.ndarray]]:
+        """Scaled latents (N, C, H, W) -> per latent ``{"lines", "green", "red"}`` polylines (metres)."""
+        return decoded_elements(self.rvae.decode(latents.to(self.device).float() / self.scale), threshold)
+
+    def lane_graph(self, elements: dict[str, np.ndarray], city: str | None, meta: dict) -> LaneGraph:
+        """A decoded latent as a lane graph, successors inferred from endpoint proximity."""
+        lanes = [np.asarray(l, np.float64) for l in elements["lines"]]
+        return LaneGraph(lanes=lanes, successors=infer_successors(lanes),
+                         green_lights=[np.asarray(l, np.float64) for l in elements["green"]],
+                         red_lights=[np.asarray(l, np.float64) for l in elements["red"]],
+                         city=city, frame_m=float(self.rvae.cfg.frame_m), meta=meta)

@@ -1,0 +1,168 @@
+"""What ``cmtool sample`` generates from: SD rasters read from pictures, rasterised from
+OpenStreetMap around a point, or derived from an HD map at an ego pose (with its ground truth).
+
+Every input is loaded and checked before anything is generated or written, so a bad input ends
+the command with one message and no output.
+"""
+
+from __future__ import annotations
+
+import json
+import math
+from dataclasses import dataclass
+from pathlib import Path
+
+import numpy as np
+
+from cmtool.data.lanegraph import LaneGraph
+from cmtool.data.sd_raster import FRAME_M, rasterize_sd, read_sd_image
+from cmtool.errors import CmtoolError
+
+IMAGE_SUFFIXES = (".png", ".jpg", ".jpeg", ".bmp", ".tif", ".tiff", ".npy")
+
+
+@dataclass
+class ControlInput:
+    """One SD control (or none, for unconditional maps) and, when known, its ground truth."""
+
+    name: str
+    sd: np.ndarray | None  # (128, 128, 3) uint8
+    source: str
+    truth: LaneGraph | None = None
+    city: str | None = None  # the city of the source map, when it has one
+    note: str | None = None  # what was converted on reading, for the user
+
+
+def image_inputs(paths) -> list[ControlInput]:
+    """SD inputs from picture files and folders of pictures (sorted by name)."""
+    files = []
+    for path in map(Path, paths):
+        if path.is_dir():
+            found = sorted(p for p in path.iterdir() if p.suffix.lower() in IMAGE_SUFFIXES)
+            if not found:
+                raise CmtoolError(f"{path}: no pictures in the folder ({', '.join(IMAGE_SUFFIXES)})")
+            files += found
+        else:
+            files.append(path)
+    inputs = []
+    for path in files:
+        sd, note = read_sd_image(path)
+        if not sd[..., 0].any():
+            raise CmtoolError(f"{path}: no roads in the picture (draw roads light on dark or dark on light)")
+        inputs.append(ControlInput(path.stem, sd, str(path), note=f"{path.name}: {note}" if note else None))
+    return _unique_names(inputs)
+
+
+def osm_inputs(path, centers: list[tuple[float, float, float]]) -> list[ControlInput]:
+    """SD rasters of an OpenStreetMap file around ``(lat, lon, heading)`` points; heading in
+    compass degrees (0 = north is up in the raster, 90 = east is up)."""
+    from cmtool.data.geo import LocalProjection
+    from cmtool.data.osm import read_osm
+
+    sd_map = read_osm(path)
+    if not sd_map.roads:
+        raise CmtoolError(f"{path}: no drivable roads in the OpenStreetMap file")
+    proj = LocalProjection(sd_map.meta["lat0"], sd_map.meta["lon0"])
+    inputs = []
+    for k, (lat, lon, heading) in enumerate(centers):
+        if not (-90.0 <= lat <= 90.0 and -180.0 <= lon <= 180.0):
+            raise CmtoolError(f"--center {lat},{lon}: latitude must be in [-90, 90] and longitude in [-180, 180]")
+        x, y = proj.to_metres(lat, lon)
+        sd = rasterize_sd(sd_map, float(x), float(y), math.radians(90.0 - heading))
+        if not sd[..., 0].any():
+            raise CmtoolError(f"{path}: no roads within the {FRAME_M:.0f} m frame around {lat:.6f},{lon:.6f} "
+                              f"(nearest road {_nearest_road(sd_map, x, y):.0f} m away)")
+        name = f"{Path(path).name.split('.')[0]}_{k}" if len(centers) > 1 else Path(path).name.split(".")[0]
+        inputs.append(ControlInput(name, sd, f"osm:{Path(path).name}@{lat:.6f},{lon:.6f},heading {heading:g}"))
+    return inputs
+
+
+def hd_inputs(path, poses: list[tuple[float, float, float]] | None, seed: int = 0) -> list[ControlInput]:
+    """SD rasters derived from an HD map JSON at ego poses ``(x, y, yaw degrees)``, each with the
+    ground-truth lane graph of the same frame; ``poses`` None picks one drivable pose at random."""
+    from cmtool.data.hdmap import HDMap
+    from cmtool.data.scene import Pose, SceneCropper, sample_poses
+    from cmtool.data.sd_derive import derive_sd
+
+    hd = HDMap.load(path)
+    if not hd.lanes:
+        raise CmtoolError(f"{path}: the HD map has no lanes")
+    if poses is None:
+        picked = sample_poses(hd, 1, np.random.default_rng(seed))
+        poses = [(p.x, p.y, math.degrees(p.yaw)) for p in picked]
+    sd_map = derive_sd(hd)
+    cropper = SceneCropper(hd)
+    stem = Path(path).name.split(".")[0]
+    inputs = []
+    for k, (x, y, yaw) in enumerate(poses):
+        pose = Pose(x, y, math.radians(yaw))
+        sd = rasterize_sd(sd_map, pose.x, pose.y, pose.yaw)
+        truth = cropper.extract(pose).to_lanegraph()
+        if not sd[..., 0].any() and not truth.lanes:
+            raise CmtoolError(f"{path}: pose {x:g},{y:g},{yaw:g} is off the map (no roads within the "
+                              f"{FRAME_M:.0f} m frame); the map spans {_bounds(hd)}")
+        name = f"{stem}_{k}" if len(poses) > 1 else stem
+        inputs.append(ControlInput(name, sd, f"hd:{Path(path).name}@{x:.2f},{y:.2f},{yaw:.1f}deg",
+                                   truth=truth, city=hd.city))
+    return inputs
+
+
+def parse_points(value: str, keys: tuple[str, ...], defaults: dict, option: str) -> list[tuple[float, ...]]:
+    """``"a,b[,c]"`` or a JSON Lines file of objects with ``keys`` -> a list of float tuples."""
+    path = Path(value)
+    if path.suffix == ".jsonl" or path.is_file():
+        if not path.is_file():
+            raise CmtoolError(f"{option} {value}: no such file")
+        rows = []
+        for lineno, line in enumerate(path.read_text("utf-8").splitlines(), start=1):
+            if not line.strip():
+                continue
+            try:
+                obj = json.loads(line)
+            except json.JSONDecodeError as e:
+                raise CmtoolError(f"{path}: line {lineno}: malformed JSON ({e.msg})") from None
+            if not isinstance(obj, dict):
+                raise CmtoolError(f"{path}: line {lineno}: expected an object with {', '.join(keys)}")
+            rows.append(tuple(_number(obj.get(k, defaults.get(k)), f"{path}: line {lineno}: {k}") for k in keys))
+        if not rows:
+            raise CmtoolError(f"{path}: no points in the file")
+        return rows
+    parts = value.split(",")
+    need = [k for k in keys if k not in defaults]
+    if not len(need) <= len(parts) <= len(keys):
+        raise CmtoolError(f"{option} {value!r}: expected {','.join(k.upper() for k in keys[:len(need)])} "
+                          f"(or a .jsonl file of them)")
+    values = [_number(p.strip(), f"{option} {value!r}") for p in parts]
+    return [tuple(values + [defaults[k] for k in keys[len(values):]])]
+
+
+def _number(value, where: str) -> float:
+    try:
+        number = float(value)
+    except (TypeError, ValueError):
+        raise CmtoolError(f"{where}: expected a number, got {value!r}") from None
+    if not math.isfinite(number):
+        raise CmtoolError(f"{where}: expected a finite number, got {value!r}")
+    return number
+
+
+def _nearest_road(sd_map, x: float, y: float) -> float:
+    from cmtool.eval.lanes import distance_to_polylines
+
+    return float(distance_to_polylines(np.array([[x, y]]), [r.polyline for r in sd_map.roads])[0])
+
+
+def _bounds(hd) -> str:
+    x0, y0, x1, y1 = hd.bounds()
+    return f"x {x0:.0f}..{x1:.0f}, y {y0:.0f}..{y1:.0f} m"
+
+
+def _unique_names(inputs: list[ControlInput]) -> list[ControlInput]:
+    seen: dict[str, int] = {}
+    for item in inputs:
+        n = seen.get(item.name, 0)
+        seen[item.name] = n + 1
+        if n:
+            item.name = f"{item.name}_{n}"
+    return inputs
+

@@ -1,0 +1,245 @@
+"""``cmtool sample``: HD maps for a list of SD inputs, as lane graph JSON, pictures and one recording.
+
+Maps are generated in batches; every input gets ``num`` maps. All randomness comes from one
+generator seeded with ``seed`` and consumed in order, so the same command (inputs, options,
+checkpoint, device) gives the same maps. Outputs per map in ``out``: ``<name>.json`` (the lane
+graph, DESIGN.md §4, successors inferred), ``<name>.png`` (SD | generated | ground truth when
+known) and ``<name>.gt.json`` (the ground truth, when known); plus one ``.rrd`` with every
+denoising step of every map (:mod:`cmtool.viz.trajectory`). Files are written atomically, and
+when the run fails, the files it already wrote are removed again.
+"""
+
+from __future__ import annotations
+
+import math
+import time
+from dataclasses import dataclass
+from pathlib import Path
+
+import cv2
+import numpy as np
+import rerun as rr
+import torch
+
+from cmtool.data.jsonio import atomic_open, write_json
+from cmtool.data.lanegraph import LaneGraph
+from cmtool.errors import CmtoolError
+from cmtool.geometry import polyline_length
+from cmtool.progress import Progress
+from cmtool.sample.diffusion import SAMPLERS, SamplingError
+from cmtool.sample.generator import NONE, Generator
+from cmtool.sample.inputs import ControlInput
+from cmtool.viz.draw import graph_panel, legend, sd_panel, title_strip
+from cmtool.viz.recording import log_lanes, log_sd
+from cmtool.viz.trajectory import TrajectoryLogger, sampling_blueprint
+
+AUTO = "auto"  # --city default: the source map's city when the checkpoint knows it, else none
+PANEL = 256
+
+
+@dataclass
+class SampleSettings:
+    num: int = 1
+    seed: int = 0
+    steps: int = 50
+    sampler: str = "ddim"
+    eta: float = 0.0
+    cfg: float = 1.0
+    city: str = AUTO  # a label of the checkpoint, "none", or "auto"
+    batch: int = 16
+
+    def check(self) -> None:
+        if not (math.isfinite(self.cfg) and self.cfg >= 0):
+            raise SamplingError(f"--cfg: guidance weight must be a finite number >= 0, got {self.cfg}")
+        if self.sampler not in SAMPLERS:
+            raise SamplingError(f"--sampler: choose {' or '.join(SAMPLERS)}, got {self.sampler!r}")
+        for name in ("num", "steps", "batch"):
+            if getattr(self, name) < 1:
+                raise SamplingError(f"--{name}: must be at least 1, got {getattr(self, name)}")
+
+
+@dataclass
+class Job:
+    """One map to generate: its name, input and label, and where it goes in the recording."""
+
+    name: str
+    source: ControlInput
+    label: int
+    index: int  # the map's number for this input (0 .. num-1)
+    prefix: str = ""
+
+
+@dataclass
+class SampledMap:
+    job: Job
+    graph: LaneGraph
+    seconds: float  # this map's share of its batch's generation time
+
+
+def plan(gen: Generator, inputs: list[ControlInput], settings: SampleSettings) -> list[Job]:
+    """The maps to make (validates the options against the checkpoint before anything runs)."""
+    settings.check()
+    gen.schedule.timesteps(settings.steps)  # a step count the schedule cannot do fails here
+    if any(item.sd is not None for item in inputs) and not gen.has_control:
+        raise CmtoolError(f"{gen.path}: a DiT checkpoint has no control branch; give a ControlMap checkpoint "
+                          "or no SD input")
+    jobs = []
+    for item in inputs:
+        label = gen.label(_city(gen, item, settings.city))
+        for k in range(settings.num):
+            jobs.append(Job(item.name if settings.num == 1 else f"{item.name}_s{k}", item, label, k))
+    if len(jobs) > 1:
+        for i, job in enumerate(jobs):
+            job.prefix = f"sample_{i}/"
+    return jobs
+
+
+def _city(gen: Generator, item: ControlInput, city: str) -> str | None:
+    if city.lower() != AUTO:
+        return city
+    known = {c.upper() for c in gen.cities}
+    return item.city if item.city and item.city.upper() in known else NONE
+
+
+def run_sample(gen: Generator, jobs: list[Job], settings: SampleSettings, out: Path, rrd: Path | None = None,
+               viewer: str | None = None, command: str = "", progress: bool = True) -> list[SampledMap]:
+    """Generate every job's map, write its files to ``out`` and (unless ``rrd`` and ``viewer`` are
+    None) record every step; ``viewer`` is "spawn" or a Rerun gRPC URL to stream to live."""
+    written: list[Path] = []
+    rec = None
+    try:
+        out.mkdir(parents=True, exist_ok=True)
+        if rrd is not None or viewer is not None:
+            rec = sampling_recording(rrd, viewer, written)
+            log_run_header(rec, gen, jobs, settings, command)
+        maps = generate_maps(gen, jobs, settings, rec, progress)
+        for m in maps:
+            written += _write_map(out, m, settings)
+        if rec is not None:
+            rec.flush()
+            rec.disconnect()
+            rec = None
+            if rrd is not None:
+                rrd.parent.mkdir(parents=True, exist_ok=True)
+                _partial(rrd).replace(rrd)
+                written.append(rrd)
+        return maps
+    except BaseException:
+        if rec is not None:
+            rec.disconnect()
+        for path in written:
+            path.unlink(missing_ok=True)
+        raise
+
+
+def generate_maps(gen: Generator, jobs: list[Job], settings: SampleSettings, rec, progress: bool) -> list[SampledMap]:
+    generator = torch.Generator(gen.device).manual_seed(settings.seed)
+    maps = []
+    with Progress(len(jobs), "sample", "maps", enabled=progress and len(jobs) > 1) as bar:
+        for start in range(0, len(jobs), settings.batch):
+            batch = jobs[start:start + settings.batch]
+            logger = None
+            if rec is not None:
+                logger = TrajectoryLogger(rec, [j.prefix for j in batch], gen.decode, settings.cfg)
+            sds = [j.source.sd for j in batch]
+            sd = None if all(s is None for s in sds) else np.stack(sds)
+            began = time.perf_counter()
+            z = gen.sample(sd, [j.label for j in batch], cfg=settings.cfg, steps=settings.steps,
+                           sampler=settings.sampler, eta=settings.eta, generator=generator, callback=logger)
+            decoded = gen.decode(z)
+            graphs = [gen.lane_graph(el, gen.city_name(j.label), _meta(gen, j, settings)) for j, el in zip(batch, decoded)]
+            seconds = (time.perf_counter() - began) / len(batch)
+            if logger is not None:
+                logger.flush()
+                for job, graph in zip(batch, graphs):
+                    log_lanes(rec, job.prefix, graph.lanes, graph.green_lights, graph.red_lights, graph.successors,
+                              static=True)
+            maps += [SampledMap(j, g, seconds) for j, g in zip(batch, graphs)]
+            bar.update(len(batch))
+    return maps
+
+
+def _meta(gen: Generator, job: Job, settings: SampleSettings) -> dict:
+    return {"source": job.source.source, "checkpoint": str(gen.path), "seed": settings.seed, "index": job.index,
+            "cfg": settings.cfg, "steps": settings.steps, "sampler": settings.sampler, "eta": settings.eta}
+
+
+def _partial(rrd: Path) -> Path:
+    return rrd.with_name(f".{rrd.name}.partial")
+
+
+def sampling_recording(rrd: Path | None, viewer: str | None, written: list[Path]) -> rr.RecordingStream:
+    """A recording that writes to ``rrd`` (renamed into place at the end) and/or streams to a viewer."""
+    rec = rr.RecordingStream("cmtool")
+    sinks = []
+    if viewer is not None:
+        url = None if viewer == "spawn" else viewer
+        if viewer == "spawn":
+            try:
+                rr.spawn(connect=False)
+            except Exception as e:  # no viewer binary or no display
+                raise CmtoolError(f"--spawn: could not start the Rerun viewer ({e}); write an .rrd and open it "
+                                  "with `rerun FILE.rrd` instead") from None
+        sinks.append(rr.GrpcSink(url) if url else rr.GrpcSink())
+    if rrd is not None:
+        rrd.parent.mkdir(parents=True, exist_ok=True)
+        written.append(_partial(rrd))
+        sinks.append(rr.FileSink(str(_partial(rrd))))
+    rec.set_sinks(*sinks)
+    return rec
+
+
+def log_run_header(rec, gen: Generator, jobs: list[Job], settings: SampleSettings, command: str) -> None:
+    names = [f"{j.name} ({gen.city_name(j.label) or 'no city'})" for j in jobs]
+    rec.send_blueprint(sampling_blueprint([j.prefix for j in jobs], names, gen.control_blocks,
+                                          any(j.source.truth is not None for j in jobs)))
+    lines = [f"# cmtool sample\n\n`{command}`\n" if command else "# cmtool sample\n",
+             f"- checkpoint: `{gen.path}` ({gen.config['kind']})",
+             f"- seed {settings.seed}, cfg w = {settings.cfg}, {settings.steps} {settings.sampler} steps"
+             + (f", eta {settings.eta}" if settings.sampler == "ddim" else ""), "", "| map | city | input |",
+             "|---|---|---|"]
+    lines += [f"| {j.prefix or '/'} {j.name} | {gen.city_name(j.label) or 'none'} | {j.source.source} |" for j in jobs]
+    rec.log("info", rr.TextDocument("\n".join(lines), media_type="text/markdown"), static=True)
+    for job in jobs:
+        if job.source.sd is not None:
+            log_sd(rec, job.prefix, job.source.sd)
+        truth = job.source.truth
+        if truth is not None:
+            log_lanes(rec, f"{job.prefix}truth/", truth.lanes, truth.green_lights, truth.red_lights, truth.successors,
+                      static=True)
+
+
+def _write_map(out: Path, m: SampledMap, settings: SampleSettings) -> list[Path]:
+    paths = [out / f"{m.job.name}.json", out / f"{m.job.name}.png"]
+    write_json(paths[0], m.graph.to_json())
+    truth = m.job.source.truth
+    if truth is not None:
+        paths.append(out / f"{m.job.name}.gt.json")
+        write_json(paths[-1], truth.to_json())
+    city = m.graph.city or "no city"
+    panels = []
+    if m.job.source.sd is not None:
+        panels.append((f"SD input: {m.job.source.name}", sd_panel(m.job.source.sd, PANEL)))
+    panels.append((f"generated: {city}, w = {settings.cfg:g}", graph_panel(m.graph, PANEL)))
+    if truth is not None:
+        panels.append(("ground truth", graph_panel(truth, PANEL)))
+    tiles = [np.concatenate([title_strip(t, PANEL), img], axis=0) for t, img in panels]
+    gap = np.full((tiles[0].shape[0], 4, 3), 12, np.uint8)
+    body = np.concatenate([x for tile in tiles for x in (tile, gap)][:-1], axis=1)
+    picture = np.concatenate([body, legend(body.shape[1])], axis=0)
+    ok, png = cv2.imencode(".png", cv2.cvtColor(picture, cv2.COLOR_RGB2BGR))
+    with atomic_open(paths[1], "wb") as f:
+        f.write(png.tobytes())
+    return paths
+
+
+def summary_table(maps: list[SampledMap]) -> str:
+    """Per map: lanes, successor links, mean lane length, lights, seconds."""
+    head = f"{'map':<24} {'city':<5} {'lanes':>5} {'successors':>10} {'mean lane m':>11} {'lights':>6} {'time s':>7}"
+    rows = [head]
+    for m in maps:
+        g = m.graph
+        mean = np.mean([polyline_length(l) for l in g.lanes]) if g.lanes else 0.0
+        rows.append(f"{m.job.name[:24]:<24} {g.city or 'none':<5} {len(g.lanes):>5} {len(g.successors):>10} "
+                    f"{mean:>11.1f} {len(g.green_lights) + len(g.red_lights):>6} {m.seconds:>7.2f}")
+    return "\n".join(rows)
