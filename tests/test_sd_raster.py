@@ -2,7 +2,7 @@ import cv2
 import numpy as np
 import pytest
 
-from cmtool.data.sd_raster import decode_sd, direction_value, rasterize_sd, sd_raster_from_image
+from cmtool.data.sd_raster import convert_sd_image, decode_sd, direction_value, rasterize_sd, sd_raster_from_image
 from cmtool.data.sdmap import Road, SDMap
 from cmtool.errors import CmtoolError
 
@@ -114,3 +114,24 @@ def test_unreadable_images(tmp_path):
             sd_raster_from_image(path)
     with pytest.raises(CmtoolError, match="shape"):
         sd_raster_from_image(np.zeros((10, 10, 2), np.uint8))
+
+
+def test_transparent_sixteen_bit_and_array_pictures(tmp_path):
+    rgba = np.zeros((200, 200, 4), np.uint8)
+    cv2.line(rgba, (100, 0), (100, 199), (0, 0, 0, 255), 10)  # black strokes on a transparent page
+    cv2.imwrite(str(tmp_path / "t.png"), rgba)
+    r = sd_raster_from_image(tmp_path / "t.png")
+    assert r[64, 64, 0] == 255 and r[64, 10, 0] == 0
+    deep = rgba[..., 3].astype(np.uint16) * 257  # the same strokes, white on black in 16 bits
+    cv2.imwrite(str(tmp_path / "d.png"), deep)
+    assert np.array_equal(sd_raster_from_image(tmp_path / "d.png"), r)
+    np.save(tmp_path / "a.npy", deep > 0)
+    assert np.array_equal(sd_raster_from_image(tmp_path / "a.npy"), r)
+
+
+def test_sd_rasters_of_other_sizes_are_resampled_with_a_note():
+    raster = rasterize_sd(SDMap(roads=[road([[0, -50], [0, 50]], lanes=2, oneway=1)]), 0.0, 0.0, 0.3)
+    big = cv2.resize(raster, (256, 256), interpolation=cv2.INTER_NEAREST)
+    out, note = convert_sd_image(big)
+    assert np.array_equal(out, raster) and "resampled the 256 x 256 SD raster" in note
+    assert convert_sd_image(raster)[1] is None

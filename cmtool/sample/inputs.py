@@ -99,8 +99,8 @@ def hd_inputs(path, poses: list[tuple[float, float, float]] | None, seed: int = 
         sd = rasterize_sd(sd_map, pose.x, pose.y, pose.yaw)
         truth = cropper.extract(pose).to_lanegraph()
         if not sd[..., 0].any() and not truth.lanes:
-            raise CmtoolError(f"{path}: pose {x:g},{y:g},{yaw:g} is off the map (no roads within the "
-                              f"{FRAME_M:.0f} m frame); the map spans {_bounds(hd)}")
+            raise CmtoolError(f"{path}: no roads within the {FRAME_M:.0f} m frame at pose {x:g},{y:g},{yaw:g}; "
+                              f"pick a pose on a road (the map spans {_bounds(hd)})")
         name = f"{stem}_{k}" if len(poses) > 1 else stem
         inputs.append(ControlInput(name, sd, f"hd:{Path(path).name}@{x:.2f},{y:.2f},{yaw:.1f}deg",
                                    truth=truth, city=hd.city))

@@ -107,6 +107,7 @@ def run_sample(gen: Generator, jobs: list[Job], settings: SampleSettings, out: P
     None) record every step; ``viewer`` is "spawn" or a Rerun gRPC URL to stream to live."""
     written: list[Path] = []
     rec = None
+    created = not out.exists()
     try:
         out.mkdir(parents=True, exist_ok=True)
         if rrd is not None or viewer is not None:
@@ -114,7 +115,7 @@ def run_sample(gen: Generator, jobs: list[Job], settings: SampleSettings, out: P
             log_run_header(rec, gen, jobs, settings, command)
         maps = generate_maps(gen, jobs, settings, rec, progress)
         for m in maps:
-            written += _write_map(out, m, settings)
+            _write_map(out, m, settings, written)
         if rec is not None:
             rec.flush()
             rec.disconnect()
@@ -129,6 +130,8 @@ def run_sample(gen: Generator, jobs: list[Job], settings: SampleSettings, out: P
             rec.disconnect()
         for path in written:
             path.unlink(missing_ok=True)
+        if created and out.is_dir() and not any(out.iterdir()):
+            out.rmdir()
         raise
 
 
@@ -209,13 +212,14 @@ def log_run_header(rec, gen: Generator, jobs: list[Job], settings: SampleSetting
                       static=True)
 
 
-def _write_map(out: Path, m: SampledMap, settings: SampleSettings) -> list[Path]:
-    paths = [out / f"{m.job.name}.json", out / f"{m.job.name}.png"]
-    write_json(paths[0], m.graph.to_json())
+def _write_map(out: Path, m: SampledMap, settings: SampleSettings, written: list[Path]) -> None:
+    """Write a map's lane graph JSON, ground truth JSON (when known) and picture; record the paths."""
+    written.append(out / f"{m.job.name}.json")
+    write_json(written[-1], m.graph.to_json())
     truth = m.job.source.truth
     if truth is not None:
-        paths.append(out / f"{m.job.name}.gt.json")
-        write_json(paths[-1], truth.to_json())
+        written.append(out / f"{m.job.name}.gt.json")
+        write_json(written[-1], truth.to_json())
     city = m.graph.city or "no city"
     panels = []
     if m.job.source.sd is not None:
@@ -228,9 +232,11 @@ def _write_map(out: Path, m: SampledMap, settings: SampleSettings) -> list[Path]
     body = np.concatenate([x for tile in tiles for x in (tile, gap)][:-1], axis=1)
     picture = np.concatenate([body, legend(body.shape[1])], axis=0)
     ok, png = cv2.imencode(".png", cv2.cvtColor(picture, cv2.COLOR_RGB2BGR))
-    with atomic_open(paths[1], "wb") as f:
+    if not ok:
+        raise CmtoolError(f"{out / m.job.name}.png: could not encode the picture")
+    written.append(out / f"{m.job.name}.png")
+    with atomic_open(written[-1], "wb") as f:
         f.write(png.tobytes())
-    return paths
 
 
 def summary_table(maps: list[SampledMap]) -> str:

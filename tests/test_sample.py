@@ -1,0 +1,286 @@
+"""`cmtool sample` as a user runs it: every denoising step in the recording, valid and reproducible
+lane graphs, w = 0 equal to the unguided model, the three SD input kinds, and one-line errors."""
+
+import json
+import subprocess
+import sys
+from collections import defaultdict
+
+import cv2
+import numpy as np
+import pyarrow as pa
+import pytest
+import rerun as rr
+from rerun.chunk import RrdReader
+
+from cmtool.cli import main
+from cmtool.data.hdmap import HDMap
+from cmtool.data.lanegraph import LaneGraph, infer_successors, read_jsonl
+from cmtool.viz.trajectory import strips_column, tensor_column
+from tests.conftest import REPO
+
+pytestmark = pytest.mark.usefixtures("one_thread")
+SD_PNG = REPO / "sample_data" / "sd_bos.png"
+OSM = REPO / "tests" / "fixtures" / "small.osm"
+STEPS = 5
+
+
+def cmtool(capsys, *args) -> tuple[int, str, str]:
+    """Run the CLI in this process (as `cmtool ARGS`); returns (exit code, stdout, stderr)."""
+    try:
+        main([str(a) for a in args])
+        code = 0
+    except SystemExit as e:
+        code = e.code
+    out = capsys.readouterr()
+    return code, out.out, out.err
+
+
+def read_rrd(path) -> dict[str, list]:
+    """Entity path -> list of (diffusion_step or None, record batch row dict) for the recording store."""
+    rows = defaultdict(list)
+    for chunk in RrdReader(path).stream():
+        batch = chunk.to_record_batch()
+        steps = batch.column("diffusion_step").to_pylist() if "diffusion_step" in batch.schema.names else None
+        for i in range(batch.num_rows):
+            rows[chunk.entity_path].append((None if steps is None else steps[i],
+                                            {n: batch.column(n)[i] for n in batch.schema.names}))
+    return rows
+
+
+def steps_of(rows, path) -> list:
+    return sorted(s for s, _ in rows[path])
+
+
+def graph_core(path) -> dict:
+    obj = json.loads(path.read_text())
+    return {k: obj[k] for k in ("lanes", "successors", "green_lights", "red_lights")}
+
+
+@pytest.fixture(scope="module")
+def sampled(sampling_ckpt, tmp_path_factory):
+    """One real CLI run (a subprocess, as a user runs it): two maps of the example SD raster, full logging."""
+    out = tmp_path_factory.mktemp("sampled")
+    r = run_cli_once("sample", "--ckpt", sampling_ckpt["controlmap"], "--sd", SD_PNG, "--num", 2, "--steps", STEPS,
+                "--cfg", 0.7, "--city", "SGP", "--out", out, "--quiet")
+    assert r.returncode == 0, r.stderr
+    return {"out": out, "stdout": r.stdout, "rows": read_rrd(out / "sample.rrd")}
+
+
+def run_cli_once(*args):
+    return subprocess.run([sys.executable, "-m", "cmtool", *map(str, args)], capture_output=True, text=True, cwd=REPO,
+                          timeout=300)
+
+
+def test_recording_has_every_step_of_every_map(sampled):
+    rows = sampled["rows"]
+    every = list(range(STEPS))
+    for k in range(2):
+        p = f"/sample_{k}/"
+        for entity in ("diffusion/latent", "diffusion/x0/lanes", "diffusion/eps/cond", "diffusion/eps/uncond",
+                       "diffusion/eps/guided", "diffusion/eps/delta", "control/residual/block_0",
+                       "control/residual/block_1", "control/residual/block_0/norm", "control/residual/block_1/norm"):
+            assert steps_of(rows, p + entity) == every, entity
+        assert f"{p}control/residual/block_2" not in rows  # the fixture's ControlMap injects into M = 2 blocks
+        latent = rows[p + "diffusion/latent"][0][1]["Tensor:data"].values[0].as_py()
+        assert latent["shape"] == [64, 8, 8] and latent["names"] == ["channel", "row", "col"]
+        heat = rows[p + "control/residual/block_0"][0][1]["Tensor:data"].values[0].as_py()
+        assert heat["shape"] == [8, 8] and len(heat["buffer"]) == 64 and min(heat["buffer"]) >= 0
+        for final in ("control/sd", "hd/lanes"):
+            assert steps_of(rows, p + final) == [None]  # static: shown at every step
+        # DDIM with eta 0 ends on the last predicted clean latent: the final map is the last x0 decoded
+        last_x0 = [r for s, r in rows[p + "diffusion/x0/lanes"] if s == STEPS - 1][0]["LineStrips2D:strips"]
+        final = rows[p + "hd/lanes"][0][1]["LineStrips2D:strips"]
+        np.testing.assert_allclose(np.array(last_x0.values.to_pylist()), np.array(final.values.to_pylist()), atol=1e-4)
+    info = rows["/info"][0][1]["TextDocument:text"].values[0].as_py()
+    assert "seed 0" in info and "cfg w = 0.7" in info and "SGP" in info and "cmtool sample" in info
+    reader = RrdReader(sampled["out"] / "sample.rrd")
+    views = {c.entity_path for c in reader.stream(store=reader.blueprints()[0]) if c.entity_path.startswith("/view/")}
+    assert len(views) > 8  # the default blueprint ships with the recording
+
+
+def test_eps_norms_are_the_guidance_formula(sampled):
+    rows = sampled["rows"]
+    for s in range(STEPS):
+        get = {k: [r for st, r in rows[f"/sample_0/diffusion/eps/{k}"] if st == s][0]["Scalars:scalars"].values[0].as_py()
+               for k in ("cond", "uncond", "guided", "delta")}
+        assert get["delta"] > 0 and get["cond"] != get["uncond"]
+        # |guided - uncond| = w |cond - uncond| >= w ||cond| - |uncond||
+        assert get["delta"] >= 0.7 * abs(get["cond"] - get["uncond"]) - 1e-4
+
+
+def test_outputs_are_valid_lane_graphs_and_pictures(sampled):
+    out = sampled["out"]
+    assert sorted(p.name for p in out.iterdir()) == ["sample.rrd", "sd_bos_s0.json", "sd_bos_s0.png",
+                                                      "sd_bos_s1.json", "sd_bos_s1.png"]
+    for k in range(2):
+        graph = read_jsonl(out / f"sd_bos_s{k}.json")[0]
+        assert graph.city == "SGP" and graph.meta["cfg"] == 0.7 and graph.meta["index"] == k
+        assert graph.lanes and sorted(graph.successors) == sorted(infer_successors(graph.lanes))
+        picture = cv2.imread(str(out / f"sd_bos_s{k}.png"))
+        assert picture.shape[1] == 2 * 256 + 4  # SD | generated
+    a, b = (graph_core(out / f"sd_bos_s{k}.json") for k in range(2))
+    assert a != b  # two maps per input differ
+    table = sampled["stdout"]
+    assert "lanes" in table and "sd_bos_s0" in table and "sd_bos_s1" in table
+
+
+def test_same_seed_same_json_and_cfg_zero_is_the_unguided_model(sampling_ckpt, tmp_path, capsys):
+    cm, dit = sampling_ckpt["controlmap"], sampling_ckpt["dit"]
+    common = ("--steps", STEPS, "--city", "PIT", "--no-log", "--quiet")
+    for name in ("a", "b"):
+        assert cmtool(capsys, "sample", "--ckpt", cm, "--sd", SD_PNG, "--cfg", 1.0, "--out", tmp_path / name,
+                      *common)[0] == 0
+    assert (tmp_path / "a" / "sd_bos.json").read_bytes() == (tmp_path / "b" / "sd_bos.json").read_bytes()
+    assert cmtool(capsys, "sample", "--ckpt", cm, "--sd", SD_PNG, "--cfg", 1.0, "--seed", 1, "--out", tmp_path / "c",
+                  *common)[0] == 0
+    assert graph_core(tmp_path / "c" / "sd_bos.json") != graph_core(tmp_path / "a" / "sd_bos.json")
+    # w = 0: ControlMap with its control ignored equals the plain DiT without any SD input
+    assert cmtool(capsys, "sample", "--ckpt", cm, "--sd", SD_PNG, "--cfg", 0, "--out", tmp_path / "w0", *common)[0] == 0
+    assert cmtool(capsys, "sample", "--ckpt", dit, "--out", tmp_path / "dit", *common)[0] == 0
+    w0, unguided = graph_core(tmp_path / "w0" / "sd_bos.json"), graph_core(tmp_path / "dit" / "uncond.json")
+    assert w0 == unguided
+    assert w0 != graph_core(tmp_path / "a" / "sd_bos.json")  # and guidance changes the map
+
+
+def test_drawings_and_other_sizes_are_converted_with_a_note(sampling_ckpt, tmp_path, capsys):
+    sketches = tmp_path / "sketches"
+    sketches.mkdir()
+    drawing = np.full((300, 300), 255, np.uint8)
+    cv2.line(drawing, (150, 0), (150, 299), 0, 12)  # a dark road on white paper
+    cv2.imwrite(str(sketches / "cross.png"), drawing)
+    big = cv2.resize(cv2.imread(str(SD_PNG)), (256, 256), interpolation=cv2.INTER_NEAREST)
+    cv2.imwrite(str(sketches / "big.png"), big)
+    code, out, err = cmtool(capsys, "sample", "--ckpt", sampling_ckpt["controlmap"], "--sd", sketches, "--steps", 2,
+                            "--out", tmp_path / "out", "--no-log", "--quiet")
+    assert code == 0, err
+    assert "big.png: resampled the 256 x 256 SD raster to 128 x 128" in err
+    assert "cross.png: converted a 300 x 300 road drawing" in err
+    assert sorted(p.name for p in (tmp_path / "out").iterdir()) == ["big.json", "big.png", "cross.json", "cross.png"]
+
+
+def test_osm_and_hd_inputs(sampling_ckpt, tmp_path, capsys):
+    cm = sampling_ckpt["controlmap"]
+    code, _, err = cmtool(capsys, "sample", "--ckpt", cm, "--osm", OSM, "--center", "40.4410,-79.9900", "--heading", 30,
+                          "--steps", 2, "--out", tmp_path / "osm", "--rrd", tmp_path / "osm.rrd", "--quiet")
+    assert code == 0, err
+    assert json.loads((tmp_path / "osm" / "small.json").read_text())["meta"]["source"].startswith("osm:small.osm@40.441")
+    assert (tmp_path / "osm.rrd").stat().st_size > 0 and not (tmp_path / "osm" / "sample.rrd").exists()
+
+    assert cmtool(capsys, "data", "synth", "--city", "SGP", "--seed", 2, "--extent", 300, "--out",
+                  tmp_path / "sgp.json")[0] == 0
+    lanes = list(HDMap.load(tmp_path / "sgp.json").lanes.values())
+    poses = tmp_path / "poses.jsonl"
+    poses.write_text("".join(json.dumps({"x": l.centerline[0][0], "y": l.centerline[0][1], "yaw": 30.0}) + "\n"
+                             for l in lanes[:2]))
+    code, out, err = cmtool(capsys, "sample", "--ckpt", cm, "--from-hd", tmp_path / "sgp.json", "--pose", poses,
+                            "--steps", 2, "--out", tmp_path / "hd", "--quiet")
+    assert code == 0, err
+    names = sorted(p.name for p in (tmp_path / "hd").iterdir())
+    assert names == ["sample.rrd", "sgp_0.gt.json", "sgp_0.json", "sgp_0.png", "sgp_1.gt.json", "sgp_1.json",
+                     "sgp_1.png"]
+    truth = read_jsonl(tmp_path / "hd" / "sgp_0.gt.json")[0]
+    assert truth.lanes and truth.city == "SGP"
+    assert read_jsonl(tmp_path / "hd" / "sgp_0.json")[0].city == "SGP"  # auto: the map's city, known to the model
+    assert cv2.imread(str(tmp_path / "hd" / "sgp_0.png")).shape[1] == 3 * 256 + 2 * 4  # SD | generated | truth
+    rows = read_rrd(tmp_path / "hd" / "sample.rrd")
+    assert "/sample_1/truth/hd/lanes" in rows
+
+
+def make_bad_inputs(tmp_path, ckpt, case) -> dict:
+    if case == "off the roads":
+        from cmtool.data.synth import generate_city
+
+        generate_city("LAV", seed=0, extent=200.0).save(tmp_path / "lav.json")
+    blank = tmp_path / "blank.png"
+    cv2.imwrite(str(blank), np.full((64, 64), 255, np.uint8))
+    garbage = tmp_path / "garbage.png"
+    garbage.write_bytes(b"not a picture")
+    empty = tmp_path / "empty.png"
+    empty.write_bytes(b"")
+    two = tmp_path / "two.npy"
+    np.save(two, np.zeros((128, 128, 2), np.uint8))
+    corrupt = tmp_path / "corrupt"
+    corrupt.mkdir()
+    for f in ("config.json", "model.safetensors"):
+        (corrupt / f).write_bytes((ckpt["controlmap"] / f).read_bytes())
+    (corrupt / "model.safetensors").write_bytes(b"\x00" * 64)
+    sd = ("--sd", SD_PNG)
+    return {
+        "garbage": ((*sd[:1], garbage), "cannot read image"),
+        "empty": ((*sd[:1], empty), "empty"),
+        "blank": ((*sd[:1], blank), "no roads in the picture"),
+        "channels": ((*sd[:1], two), "got shape (128, 128, 2)"),
+        "city": ((*sd, "--city", "XYZ"), "unknown city 'XYZ'"),
+        "negative cfg": ((*sd, "--cfg", "-0.5"), "--cfg"),
+        "nan cfg": ((*sd, "--cfg", "nan"), "--cfg"),
+        "missing ckpt": ((*sd, "--ckpt", tmp_path / "nowhere"), "no such checkpoint"),
+        "corrupt ckpt": ((*sd, "--ckpt", corrupt), "unreadable weights"),
+        "rvae ckpt": ((*sd, "--ckpt", ckpt["rvae"]), "an RVAE checkpoint"),
+        "dit with sd": ((*sd, "--ckpt", ckpt["dit"]), "no control branch"),
+        "osm far": (("--osm", OSM, "--center", "40.4600,-79.9900"), "no roads within the 64 m frame"),
+        "osm centre": (("--osm", OSM, "--center", "40.44"), "expected LAT,LON"),
+        "two kinds": ((*sd, "--osm", OSM), "one kind of SD input"),
+        "missing map": (("--from-hd", tmp_path / "nomap.json"), "no such file"),
+        "off the roads": (("--from-hd", tmp_path / "lav.json", "--pose", "5000,5000,0"),
+                          "no roads within the 64 m frame"),
+    }
+
+
+@pytest.mark.parametrize("case", ["garbage", "empty", "blank", "channels", "city", "negative cfg", "nan cfg",
+                                  "missing ckpt", "corrupt ckpt", "rvae ckpt", "dit with sd", "osm far", "osm centre",
+                                  "two kinds", "missing map", "off the roads"])
+def test_bad_inputs_are_one_line_errors_with_no_output(case, sampling_ckpt, tmp_path, capsys):
+    args, fragment = make_bad_inputs(tmp_path, sampling_ckpt, case)[case]
+    if "--ckpt" not in args:
+        args = (*args, "--ckpt", sampling_ckpt["controlmap"])
+    out = tmp_path / "out"
+    code, _, err = cmtool(capsys, "sample", *args, "--steps", 2, "--out", out, "--quiet")
+    lines = err.strip().splitlines()
+    assert code != 0 and len(lines) == 1 and lines[0].startswith("Error: ") and "Traceback" not in err, err
+    assert fragment in lines[0], lines[0]
+    if case == "city":
+        assert "LAV, PIT, SGP, none" in lines[0]  # the valid labels
+    assert not out.exists()
+
+
+def test_a_failure_mid_run_leaves_no_files(sampling_ckpt, tmp_path, monkeypatch, capsys):
+    from cmtool.sample import run
+
+    def broken(*a, **k):
+        raise OSError("disk full")
+
+    monkeypatch.setattr(run, "graph_panel", broken)
+    with pytest.raises(OSError):
+        main(["sample", "--ckpt", str(sampling_ckpt["controlmap"]), "--sd", str(SD_PNG), "--num", "2", "--steps", "2",
+              "--out", str(tmp_path / "out"), "--quiet"])
+    assert not (tmp_path / "out").exists()
+
+
+def test_hand_built_columns_match_rerun_s_own_encoding():
+    """Our batched Tensor / LineStrips2D columns encode exactly what rerun's per-row API does."""
+    arrays = np.random.default_rng(0).normal(size=(3, 4, 2, 2)).astype(np.float32)
+    column = next(iter(tensor_column(arrays, ["c", "h", "w"]))).component_batch.as_arrow_array()
+    for i, a in enumerate(arrays):
+        own = rr.Tensor(a, dim_names=["c", "h", "w"]).data.as_arrow_array()
+        assert column[i].equals(own[0])
+    strips = np.random.default_rng(1).normal(size=(4, 20, 2)).astype(np.float32)
+    mine = strips_column(strips).component_batch.as_arrow_array()
+    theirs = next(c for c in rr.LineStrips2D.columns(strips=list(strips))
+                  if "strips" in str(c.descriptor)).component_batch.as_arrow_array()
+    assert mine.equals(theirs) and isinstance(mine, pa.ListArray)
+
+
+def test_bench_sample_prints_both_times_and_the_ratio(sampling_ckpt, capsys):
+    code, out, err = cmtool(capsys, "bench", "sample", "--ckpt", sampling_ckpt["controlmap"], "--steps", 3,
+                            "--batch", 4, "--repeats", 1)
+    assert code == 0, err
+    assert "batch1_nolog" in out and "batch1_log" in out and "batch4_nolog" in out
+    ratio = float(out.split("full logging / --no-log at batch 1: ")[1].split()[0])
+    assert ratio > 0
+
+
+def test_lane_graph_meta_records_how_it_was_made(sampled):
+    graph = LaneGraph.from_json(json.loads((sampled["out"] / "sd_bos_s0.json").read_text()))
+    assert {"source", "checkpoint", "seed", "cfg", "steps", "sampler"} <= set(graph.meta)
+    assert graph.meta["steps"] == STEPS and graph.meta["sampler"] == "ddim"
