@@ -85,21 +85,37 @@ def import_(fmt, file, out, city):
 
 @data.command()
 @click.argument("hd_map", type=click.Path(path_type=Path))
-@click.option("--out", required=True, type=click.Path(dir_okay=False, path_type=Path), help="SD map JSON to write.")
+@click.option("--out", required=True, type=click.Path(dir_okay=False, path_type=Path),
+              help="SD map to write: cmtool JSON, or OpenStreetMap XML when the name ends in .osm.")
+@click.option("--origin", help="With an .osm output: LAT,LON where the map's (0, 0) lies.")
 @click.option("--offset", default=0.0, show_default=True, help="Jitter: random shift of up to this many metres.")
 @click.option("--rotation", default=0.0, show_default=True, help="Jitter: random rotation of up to this many degrees.")
 @click.option("--drop-minor", default=0.0, show_default=True, help="Jitter: probability of dropping each minor road.")
 @click.option("--seed", default=0, show_default=True, help="Seed of the jitter.")
-def sd(hd_map, out, offset, rotation, drop_minor, seed):
+def sd(hd_map, out, origin, offset, rotation, drop_minor, seed):
     """Derive the SD map (one polyline per road, as OpenStreetMap shows it) of an HD map."""
     from cmtool.data.hdmap import HDMap
     from cmtool.data.sd_derive import SDJitter, derive_sd
 
     if offset < 0 or rotation < 0 or not 0.0 <= drop_minor <= 1.0:
         raise CmtoolError("jitter must be non-negative and --drop-minor within [0, 1]")
+    to_osm = out.suffix == ".osm"
+    if to_osm != (origin is not None):
+        raise CmtoolError("an .osm output needs --origin LAT,LON" if to_osm else "--origin goes with an .osm output")
+    if to_osm:
+        from cmtool.sample.inputs import parse_points
+
+        lat0, lon0 = parse_points(origin, ("lat", "lon"), {}, "--origin")[0]
+        if not (-80.0 <= lat0 <= 80.0 and -180.0 <= lon0 <= 180.0):
+            raise CmtoolError(f"--origin {origin}: latitude must be within [-80, 80], longitude within [-180, 180]")
     jitter = SDJitter(offset, rotation, drop_minor)
     sd_map = derive_sd(HDMap.load(hd_map), jitter=jitter if jitter.enabled else None, seed=seed)
-    sd_map.save(out)
+    if to_osm:
+        from cmtool.data.osm import write_osm
+
+        write_osm(sd_map, out, lat0, lon0)
+    else:
+        sd_map.save(out)
     click.echo(f"{out}: SD map, {len(sd_map.roads)} roads")
 
 

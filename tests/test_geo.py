@@ -26,3 +26,11 @@ def test_resample_and_offset():
     r = resample(line, 5)
     np.testing.assert_allclose(r, [[0, 0], [5, 0], [10, 0], [10, 5], [10, 10]])
     np.testing.assert_allclose(offset(np.array([[0.0, 0.0], [10.0, 0.0]]), 2.0), [[0, 2], [10, 2]])
+
+
+def test_inverse_projection_round_trips():
+    proj = LocalProjection(-33.9, 151.2)
+    xy = np.random.default_rng(0).uniform(-20000.0, 20000.0, size=(500, 2))
+    latlon = proj.to_latlon(xy)
+    np.testing.assert_allclose(proj.to_metres(latlon[:, 0], latlon[:, 1]), xy, atol=1e-6)
+    np.testing.assert_allclose(proj.to_latlon([0.0, 0.0]), [-33.9, 151.2], atol=1e-12)

@@ -112,3 +112,23 @@ def test_tag_parsing():
     assert parse_oneway({"highway": "motorway"}) == 1
     assert parse_oneway({"highway": "motorway", "oneway": "no"}) == 0
     assert parse_oneway({"highway": "primary", "junction": "roundabout"}) == 1
+
+
+def test_written_osm_reads_back_as_the_same_roads(tmp_path):
+    from cmtool.data.osm import write_osm
+    from cmtool.data.sd_derive import derive_sd
+    from cmtool.data.synth import generate_city
+
+    sd = derive_sd(generate_city("BOS", seed=3, extent=300.0))
+    write_osm(sd, tmp_path / "town.osm", 42.355, -71.065)
+    back = read_osm(tmp_path / "town.osm")
+    assert len(back.roads) == len(sd.roads)
+    for a, b in zip(sd.roads, back.roads):
+        assert (a.road_class, a.lanes, a.oneway) == (b.road_class, b.lanes, b.oneway)
+        assert len(a.polyline) == len(b.polyline)
+    # the same shapes up to the origin: read_osm centres its projection on the nodes' mean
+    pa, pb = np.concatenate([r.polyline for r in sd.roads]), np.concatenate([r.polyline for r in back.roads])
+    np.testing.assert_allclose(pb - pb[0], pa - pa[0], atol=0.01)
+    # roads that met at one point share a node in the file, so the road graph stays connected
+    text = (tmp_path / "town.osm").read_text()
+    assert text.count("<node ") < sum(len(r.polyline) for r in sd.roads)

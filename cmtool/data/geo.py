@@ -51,3 +51,26 @@ class LocalProjection:
         """Project latitude/longitude arrays (degrees) to (..., 2) arrays of [east, north] metres."""
         x, y = self._raw(np.asarray(lat, dtype=np.float64), np.asarray(lon, dtype=np.float64))
         return np.stack([x, y], axis=-1)
+
+    def to_latlon(self, xy) -> np.ndarray:
+        """Inverse of :meth:`to_metres`: (..., 2) [east, north] metres -> (..., 2) [lat, lon] degrees.
+
+        Newton's method on the forward projection (with a numerical Jacobian), started from the
+        local equirectangular guess; converges to well under a millimetre in a few iterations.
+        """
+        xy = np.asarray(xy, dtype=np.float64)
+        target = xy.reshape(-1, 2)
+        m_per_deg = np.radians(1.0) * _A
+        guess = np.stack([self.lat0 + target[:, 1] / m_per_deg,
+                          self.lon0 + target[:, 0] / (m_per_deg * math.cos(math.radians(self.lat0)))], axis=-1)
+        h = 1e-7  # degrees, for the finite-difference Jacobian
+        for _ in range(8):
+            f = self.to_metres(guess[:, 0], guess[:, 1]) - target
+            d_lat = (self.to_metres(guess[:, 0] + h, guess[:, 1]) - f - target) / h
+            d_lon = (self.to_metres(guess[:, 0], guess[:, 1] + h) - f - target) / h
+            jac = np.stack([d_lat, d_lon], axis=-1)  # (N, 2 metres, 2 degrees)
+            guess = guess - np.linalg.solve(jac, f[..., None])[..., 0]
+            if np.abs(f).max(initial=0.0) < 1e-5:
+                break
+        return guess.reshape(xy.shape)
+

@@ -1,4 +1,4 @@
-"""OpenStreetMap files (``.osm`` XML, ``.osm.pbf``) -> :class:`SDMap` in local metres.
+"""OpenStreetMap files (``.osm`` XML, ``.osm.pbf``) <-> :class:`SDMap` in local metres.
 
 Only drivable highway ways are kept: motorway, trunk, primary, secondary, tertiary, unclassified,
 residential, service (``*_link`` ways join their parent class, ``living_street`` counts as
@@ -7,16 +7,22 @@ residential); footways, cycleways, paths, steps, tracks and the like are skipped
 motorways, motorway links and roundabouts are one-way unless tagged otherwise). Coordinates are
 projected with a transverse Mercator projection centred on the mean of the nodes used. A way whose
 nodes are partly missing from the file (a clipped extract) keeps each run of >= 2 present nodes.
+
+:func:`write_osm` writes an SD map as ``.osm`` XML (roads as ``highway`` ways with ``lanes`` and
+``oneway`` tags, road ends at the same spot sharing one node), placed at a chosen latitude and
+longitude, so procedural maps can stand in for OpenStreetMap extracts.
 """
 
 from __future__ import annotations
 
 import os
 from pathlib import Path
+from xml.sax.saxutils import quoteattr
 
 import numpy as np
 
 from cmtool.data.geo import LocalProjection
+from cmtool.data.jsonio import write_text_atomic
 from cmtool.data.osmxml import read_osm_xml
 from cmtool.data.sdmap import ROAD_CLASSES, Road, SDMap
 from cmtool.errors import CmtoolError
@@ -118,3 +124,39 @@ def _read_pbf(path: Path) -> tuple[dict[int, tuple[float, float]], list[tuple[in
     except RuntimeError as e:
         raise CmtoolError(f"{path}: cannot read OSM PBF: {e}") from None
     return nodes, ways
+
+
+def write_osm(sd: SDMap, path: str | os.PathLike, lat0: float, lon0: float) -> None:
+    """Write ``sd`` as an OSM XML file, its metre origin placed at ``(lat0, lon0)``."""
+    proj = LocalProjection(lat0, lon0)
+    node_ids: dict[tuple[int, int], int] = {}
+    coords: list[tuple[float, float]] = []
+    ways = []
+    for road in sd.roads:
+        refs = []
+        for x, y in np.asarray(road.polyline, dtype=np.float64):
+            key = (round(x * 1000), round(y * 1000))  # points within a millimetre share a node
+            if key not in node_ids:
+                node_ids[key] = len(coords) + 1
+                coords.append((x, y))
+            if not refs or refs[-1] != node_ids[key]:
+                refs.append(node_ids[key])
+        tags = {"highway": road.road_class}
+        if road.lanes is not None:
+            tags["lanes"] = str(road.lanes)
+        if road.oneway:
+            tags["oneway"] = "yes" if road.oneway == 1 else "-1"
+        if len(refs) >= 2:
+            ways.append((refs, tags))
+    latlon = proj.to_latlon(np.array(coords).reshape(-1, 2))
+    lines = ['<?xml version="1.0" encoding="UTF-8"?>', '<osm version="0.6" generator="cmtool">']
+    lines += [f'  <node id="{i}" lat="{lat:.9f}" lon="{lon:.9f}" version="1"/>'
+              for i, (lat, lon) in enumerate(latlon, start=1)]
+    for k, (refs, tags) in enumerate(ways, start=1):
+        lines.append(f'  <way id="{k}" version="1">')
+        lines += [f'    <nd ref="{r}"/>' for r in refs]
+        lines += [f"    <tag k={quoteattr(key)} v={quoteattr(value)}/>" for key, value in tags.items()]
+        lines.append("  </way>")
+    lines.append("</osm>")
+    write_text_atomic(path, "\n".join(lines) + "\n")
+
