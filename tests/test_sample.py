@@ -2,6 +2,7 @@
 lane graphs, w = 0 equal to the unguided model, the three SD input kinds, and one-line errors."""
 
 import json
+import socket
 import subprocess
 import sys
 from collections import defaultdict
@@ -284,3 +285,21 @@ def test_lane_graph_meta_records_how_it_was_made(sampled):
     graph = LaneGraph.from_json(json.loads((sampled["out"] / "sd_bos_s0.json").read_text()))
     assert {"source", "checkpoint", "seed", "cfg", "steps", "sampler"} <= set(graph.meta)
     assert graph.meta["steps"] == STEPS and graph.meta["sampler"] == "ddim"
+
+
+def test_streaming_to_a_viewer(sampling_ckpt, tmp_path, capsys):
+    args = ("sample", "--ckpt", sampling_ckpt["controlmap"], "--sd", SD_PNG, "--steps", 2, "--quiet")
+    code, _, err = cmtool(capsys, *args, "--out", tmp_path / "a", "--connect", "rerun+http://127.0.0.1:1/proxy")
+    assert code == 1 and err.startswith("Error: --connect") and "cannot reach a Rerun viewer" in err
+    assert not (tmp_path / "a").exists()
+    with socket.socket() as probe:  # a free port
+        probe.bind(("127.0.0.1", 0))
+        port = probe.getsockname()[1]
+    server = rr.RecordingStream("viewer-stand-in")
+    url = server.serve_grpc(grpc_port=port)  # a gRPC server, as the viewer runs one
+    try:
+        r = run_cli_once(*args, "--out", tmp_path / "b", "--connect", url)
+        assert r.returncode == 0, r.stderr
+        assert (tmp_path / "b" / "sample.rrd").stat().st_size > 0  # the file is written as well
+    finally:
+        server.disconnect()

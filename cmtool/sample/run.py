@@ -12,9 +12,11 @@ when the run fails, the files it already wrote are removed again.
 from __future__ import annotations
 
 import math
+import socket
 import time
 from dataclasses import dataclass
 from pathlib import Path
+from urllib.parse import urlsplit
 
 import cv2
 import numpy as np
@@ -35,6 +37,7 @@ from cmtool.viz.trajectory import TrajectoryLogger, sampling_blueprint
 
 AUTO = "auto"  # --city default: the source map's city when the checkpoint knows it, else none
 PANEL = 256
+VIEWER_PORT = 9876  # Rerun's default gRPC port
 
 
 @dataclass
@@ -174,22 +177,39 @@ def _partial(rrd: Path) -> Path:
 def sampling_recording(rrd: Path | None, viewer: str | None, written: list[Path]) -> rr.RecordingStream:
     """A recording that writes to ``rrd`` (renamed into place at the end) and/or streams to a viewer."""
     rec = rr.RecordingStream("cmtool")
-    sinks = []
-    if viewer is not None:
-        url = None if viewer == "spawn" else viewer
-        if viewer == "spawn":
-            try:
-                rr.spawn(connect=False)
-            except Exception as e:  # no viewer binary or no display
-                raise CmtoolError(f"--spawn: could not start the Rerun viewer ({e}); write an .rrd and open it "
-                                  "with `rerun FILE.rrd` instead") from None
-        sinks.append(rr.GrpcSink(url) if url else rr.GrpcSink())
+    sinks = [] if viewer is None else [_viewer_sink(rec, viewer)]
     if rrd is not None:
         rrd.parent.mkdir(parents=True, exist_ok=True)
         written.append(_partial(rrd))
         sinks.append(rr.FileSink(str(_partial(rrd))))
     rec.set_sinks(*sinks)
     return rec
+
+
+def _viewer_sink(rec: rr.RecordingStream, viewer: str) -> rr.GrpcSink:
+    """A sink to a live viewer: "spawn" starts one; otherwise a gRPC URL that must be reachable."""
+    spawn = viewer == "spawn"
+    url = f"rerun+http://127.0.0.1:{VIEWER_PORT}/proxy" if spawn else viewer
+    parts = urlsplit(url.removeprefix("rerun+"))
+    if parts.scheme not in ("http", "https") or not parts.hostname:
+        raise CmtoolError(f"--connect {viewer}: expected a Rerun gRPC URL like rerun+http://127.0.0.1:9876/proxy")
+    if spawn:
+        try:
+            rec.spawn(port=VIEWER_PORT, connect=False)
+        except Exception as e:  # no viewer executable
+            raise CmtoolError(f"--spawn: could not start the Rerun viewer ({e})") from None
+    deadline = time.monotonic() + (10.0 if spawn else 2.0)
+    while True:
+        try:
+            socket.create_connection((parts.hostname, parts.port or 9876), timeout=1.0).close()
+            return rr.GrpcSink(url)
+        except OSError:
+            if time.monotonic() > deadline:
+                why = ("the viewer did not start (is there a display?); write an .rrd and open it with "
+                       "`rerun FILE.rrd` instead" if spawn else "is a viewer running there? `rerun` starts one")
+                raise CmtoolError(f"{'--spawn' if spawn else '--connect ' + viewer}: cannot reach a Rerun viewer at "
+                                  f"{url}: {why}") from None
+            time.sleep(0.2)
 
 
 def log_run_header(rec, gen: Generator, jobs: list[Job], settings: SampleSettings, command: str) -> None:
