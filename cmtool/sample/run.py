@@ -225,7 +225,7 @@ def log_run_header(rec, gen: Generator, jobs: list[Job], settings: SampleSetting
     rec.log("info", rr.TextDocument("\n".join(lines), media_type="text/markdown"), static=True)
     for job in jobs:
         if job.source.sd is not None:
-            log_sd(rec, job.prefix, job.source.sd)
+            log_sd(rec, job.prefix, job.source.sd, static=True)
         truth = job.source.truth
         if truth is not None:
             log_lanes(rec, f"{job.prefix}truth/", truth.lanes, truth.green_lights, truth.red_lights, truth.successors,

@@ -50,13 +50,13 @@ def log_lanes(rec: rr.RecordingStream, prefix: str, lines, green=(), red=(), edg
                                                               colors=colour, draw_order=20.0), static=static)
 
 
-def log_sd(rec: rr.RecordingStream, prefix: str, sd: np.ndarray, frame_m: float = 64.0) -> None:
+def log_sd(rec: rr.RecordingStream, prefix: str, sd: np.ndarray, frame_m: float = 64.0, static: bool = False) -> None:
     """Log an SD raster (H, W, 3) as a readable image on the scene's square at ``<prefix>control/sd``."""
     size = sd.shape[0]
     half = frame_m / 2.0
     rec.log(f"{prefix}control/sd",
             rr.Image(sd_panel(sd, size), opacity=0.7, draw_order=-10.0, magnification_filter="Nearest"),
-            rr.Transform3D(translation=[-half, -half, 0.0], scale=frame_m / size), static=True)
+            rr.Transform3D(translation=[-half, -half, 0.0], scale=frame_m / size), static=static)
 
 
 def log_scene(rec: rr.RecordingStream, prefix: str, scene) -> None:
