@@ -139,6 +139,7 @@ def run_sample(gen: Generator, jobs: list[Job], settings: SampleSettings, out: P
 
 
 def generate_maps(gen: Generator, jobs: list[Job], settings: SampleSettings, rec, progress: bool) -> list[SampledMap]:
+    """Sample, decode and (when ``rec`` is a recording) log every step of the jobs' maps, in batches."""
     generator = torch.Generator(gen.device).manual_seed(settings.seed)
     maps = []
     with Progress(len(jobs), "sample", "maps", enabled=progress and len(jobs) > 1) as bar:
@@ -154,12 +155,12 @@ def generate_maps(gen: Generator, jobs: list[Job], settings: SampleSettings, rec
                            sampler=settings.sampler, eta=settings.eta, generator=generator, callback=logger)
             decoded = gen.decode(z)
             graphs = [gen.lane_graph(el, gen.city_name(j.label), _meta(gen, j, settings)) for j, el in zip(batch, decoded)]
-            seconds = (time.perf_counter() - began) / len(batch)
             if logger is not None:
                 logger.flush()
                 for job, graph in zip(batch, graphs):
                     log_lanes(rec, job.prefix, graph.lanes, graph.green_lights, graph.red_lights, graph.successors,
                               static=True)
+            seconds = (time.perf_counter() - began) / len(batch)
             maps += [SampledMap(j, g, seconds) for j, g in zip(batch, graphs)]
             bar.update(len(batch))
     return maps
