@@ -31,6 +31,7 @@ from cmtool.viz.draw import GREEN, RED
 from cmtool.viz.recording import lane_colours, log_ego_frame
 
 LATENT_DIMS = ("channel", "row", "col")
+MAX_TABS = 16  # maps that get their own tab in the default layout
 HEATMAP_DIMS = ("row", "col")
 
 
@@ -181,8 +182,9 @@ def sample_view(prefix: str, name: str, blocks: int, truth: bool) -> rrb.Contain
 
 
 def sampling_blueprint(prefixes: list[str], names: list[str], blocks: int, truth: bool) -> rrb.Blueprint:
-    """Tabs with one :func:`sample_view` per map, beside the run's info document."""
-    views = [sample_view(p, n, blocks, truth) for p, n in zip(prefixes, names)]
+    """Tabs with one :func:`sample_view` per map (the first ``MAX_TABS``; the others are in the
+    entity tree), beside the run's info document."""
+    views = [sample_view(p, n, blocks, truth) for p, n in zip(prefixes[:MAX_TABS], names)]
     body = views[0] if len(views) == 1 else rrb.Tabs(*views)
     return rrb.Blueprint(rrb.Horizontal(body, rrb.TextDocumentView(origin="/info", name="info"),
                                         column_shares=[6, 1]),
