@@ -1,0 +1,76 @@
+"""Topology statistics and Fréchet distances on hand-made lane graphs with known answers."""
+
+import math
+from types import SimpleNamespace
+
+import numpy as np
+import pytest
+
+from cmtool.eval.topology import frechet_1d, keypoint_graph, pooled_statistics, scene_statistics, topology_fd
+
+
+def stats(num_lanes, successors):
+    return scene_statistics(keypoint_graph(num_lanes, successors))
+
+
+def test_a_fork_has_the_counted_degrees_reach_and_hops():
+    # lane 0 (west -> centre) continues into lane 1 (-> east) and lane 2 (-> north)
+    s = stats(3, [(0, 1), (0, 2)])
+    assert s["density"].tolist() == [4.0]
+    assert sorted(s["connectivity"].tolist()) == [1, 1, 1, 3]  # the centre: in 1 + out 2
+    assert sorted(s["reach"].tolist()) == [0, 0, 2, 3]
+    assert sorted(s["convenience"].tolist()) == [1, 1, 1, 2, 2]
+
+
+def test_four_way_intersection():
+    # 4 approaches end at 4 entry keypoints; from each, 3 connectors (left, straight, right) lead to the
+    # 3 other arms' exits, each continuing into an outgoing lane
+    approaches = list(range(4))
+    exits = list(range(4, 8))  # exit lane of arm k starts where connectors into arm k end
+    connectors, succ = [], []
+    for k in range(4):
+        for j in range(4):
+            if j != k:
+                c = 8 + len(connectors)
+                connectors.append(c)
+                succ += [(approaches[k], c), (c, exits[j])]
+    s = stats(8 + len(connectors), succ)
+    # keypoints: 4 approach starts, 4 entries, 4 exit starts, 4 exit ends
+    assert s["density"].tolist() == [16.0]
+    assert sorted(s["connectivity"].tolist()) == [1] * 8 + [4] * 8  # entries: in 1 + out 3; exits: in 3 + out 1
+    assert sorted(s["reach"].tolist()) == [0] * 4 + [1] * 4 + [6] * 4 + [7] * 4  # exit ends, exit starts, entries, approach starts
+
+
+def test_parallel_lanes_and_self_loops():
+    # lanes 1 and 2 both run from the end of lane 0 to the start of lane 3: one edge between two keypoints
+    s = stats(4, [(0, 1), (0, 2), (1, 3), (2, 3)])
+    assert sorted(s["connectivity"].tolist()) == [1, 1, 2, 2]
+    # a lane that loops back onto itself: one keypoint, degree 2, reaches nothing else
+    s = stats(1, [(0, 0)])
+    assert s["density"].tolist() == [1.0] and s["connectivity"].tolist() == [2.0]
+    assert s["reach"].tolist() == [0.0] and len(s["convenience"]) == 0
+
+
+def test_merges_are_transitive():
+    # 0 -> 1 and 2 -> 1 share 1's start; 2 -> 3 puts 3's start there too: one keypoint for all four ends
+    g = keypoint_graph(4, [(0, 1), (2, 1), (2, 3)])
+    assert g.n == 5 and len(g.edges) == 4
+
+
+def test_frechet_distance():
+    a, b = np.array([1.0, 3.0]), np.array([2.0, 4.0, 6.0])
+    expected = math.sqrt((2 - 4) ** 2 + 2 + 4 - 2 * math.sqrt(8))
+    assert frechet_1d(a, b) == pytest.approx(expected)
+    assert frechet_1d(a, a) == 0.0
+    assert math.isnan(frechet_1d(a[:1], b))
+
+
+def test_identical_sets_score_zero_and_scaling():
+    graphs = [SimpleNamespace(lanes=[None] * 3, successors=[(0, 1), (0, 2)]),
+              SimpleNamespace(lanes=[None] * 4, successors=[(0, 1), (1, 2), (2, 3)])]
+    assert topology_fd(graphs, graphs) == {"connectivity": 0.0, "density": 0.0, "reach": 0.0, "convenience": 0.0}
+    other = [SimpleNamespace(lanes=[None] * 2, successors=[]), SimpleNamespace(lanes=[None] * 5, successors=[(0, 1)])]
+    a, b = pooled_statistics(graphs), pooled_statistics(other)
+    fd = topology_fd(graphs, other)
+    assert fd["connectivity"] == pytest.approx(10 * frechet_1d(a["connectivity"], b["connectivity"]))
+    assert fd["density"] == pytest.approx(frechet_1d(a["density"], b["density"]))
