@@ -1,0 +1,54 @@
+"""Geometric metrics on hand-made lanes and SD rasters with known answers."""
+
+import math
+
+import numpy as np
+import pytest
+
+from cmtool.data.sd_raster import rasterize_sd
+from cmtool.data.sdmap import Road, SDMap
+from cmtool.eval.geometric import chamfer, driving_side, sd_adherence
+
+
+def line(y, x0=-30.0, x1=30.0, n=20):
+    return np.stack([np.linspace(x0, x1, n), np.full(n, y)], axis=-1)
+
+
+def straight_road(oneway=0):
+    sd = SDMap(roads=[Road("r", np.array([[-40.0, 0.0], [40.0, 0.0]]), lanes=2, oneway=oneway)])
+    return rasterize_sd(sd, 0.0, 0.0, 0.0)
+
+
+def test_chamfer():
+    assert chamfer([line(0.0)], [line(0.0)]) == pytest.approx(0.0, abs=1e-9)
+    assert chamfer([line(0.0)], [line(2.0)]) == pytest.approx(2.0)
+    assert chamfer([line(0.0)], [line(2.0), line(0.0)]) == pytest.approx(0.5 * (0.0 + 1.0))
+    assert math.isnan(chamfer([], [line(0.0)]))
+
+
+def test_sd_adherence():
+    sd = straight_road()
+    both = [line(-1.75), line(1.75)[::-1]]
+    assert sd_adherence(both, sd) == {"sd_coverage": 1.0, "lane_on_sd": 1.0}
+    far = sd_adherence([line(20.0)], sd)
+    assert far == {"sd_coverage": 0.0, "lane_on_sd": 0.0}
+    half = sd_adherence([line(-1.75, x0=0.0, x1=31.9)], sd)  # the front half of the road, +3 m behind it
+    assert half["sd_coverage"] == pytest.approx(35 / 64, abs=0.02) and half["lane_on_sd"] == 1.0
+    assert math.isnan(sd_adherence([], sd)["lane_on_sd"]) and sd_adherence([], sd)["sd_coverage"] == 0.0
+    assert math.isnan(sd_adherence(both, np.zeros_like(sd))["sd_coverage"])
+
+
+def test_driving_side():
+    sd = straight_road()
+    right_hand = [line(-1.75), line(1.75)[::-1]]  # forward on the right half, backward on the left half
+    share, judged = driving_side(right_hand, sd, "right")
+    assert share == 1.0 and judged > 200
+    assert driving_side(right_hand, sd, "left")[0] == 0.0
+    left_hand = [line(1.75), line(-1.75)[::-1]]
+    assert driving_side(left_hand, sd, "left")[0] == 1.0
+    # lanes on the centre line, on one-way roads or away from roads are not judged
+    assert driving_side([line(0.0)], sd, "right")[1] == 0
+    assert math.isnan(driving_side(right_hand, straight_road(oneway=1), "right")[0])
+    assert math.isnan(driving_side([line(25.0)], sd, "right")[0])
+    with pytest.raises(ValueError):
+        driving_side(right_hand, sd, "middle")
