@@ -351,6 +351,41 @@ def sample(ckpt, sd_paths, osm, center, heading, from_hd, pose, num, seed, steps
                f"to {out}" + ("" if no_log or rrd is None else f"; recording {rrd}"))
 
 
+@cli.command()
+@click.option("--generated", required=True, type=click.Path(dir_okay=False, path_type=Path),
+              help="Generated lane graphs (.jsonl).")
+@click.option("--reference", required=True, type=click.Path(dir_okay=False, path_type=Path),
+              help="Reference (ground-truth) lane graphs (.jsonl), paired line by line.")
+@click.option("--control", type=click.Path(path_type=Path),
+              help="SD controls, paired in order: a folder of SD pictures or a .npy stack (N, 128, 128, 3).")
+@click.option("--json", "json_out", type=click.Path(dir_okay=False, path_type=Path), help="Write all numbers here.")
+@click.option("--backbone", default="resnet50-seeded", show_default=True,
+              type=click.Choice(["resnet50-seeded", "resnet50-imagenet"]), help="Feature network of the recall metrics.")
+@click.option("--weights", type=click.Path(dir_okay=False, path_type=Path),
+              help="ImageNet ResNet-50 weights file [default: torchvision's file in the torch hub cache].")
+@click.option("--no-features", is_flag=True, help="Skip the feature metrics (precision/recall, Control/GT Recall).")
+@click.option("--device", help="torch device [default: cuda when available, else cpu].")
+def metrics(generated, reference, control, json_out, backbone, weights, no_features, device):
+    """Score generated lane graphs against a reference set (and their SD controls): topology FDs,
+    improved precision/recall, Control / GT Recall with p-values, and geometric lane metrics."""
+    from cmtool.data.jsonio import write_json
+    from cmtool.data.lanegraph import read_jsonl
+    from cmtool.eval.features import FeatureExtractor
+    from cmtool.eval.metrics import evaluate, load_controls, summary_table
+
+    gen, ref = read_jsonl(generated), read_jsonl(reference)
+    controls = load_controls(control) if control is not None else None
+    extractor = None if no_features else FeatureExtractor(backbone, weights, _device(device))
+    result = evaluate(gen, ref, controls, extractor, features=not no_features)
+    click.echo(summary_table({generated.name: result}))
+    click.echo(f"topology FDs of {result['scenes']} scene pairs in {result['topology_seconds']:.2f} s"
+               + ("" if no_features else f"; features: {result['backbone']['name']}"))
+    if json_out is not None:
+        write_json(json_out, {"generated": str(generated), "reference": str(reference),
+                              "control": str(control) if control else None, **result})
+        click.echo(f"wrote {json_out}")
+
+
 @cli.group()
 def bench():
     """Speed measurements (timings are printed, never asserted by tests)."""

@@ -1,0 +1,139 @@
+"""All metrics of a generated set of lane graphs against its reference (ground truth), and its SD
+controls when known; scene i of one set is paired with scene i of the other.
+
+- topology Fréchet distances (:mod:`cmtool.eval.topology`);
+- improved precision / recall and Ground-Truth Recall on ResNet-50 features of the map rasters,
+  Control Recall against the SD rasters (:mod:`cmtool.eval.features`, :mod:`cmtool.eval.retrieval`);
+- lane Chamfer distance, lane precision / recall / F1 at 1 m, SD adherence and driving side
+  (:mod:`cmtool.eval.geometric`), averaged over scenes (scenes where a score is undefined, e.g. an
+  empty map's Chamfer distance, are left out of that average and counted).
+"""
+
+from __future__ import annotations
+
+import math
+import time
+
+import numpy as np
+
+from cmtool.errors import CmtoolError
+from cmtool.eval.features import FeatureExtractor, lanes_image, sd_image
+from cmtool.eval.geometric import chamfer, driving_side, sd_adherence
+from cmtool.eval.lanes import lane_scores
+from cmtool.eval.retrieval import batch_recall, improved_precision_recall
+from cmtool.eval.topology import topology_fd
+
+LEFT_HAND = {"SGP"}  # city labels that drive on the left; all others drive on the right
+RECALL_BATCH, RECALL_K, PR_K = 64, 3, 3
+
+
+def load_controls(path) -> np.ndarray:
+    """SD controls: a folder of SD pictures (sorted by name) or a ``.npy`` stack (N, 128, 128, 3)."""
+    from pathlib import Path
+
+    from cmtool.data.sd_raster import read_sd_image
+    from cmtool.sample.inputs import IMAGE_SUFFIXES
+
+    path = Path(path)
+    if path.is_dir():
+        files = sorted(p for p in path.iterdir() if p.suffix.lower() in IMAGE_SUFFIXES)
+        if not files:
+            raise CmtoolError(f"{path}: no SD pictures in the folder")
+        return np.stack([read_sd_image(f)[0] for f in files])
+    if path.suffix == ".npy" and path.is_file():
+        stack = np.load(path, allow_pickle=False)
+        if stack.ndim != 4 or stack.shape[1:] != (128, 128, 3) or stack.dtype != np.uint8:
+            raise CmtoolError(f"{path}: expected a uint8 array of shape (N, 128, 128, 3), got {stack.dtype} "
+                              f"{stack.shape}")
+        return stack
+    raise CmtoolError(f"{path}: expected a folder of SD pictures or a .npy stack of SD rasters")
+
+
+def drives_on(city: str | None) -> str:
+    return "left" if city and city.upper() in LEFT_HAND else "right"
+
+
+def evaluate(generated, reference, controls: np.ndarray | None = None, extractor: FeatureExtractor | None = None,
+             features: bool = True) -> dict:
+    """Every metric of ``generated`` against ``reference`` (lists of LaneGraph) and ``controls``
+    ((N, 128, 128, 3) SD rasters or None). ``features=False`` skips the ResNet-50 metrics."""
+    if len(generated) != len(reference):
+        raise CmtoolError(f"{len(generated)} generated scenes but {len(reference)} reference scenes; "
+                          "scene i of one set pairs with scene i of the other")
+    if controls is not None and len(controls) != len(generated):
+        raise CmtoolError(f"{len(controls)} SD controls for {len(generated)} scenes")
+    if not generated:
+        raise CmtoolError("no scenes to evaluate")
+    out: dict = {"scenes": len(generated)}
+    began = time.perf_counter()
+    out["topology_fd"] = topology_fd(generated, reference)
+    out["topology_seconds"] = time.perf_counter() - began
+    out["geometry"] = geometry(generated, reference, controls)
+    if features:
+        extractor = extractor or FeatureExtractor()
+        gen = extractor(np.stack([lanes_image(g.lanes, g.frame_m) for g in generated]))
+        ref = extractor(np.stack([lanes_image(g.lanes, g.frame_m) for g in reference]))
+        out["backbone"] = {"name": extractor.backbone, "weights": extractor.source}
+        out["precision_recall"] = (improved_precision_recall(ref, gen, PR_K) if len(gen) > PR_K else
+                                   {"precision": math.nan, "recall": math.nan, "k": PR_K})
+        out["gt_recall"] = batch_recall(gen, ref, RECALL_BATCH, RECALL_K)
+        if controls is not None:
+            ctrl = extractor(np.stack([sd_image(sd) for sd in controls]))
+            out["control_recall"] = batch_recall(gen, ctrl, RECALL_BATCH, RECALL_K)
+    return out
+
+
+def geometry(generated, reference, controls: np.ndarray | None) -> dict:
+    """Per-scene geometric scores, averaged (with the number of scenes each average covers)."""
+    rows: dict[str, list] = {k: [] for k in ("chamfer_m", "lane_precision", "lane_recall", "lane_f1")}
+    if controls is not None:
+        rows.update({"sd_coverage": [], "lane_on_sd": [], "driving_side": []})
+    for i, (g, r) in enumerate(zip(generated, reference)):
+        rows["chamfer_m"].append(chamfer(g.lanes, r.lanes))
+        scores = lane_scores(g.lanes, r.lanes, tol=1.0)
+        for k in ("precision", "recall", "f1"):
+            rows[f"lane_{k}"].append(scores[k])
+        if controls is not None:
+            for k, v in sd_adherence(g.lanes, controls[i]).items():
+                rows[k].append(v)
+            rows["driving_side"].append(driving_side(g.lanes, controls[i], drives_on(g.city or r.city))[0])
+    out = {}
+    for k, values in rows.items():
+        v = np.asarray(values, float)
+        ok = ~np.isnan(v)
+        out[k] = {"mean": float(v[ok].mean()) if ok.any() else math.nan, "scenes": int(ok.sum())}
+    return out
+
+
+def summary_table(results: dict[str, dict]) -> str:
+    """A markdown table with one column per evaluated method (``results``: name -> :func:`evaluate`)."""
+    names = list(results)
+    rows = [("scenes", lambda r: f"{r['scenes']}")]
+    for k in ("connectivity", "density", "reach", "convenience"):
+        rows.append((f"FD {k}" + (" (x10)" if k in ("connectivity", "convenience") else "") + " ↓",
+                     lambda r, k=k: _num(r["topology_fd"][k])))
+    rows += [("precision ↑", lambda r: _num(r.get("precision_recall", {}).get("precision"))),
+             ("recall ↑", lambda r: _num(r.get("precision_recall", {}).get("recall"))),
+             ("Control Recall ↑ (p)", lambda r: _recall(r.get("control_recall"))),
+             ("GT Recall ↑ (p)", lambda r: _recall(r.get("gt_recall"))),
+             ("lane Chamfer m ↓", lambda r: _num(r["geometry"]["chamfer_m"]["mean"])),
+             ("lane precision @1 m ↑", lambda r: _num(r["geometry"]["lane_precision"]["mean"])),
+             ("lane recall @1 m ↑", lambda r: _num(r["geometry"]["lane_recall"]["mean"])),
+             ("lane F1 @1 m ↑", lambda r: _num(r["geometry"]["lane_f1"]["mean"])),
+             ("SD road within 3 m of a lane ↑", lambda r: _num(r["geometry"].get("sd_coverage", {}).get("mean"))),
+             ("lane length within 5 m of SD ↑", lambda r: _num(r["geometry"].get("lane_on_sd", {}).get("mean"))),
+             ("driving side ↑", lambda r: _num(r["geometry"].get("driving_side", {}).get("mean")))]
+    lines = ["| metric | " + " | ".join(names) + " |", "|---|" + "---|" * len(names)]
+    lines += [f"| {label} | " + " | ".join(fn(results[n]) for n in names) + " |" for label, fn in rows]
+    return "\n".join(lines)
+
+
+def _num(value) -> str:
+    return "–" if value is None or (isinstance(value, float) and math.isnan(value)) else f"{value:.3f}"
+
+
+def _recall(r) -> str:
+    if not r or math.isnan(r["recall"]):
+        return "–"
+    p = r["p_value"]
+    return f"{r['recall']:.3f} ({'< 1e-300' if p == 0 else f'{p:.2g}'})"
