@@ -386,6 +386,49 @@ def metrics(generated, reference, control, json_out, backbone, weights, no_featu
         click.echo(f"wrote {json_out}")
 
 
+@cli.command("eval")
+@click.option("--ckpt", type=click.Path(path_type=Path), help="ControlMap checkpoint or run folder.")
+@click.option("--data", "data_dir", required=True, type=click.Path(file_okay=False, path_type=Path),
+              help="Dataset cache (cmtool data build).")
+@click.option("--split", default="test", show_default=True, help="Split to evaluate on.")
+@click.option("--n", default=3904, show_default=True, type=click.IntRange(min=1), help="Scenes (the first N of the split).")
+@click.option("--cfg", default=1.0, show_default=True, help="ControlMap's guidance weight.")
+@click.option("--steps", default=50, show_default=True, type=click.IntRange(min=1), help="Denoising steps.")
+@click.option("--sampler", default="ddim", show_default=True, type=click.Choice(["ddim", "ddpm"]))
+@click.option("--seed", default=0, show_default=True, help="Random seed (the same noise for both methods).")
+@click.option("--batch", default=64, show_default=True, type=click.IntRange(min=1), help="Maps per forward pass.")
+@click.option("--out", required=True, type=click.Path(file_okay=False, path_type=Path),
+              help="Folder for metrics.json, summary.md, eval.rrd and the generation cache.")
+@click.option("--backbone", default="resnet50-seeded", show_default=True,
+              type=click.Choice(["resnet50-seeded", "resnet50-imagenet"]), help="Feature network of the recall metrics.")
+@click.option("--weights", type=click.Path(dir_okay=False, path_type=Path), help="ImageNet ResNet-50 weights file.")
+@click.option("--no-features", is_flag=True, help="Skip the feature metrics.")
+@click.option("--rrd-samples", default=64, show_default=True, type=click.IntRange(min=0),
+              help="Scenes whose maps go into eval.rrd (scores go in for all).")
+@click.option("--device", help="torch device [default: cuda when available, else cpu].")
+@click.option("--quiet", is_flag=True, help="No progress line.")
+def eval_cmd(ckpt, data_dir, split, n, cfg, steps, sampler, seed, batch, out, backbone, weights, no_features,
+             rrd_samples, device, quiet):
+    """Evaluate a ControlMap checkpoint on a test split against its unguided DiT (paper Tables 1-2)."""
+    import math
+
+    from cmtool.eval.evaluation import EvalSettings, run_eval
+    from cmtool.eval.features import FeatureExtractor
+    from cmtool.sample.generator import Generator
+
+    if not (math.isfinite(cfg) and cfg >= 0):
+        raise CmtoolError(f"--cfg: guidance weight must be a finite number >= 0, got {cfg}")
+    dev = _device(device)
+    gen = Generator.load(_checkpoint(ckpt), dev)
+    gen.schedule.timesteps(steps)
+    extractor = None if no_features else FeatureExtractor(backbone, weights, dev)
+    settings = EvalSettings(data=str(data_dir.resolve()), split=split, n=n, cfg=cfg, steps=steps, sampler=sampler,
+                            seed=seed, batch=batch)
+    run_eval(gen, settings, out, extractor, rrd_samples=rrd_samples, progress=not quiet)
+    click.echo((out / "summary.md").read_text())
+    click.echo(f"wrote {out / 'metrics.json'}, {out / 'summary.md'}, {out / 'eval.rrd'}")
+
+
 @cli.group()
 def bench():
     """Speed measurements (timings are printed, never asserted by tests)."""

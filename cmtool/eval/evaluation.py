@@ -1,0 +1,171 @@
+"""``cmtool eval``: generate one map per test scene twice and score both against the ground truth.
+
+- **unguided** baseline: the DiT alone, no SD control and no city label (the paper's SLEDGE rows);
+- **ControlMap**: the scene's SD raster as control at guidance weight ``cfg``, with the scene's city
+  label when the checkpoint knows it (else the null label).
+
+Both use the same initial noise per scene. Generated maps go to a cache, ``<out>/cache/{unguided,
+controlmap}.jsonl``, one batch at a time, so an interrupted run continues where it stopped (the
+cache remembers its settings and refuses to mix runs). Then ``metrics.json``, ``summary.md``
+(tables shaped like the paper's Tables 1 and 2 plus our geometric metrics) and ``eval.rrd``
+(SD | unguided | ControlMap | ground truth for the first ``rrd_samples`` scenes and per-scene
+scores for all, on the ``sample`` timeline).
+"""
+
+from __future__ import annotations
+
+import json
+from dataclasses import asdict, dataclass
+from pathlib import Path
+
+import numpy as np
+import rerun as rr
+import rerun.blueprint as rrb
+import torch
+
+from cmtool.data.cache import load_dataset
+from cmtool.data.jsonio import read_json, write_json, write_text_atomic
+from cmtool.data.lanegraph import LaneGraph, write_jsonl
+from cmtool.errors import CmtoolError
+from cmtool.eval.features import FeatureExtractor
+from cmtool.eval.geometric import chamfer
+from cmtool.eval.lanes import lane_scores
+from cmtool.eval.metrics import evaluate, summary_table
+from cmtool.progress import Progress
+from cmtool.sample.generator import Generator
+from cmtool.viz.recording import log_lanes, log_sd, open_recording
+
+METHODS = ("unguided", "controlmap")
+
+
+@dataclass
+class EvalSettings:
+    data: str
+    split: str = "test"
+    n: int = 3904
+    cfg: float = 1.0
+    steps: int = 50
+    sampler: str = "ddim"
+    seed: int = 0
+    batch: int = 64
+    checkpoint: str = ""
+
+
+def run_eval(gen: Generator, settings: EvalSettings, out: Path, extractor: FeatureExtractor | None,
+             rrd_samples: int = 64, progress: bool = True) -> dict:
+    """Generate (or continue generating) both sets, compute the metrics and write the reports."""
+    if not gen.has_control:
+        raise CmtoolError(f"{gen.path}: eval compares ControlMap with its unguided DiT; give a ControlMap checkpoint")
+    data = load_dataset(settings.data, settings.split)
+    n = min(settings.n, len(data))
+    settings.n, settings.checkpoint = n, str(gen.path)
+    scenes = [data.scene(i) for i in range(n)]
+    reference = [s.to_lanegraph() for s in scenes]
+    controls = np.stack([s.sd for s in scenes])
+    generated = _generate(gen, scenes, settings, out / "cache", progress)
+    results = {}
+    for method in METHODS:
+        results[method] = evaluate(generated[method], reference, controls, extractor, features=extractor is not None)
+    report = {"settings": asdict(settings), "methods": results}
+    write_json(out / "metrics.json", report)
+    write_text_atomic(out / "summary.md", summary_markdown(report))
+    _write_recording(out / "eval.rrd", scenes, reference, generated, rrd_samples)
+    return report
+
+
+def _generate(gen: Generator, scenes, settings: EvalSettings, cache: Path, progress: bool) -> dict[str, list]:
+    """Both methods' maps for ``scenes``, continuing from (and extending) the cache."""
+    cache.mkdir(parents=True, exist_ok=True)
+    meta = cache / "settings.json"
+    mine = {k: v for k, v in asdict(settings).items() if k != "n"}
+    if meta.is_file():
+        theirs = read_json(meta)
+        if theirs != mine:
+            diff = sorted(k for k in set(mine) | set(theirs) if mine.get(k) != theirs.get(k))
+            raise CmtoolError(f"{cache}: the cached maps were made with other settings ({', '.join(diff)}); "
+                              "use another --out")
+    else:
+        write_json(meta, mine)
+    done = {m: _read_cache(cache / f"{m}.jsonl") for m in METHODS}
+    start = min(len(v) for v in done.values()) // settings.batch * settings.batch
+    done = {m: v[:start] for m, v in done.items()}
+    for m in METHODS:  # keep whole batches of both methods only
+        write_jsonl(cache / f"{m}.jsonl", done[m])
+    null = len(gen.cities)
+    with Progress(len(scenes), "eval", "scenes", enabled=progress) as bar:
+        bar.update(start)
+        for b0 in range(start, len(scenes), settings.batch):
+            batch = scenes[b0:b0 + settings.batch]
+            noise = torch.randn((len(batch), *gen.model.latent_shape),
+                                generator=torch.Generator().manual_seed(settings.seed * 1_000_003 + b0))
+            for m in METHODS:
+                if m == "unguided":
+                    labels, sd = [null] * len(batch), None
+                else:
+                    labels = [gen.label(s.city) if s.city in gen.cities else null for s in batch]
+                    sd = np.stack([s.sd for s in batch])
+                z = gen.sample(sd, labels, cfg=settings.cfg if m == "controlmap" else 0.0, steps=settings.steps,
+                               sampler=settings.sampler, noise=noise.to(gen.device),
+                               generator=torch.Generator(gen.device).manual_seed(settings.seed * 1_000_003 + b0))
+                graphs = [gen.lane_graph(el, gen.city_name(y), {"method": m, "scene": b0 + k, "seed": settings.seed})
+                          for k, (el, y) in enumerate(zip(gen.decode(z), labels))]
+                done[m] += graphs
+                with (cache / f"{m}.jsonl").open("a", encoding="utf-8") as f:
+                    f.write("".join(json.dumps(g.to_json(), separators=(",", ":")) + "\n" for g in graphs))
+            bar.update(len(batch))
+    return done
+
+
+def _read_cache(path: Path) -> list[LaneGraph]:
+    """The maps of a cache file, up to the first line a crash left incomplete."""
+    graphs = []
+    if path.is_file():
+        for line in path.read_text("utf-8").splitlines():
+            try:
+                graphs.append(LaneGraph.from_json(json.loads(line)))
+            except (json.JSONDecodeError, CmtoolError):
+                break
+    return graphs
+
+
+def summary_markdown(report: dict) -> str:
+    """``summary.md``: settings, then the metric table with one column per method."""
+    s = report["settings"]
+    methods = report["methods"]
+    first = next(iter(methods.values()))
+    backbone = first.get("backbone", {}).get("name", "none (feature metrics skipped)")
+    head = [f"# cmtool eval: {Path(s['checkpoint']).parent.parent.name or s['checkpoint']}", "",
+            f"- checkpoint `{s['checkpoint']}`", f"- data `{s['data']}`, split {s['split']}, {s['n']} scenes",
+            f"- ControlMap: guidance w = {s['cfg']}; both: {s['steps']} {s['sampler']} steps, seed {s['seed']}, "
+            "the same initial noise per scene",
+            f"- unguided: the frozen DiT without SD control or city label (the paper's SLEDGE rows)",
+            f"- features: {backbone}; recall metrics in batches of 64, top 3, p = P(chance >= observed)", "", ""]
+    return "\n".join(head) + summary_table({("unguided" if k == "unguided" else "ControlMap"): v
+                                            for k, v in methods.items()}) + "\n"
+
+
+def _write_recording(path: Path, scenes, reference, generated, rrd_samples: int) -> None:
+    rec = open_recording(path)
+    shown = min(rrd_samples, len(scenes))
+    views = [rrb.Spatial2DView(origin=f"/sample_{k}", name=f"#{k} {scenes[k].city}",
+                               contents=["/sample_{k}/control/sd".format(k=k), f"/sample_{k}/{m}/**"])
+             for k in range(min(shown, 4)) for m in ("unguided", "controlmap", "truth")]
+    rec.send_blueprint(rrb.Blueprint(rrb.Vertical(rrb.Grid(*views, grid_columns=3),
+                                                  rrb.TimeSeriesView(origin="/metrics", name="per-scene scores")),
+                                     collapse_panels=True))
+    for k, (scene, truth) in enumerate(zip(scenes, reference)):
+        rec.set_time("sample", sequence=k)
+        for m in METHODS:
+            g = generated[m][k]
+            scores = lane_scores(g.lanes, truth.lanes)
+            rec.log(f"metrics/{m}/lane_f1", rr.Scalars(scores["f1"]))
+            c = chamfer(g.lanes, truth.lanes)
+            if np.isfinite(c):
+                rec.log(f"metrics/{m}/chamfer_m", rr.Scalars(c))
+            if k < shown:
+                log_lanes(rec, f"sample_{k}/{m}/", g.lanes, g.green_lights, g.red_lights, g.successors)
+        if k < shown:
+            log_sd(rec, f"sample_{k}/", scene.sd, scene.frame_m)
+            log_lanes(rec, f"sample_{k}/truth/", truth.lanes, truth.green_lights, truth.red_lights, truth.successors)
+    rec.flush()
+    rec.disconnect()
