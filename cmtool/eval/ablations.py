@@ -1,0 +1,175 @@
+"""``cmtool ablate``: what the guidance weight and the city label do, on fixed SD maps and seeds.
+
+- :func:`cfg_sweep`: for each guidance weight w, maps for the same scenes and seeds (the same
+  initial noise at every w): SD adherence (SD road within 3 m of a lane, lane length within 5 m of
+  SD), Ground-Truth Recall (batches of up to 64, top 3) and diversity (mean pairwise lane Chamfer
+  distance between the seeds' maps of a scene).
+- :func:`city_swap`: the same SD maps and noise under each city label; the driving side per label
+  (share of lane length along two-way roads on the left / right).
+
+Each writes a markdown table and a JSON file, and a PNG (plot or picture grid) to its output
+folder; the sweep also an ``.rrd`` whose ``cfg`` timeline counts w in thousandths (700 = 0.7).
+"""
+
+from __future__ import annotations
+
+import itertools
+import math
+
+import cv2
+import numpy as np
+import rerun as rr
+import torch
+
+from cmtool.data.jsonio import write_json, write_text_atomic
+from cmtool.data.lanegraph import LaneGraph
+from cmtool.eval.features import FeatureExtractor, lanes_image
+from cmtool.eval.geometric import chamfer, driving_side, sd_adherence
+from cmtool.eval.metrics import drives_on
+from cmtool.eval.retrieval import batch_recall
+from cmtool.progress import Progress
+from cmtool.sample.generator import Generator
+from cmtool.viz.draw import BACKGROUND, TEXT, graph_panel, grid, sd_panel, title_strip
+from cmtool.viz.recording import log_lanes, log_sd, open_recording
+from cmtool.viz.show import write_png
+
+PICTURE_SCENES = 4
+
+
+def generate(gen: Generator, sds: np.ndarray, labels: list[int], cfg: float, steps: int, seed: int,
+             batch: int = 64) -> list[LaneGraph]:
+    """One map per SD raster; the initial noise of scene i depends only on (seed, i)."""
+    maps = []
+    for b0 in range(0, len(sds), batch):
+        n = min(batch, len(sds) - b0)
+        noise = torch.stack([torch.randn(gen.model.latent_shape, generator=torch.Generator().manual_seed(
+            seed * 1_000_003 + b0 + k)) for k in range(n)])
+        z = gen.sample(sds[b0:b0 + n], labels[b0:b0 + n], cfg=cfg, steps=steps, noise=noise.to(gen.device))
+        maps += [gen.lane_graph(el, gen.city_name(y), {"cfg": cfg, "seed": seed})
+                 for el, y in zip(gen.decode(z), labels[b0:b0 + n])]
+    return maps
+
+
+def cfg_sweep(gen: Generator, scenes, weights: list[float], seeds: int, steps: int, extractor: FeatureExtractor | None,
+              out, progress: bool = True) -> list[dict]:
+    """The sweep's rows (one per w), written with its plot and recording to ``out``."""
+    sds = np.stack([s.sd for s in scenes])
+    truth = [s.to_lanegraph() for s in scenes]
+    labels = [gen.label(s.city) if s.city in gen.cities else len(gen.cities) for s in scenes]
+    ref_feats = extractor(np.stack([lanes_image(t.lanes) for t in truth])) if extractor else None
+    rows, maps_by_w = [], {}
+    with Progress(len(weights) * seeds, "ablate cfg", "runs", enabled=progress) as bar:
+        for w in weights:
+            runs = []
+            for seed in range(seeds):
+                runs.append(generate(gen, sds, labels, w, steps, seed))
+                bar.update()
+            maps_by_w[w] = runs[0]
+            adherence = [sd_adherence(m.lanes, sd) for m, sd in zip(runs[0], sds)]
+            row = {"w": w, "sd_coverage": _mean([a["sd_coverage"] for a in adherence]),
+                   "lane_on_sd": _mean([a["lane_on_sd"] for a in adherence])}
+            if ref_feats is not None:
+                gen_feats = extractor(np.stack([lanes_image(m.lanes) for m in runs[0]]))
+                row["gt_recall"] = batch_recall(gen_feats, ref_feats, min(64, len(scenes)), 3)["recall"]
+            row["diversity_m"] = _mean([chamfer(a.lanes, b.lanes) for i in range(len(scenes))
+                                        for a, b in itertools.combinations([r[i] for r in runs], 2)])
+            rows.append(row)
+    out.mkdir(parents=True, exist_ok=True)
+    write_json(out / "ablate_cfg.json", {"scenes": len(scenes), "seeds": seeds, "steps": steps, "rows": rows})
+    write_text_atomic(out / "ablate_cfg.md", _table(rows, ["w", "sd_coverage", "lane_on_sd", "gt_recall",
+                                                           "diversity_m"]))
+    write_png(out / "ablate_cfg.png", _plot(rows))
+    rec = open_recording(out / "ablate_cfg.rrd")
+    for k, scene in enumerate(scenes[:PICTURE_SCENES]):
+        log_sd(rec, f"sample_{k}/", scene.sd, static=True)
+        log_lanes(rec, f"sample_{k}/truth/", truth[k].lanes, static=True)
+    for row in rows:
+        rec.set_time("cfg", sequence=int(round(row["w"] * 1000)))  # thousandths of w
+        for key, value in row.items():
+            if key != "w" and value is not None and math.isfinite(value):
+                rec.log(f"metrics/{key}", rr.Scalars(value))
+        for k in range(min(PICTURE_SCENES, len(scenes))):
+            g = maps_by_w[row["w"]][k]
+            log_lanes(rec, f"sample_{k}/generated/", g.lanes, g.green_lights, g.red_lights, g.successors)
+    rec.flush()
+    rec.disconnect()
+    return rows
+
+
+def city_swap(gen: Generator, scenes, labels: list[str], steps: int, cfg: float, seed: int, out,
+              progress: bool = True) -> list[dict]:
+    """Driving side per city label on the same SD maps and noise, written to ``out``."""
+    sds = np.stack([s.sd for s in scenes])
+    rows, maps = [], {}
+    with Progress(len(labels), "ablate city-swap", "labels", enabled=progress) as bar:
+        for name in labels:
+            y = gen.label(name)
+            maps[name] = generate(gen, sds, [y] * len(scenes), cfg, steps, seed)
+            shares = [driving_side(m.lanes, sd, "left") for m, sd in zip(maps[name], sds)]
+            left = _weighted([s for s, n in shares], [n for s, n in shares])
+            rows.append({"label": name, "drives_on": drives_on(name), "left_hand": left,
+                         "right_hand": None if left is None else 1.0 - left,
+                         "judged_points": int(sum(n for _, n in shares))})
+            bar.update()
+    out.mkdir(parents=True, exist_ok=True)
+    write_json(out / "ablate_city_swap.json", {"scenes": len(scenes), "cfg": cfg, "steps": steps, "rows": rows})
+    write_text_atomic(out / "ablate_city_swap.md", _table(rows, ["label", "drives_on", "left_hand", "right_hand",
+                                                                 "judged_points"]))
+    tiles = []
+    for k, scene in enumerate(scenes[:PICTURE_SCENES]):
+        tiles.append(_titled("SD", sd_panel(scene.sd)))
+        tiles += [_titled(f"{name}", graph_panel(maps[name][k])) for name in labels]
+    write_png(out / "ablate_city_swap.png", grid(tiles, columns=1 + len(labels)))
+    return rows
+
+
+def _titled(title: str, panel: np.ndarray) -> np.ndarray:
+    return np.concatenate([title_strip(title, panel.shape[1]), panel], axis=0)
+
+
+def _mean(values) -> float | None:
+    v = np.asarray([x for x in values if x is not None and math.isfinite(x)], float)
+    return float(v.mean()) if len(v) else None
+
+
+def _weighted(values, weights) -> float | None:
+    pairs = [(v, w) for v, w in zip(values, weights) if w and math.isfinite(v)]
+    return float(sum(v * w for v, w in pairs) / sum(w for _, w in pairs)) if pairs else None
+
+
+def _table(rows: list[dict], keys: list[str]) -> str:
+    def cell(v):
+        return "–" if v is None else f"{v:.3f}" if isinstance(v, float) else str(v)
+
+    lines = ["| " + " | ".join(keys) + " |", "|" + "---|" * len(keys)]
+    lines += ["| " + " | ".join(cell(r.get(k)) for k in keys) + " |" for r in rows]
+    return "\n".join(lines) + "\n"
+
+
+def _plot(rows: list[dict], width: int = 640, height: int = 360) -> np.ndarray:
+    """Each metric against w as a line (scaled to [0, 1] by its largest value), with a legend."""
+    img = np.full((height, width, 3), BACKGROUND, np.uint8)
+    left, right, top, bottom = 50, 170, 20, 40
+    ws = [r["w"] for r in rows]
+    lo, hi = min(ws), max(ws) if max(ws) > min(ws) else min(ws) + 1.0
+    x = lambda w: int(left + (w - lo) / (hi - lo) * (width - left - right))  # noqa: E731
+    cv2.line(img, (left, height - bottom), (width - right, height - bottom), TEXT, 1)
+    cv2.line(img, (left, top), (left, height - bottom), TEXT, 1)
+    for w in ws:
+        cv2.putText(img, f"{w:g}", (x(w) - 8, height - bottom + 18), cv2.FONT_HERSHEY_SIMPLEX, 0.4, TEXT, 1, cv2.LINE_AA)
+    cv2.putText(img, "w", (width - right + 8, height - bottom + 4), cv2.FONT_HERSHEY_SIMPLEX, 0.5, TEXT, 1, cv2.LINE_AA)
+    colours = {"sd_coverage": (90, 200, 250), "lane_on_sd": (60, 140, 255), "gt_recall": (250, 180, 60),
+               "diversity_m": (200, 90, 220)}
+    for i, (key, colour) in enumerate(colours.items()):
+        vals = [r.get(key) for r in rows]
+        if any(v is None for v in vals):
+            continue
+        peak = max(max(vals), 1e-9)
+        pts = [(x(w), int(height - bottom - v / peak * (height - top - bottom))) for w, v in zip(ws, vals)]
+        for a, b in zip(pts, pts[1:]):
+            cv2.line(img, a, b, colour, 2, cv2.LINE_AA)
+        for p in pts:
+            cv2.circle(img, p, 3, colour, -1, cv2.LINE_AA)
+        cv2.putText(img, f"{key} (max {peak:.2f})", (width - right + 8, top + 16 + 18 * i), cv2.FONT_HERSHEY_SIMPLEX,
+                    0.38, colour, 1, cv2.LINE_AA)
+    return img
