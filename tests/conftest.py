@@ -39,6 +39,16 @@ def perturb(model: torch.nn.Module, scale: float = 0.05) -> None:
 
 
 @pytest.fixture(scope="session")
+def tiny_data(tmp_path_factory):
+    """The tiny dataset cache (recipes/data_tiny.toml: 24 train scenes, 8 BOS test scenes)."""
+    from cmtool.data.cache import build_dataset
+
+    data = tmp_path_factory.mktemp("data") / "tiny"
+    build_dataset(REPO / "recipes" / "data_tiny.toml", data, workers=1, progress=False)
+    return data
+
+
+@pytest.fixture(scope="session")
 def sampling_ckpt(tmp_path_factory):
     """Small untrained RVAE, DiT and ControlMap checkpoints (branch weights perturbed so the control
     changes the output), wired like a trained run: returns the ControlMap and DiT checkpoint dirs."""

@@ -6,17 +6,8 @@ import pytest
 from rerun.chunk import RrdReader
 
 from cmtool.cli import main
-from cmtool.data.cache import build_dataset
-from tests.conftest import REPO
 
 pytestmark = pytest.mark.usefixtures("one_thread")
-
-
-@pytest.fixture(scope="module")
-def tiny_data(tmp_path_factory):
-    data = tmp_path_factory.mktemp("evaldata") / "tiny"
-    build_dataset(REPO / "recipes" / "data_tiny.toml", data, workers=1, progress=False)
-    return data
 
 
 def cmtool(capsys, *args):
@@ -76,3 +67,27 @@ def test_eval_needs_a_controlmap(sampling_ckpt, tiny_data, tmp_path, capsys):
     code, _, err = cmtool(capsys, "eval", "--ckpt", sampling_ckpt["dit"], "--data", tiny_data, "--out", tmp_path / "x",
                           "--no-features")
     assert code == 1 and "give a ControlMap checkpoint" in err
+
+
+def test_ablations_write_tables_pictures_and_recording(sampling_ckpt, tiny_data, tmp_path, capsys):
+    common = ("--ckpt", sampling_ckpt["controlmap"], "--data", tiny_data, "--n", 3, "--steps", 2, "--out", tmp_path,
+              "--quiet")
+    code, out, err = cmtool(capsys, "ablate", "cfg", *common, "--w", "0,0.5,1", "--seeds", 2, "--no-features")
+    assert code == 0, err
+    sweep = json.loads((tmp_path / "ablate_cfg.json").read_text())
+    assert [r["w"] for r in sweep["rows"]] == [0.0, 0.5, 1.0]
+    assert all(r["diversity_m"] > 0 for r in sweep["rows"])  # two seeds give two different maps
+    assert (tmp_path / "ablate_cfg.png").stat().st_size > 0 and "| w | sd_coverage |" in out
+    steps = set()
+    for chunk in RrdReader(tmp_path / "ablate_cfg.rrd").stream():
+        batch = chunk.to_record_batch()
+        if chunk.entity_path == "/metrics/sd_coverage":
+            steps.update(batch.column("cfg").to_pylist())
+    assert steps == {0, 500, 1000}
+    code, out, err = cmtool(capsys, "ablate", "city-swap", *common, "--labels", "SGP,LAV")
+    assert code == 0, err
+    rows = json.loads((tmp_path / "ablate_city_swap.json").read_text())["rows"]
+    assert [r["label"] for r in rows] == ["SGP", "LAV"] and [r["drives_on"] for r in rows] == ["left", "right"]
+    assert all(r["left_hand"] is None or 0.0 <= r["left_hand"] <= 1.0 for r in rows)
+    code, _, err = cmtool(capsys, "ablate", "city-swap", *common, "--labels", "SGP,XYZ")
+    assert code == 1 and "unknown city 'XYZ'" in err

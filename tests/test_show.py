@@ -1,25 +1,21 @@
 """`data show`: the PNG grid and the Rerun recording, read back with rerun's own reader."""
 
 from collections import Counter
-from pathlib import Path
 
 import cv2
 import numpy as np
 import pytest
 from rerun.chunk import RrdReader
 
-from cmtool.data.cache import build_dataset, load_dataset
+from cmtool.data.cache import load_dataset
 from cmtool.errors import CmtoolError
 from cmtool.viz.show import pick, show_dataset
 
-TINY = Path(__file__).resolve().parents[1] / "recipes" / "data_tiny.toml"
 
 
 @pytest.fixture(scope="module")
-def dataset(tmp_path_factory):
-    out = tmp_path_factory.mktemp("data")
-    build_dataset(TINY, out, workers=1, progress=False)
-    return out
+def dataset(tiny_data):
+    return tiny_data
 
 
 def test_png_grid_has_expected_size_and_content(dataset, tmp_path):

@@ -15,7 +15,6 @@ from rerun.chunk import RrdReader
 from safetensors.torch import load_file
 
 from cmtool import checkpoint as ckpt
-from cmtool.data.cache import build_dataset
 from cmtool.errors import CmtoolError
 from tests.conftest import REPO
 
@@ -40,11 +39,10 @@ def cli(*args, cwd=None, env=None):
 
 
 @pytest.fixture(scope="module")
-def runs(tmp_path_factory):
-    """A tiny dataset and one finished run of each stage."""
+def runs(tmp_path_factory, tiny_data):
+    """One finished run of each stage on the tiny dataset."""
     root = tmp_path_factory.mktemp("train")
-    data = root / "data"
-    build_dataset(REPO / "recipes" / "data_tiny.toml", data, workers=1, progress=False)
+    data = tiny_data
     out = {"root": root, "data": data}
     for stage, extra in (("rvae", {"data": str(data)}),
                          ("dit", {"rvae": str(root / "rvae")}),
@@ -172,7 +170,7 @@ def test_user_errors_are_one_line(runs, tmp_path):
     root = runs["root"]
     bad = [
         (["train", "dit", "--recipe", runs["rvae_recipe"], "--out", tmp_path / "x"], "rvae stage"),
-        (["train", "controlnet", "--recipe", write_recipe(tmp_path / "c.toml", "controlnet", 2, data=str(root / "data"),
+        (["train", "controlnet", "--recipe", write_recipe(tmp_path / "c.toml", "controlnet", 2, data=str(runs["data"]),
                                                            rvae=str(root / "rvae"), dit=str(root / "rvae")),
           "--out", tmp_path / "y"], "needs a DiT"),
         (["train", "dit", "--recipe", write_recipe(tmp_path / "d.toml", "dit", 2, rvae=str(tmp_path / "none")),
