@@ -22,6 +22,20 @@ def run_cli():
     return run
 
 
+def in_process(capsys, *args) -> tuple[int, str, str]:
+    """Run the CLI in this process (as `cmtool ARGS`, faster than a subprocess); returns
+    (exit code, stdout, stderr)."""
+    from cmtool.cli import main
+
+    try:
+        main([str(a) for a in args])
+        code = 0
+    except SystemExit as e:
+        code = e.code
+    out = capsys.readouterr()
+    return code, out.out, out.err
+
+
 @pytest.fixture(scope="module")
 def one_thread():
     """One torch thread for a module (`pytestmark = pytest.mark.usefixtures("one_thread")`)."""

@@ -5,26 +5,18 @@ import json
 import pytest
 from rerun.chunk import RrdReader
 
-from cmtool.cli import main
+from tests.conftest import in_process
 
 pytestmark = pytest.mark.usefixtures("one_thread")
 
 
-def cmtool(capsys, *args):
-    try:
-        main([str(a) for a in args])
-        code = 0
-    except SystemExit as e:
-        code = e.code
-    out = capsys.readouterr()
-    return code, out.out, out.err
 
 
 def test_eval_writes_reports_and_resumes(sampling_ckpt, tiny_data, tmp_path, capsys):
     out = tmp_path / "eval"
     args = ("eval", "--ckpt", sampling_ckpt["controlmap"], "--data", tiny_data, "--steps", 2, "--batch", 4,
             "--out", out, "--no-features", "--rrd-samples", 2, "--quiet")
-    code, stdout, err = cmtool(capsys, *args, "--n", 4)
+    code, stdout, err = in_process(capsys, *args, "--n", 4)
     assert code == 0, err
     report = json.loads((out / "metrics.json").read_text())
     assert set(report["methods"]) == {"unguided", "controlmap"} and report["settings"]["n"] == 4
@@ -36,7 +28,7 @@ def test_eval_writes_reports_and_resumes(sampling_ckpt, tiny_data, tmp_path, cap
     assert "| lane F1 @1 m ↑ |" in stdout
     first = (out / "cache" / "controlmap.jsonl").read_text().splitlines()
     # more scenes later: the first batch comes from the cache, unchanged
-    code, _, err = cmtool(capsys, *args, "--n", 8)
+    code, _, err = in_process(capsys, *args, "--n", 8)
     assert code == 0, err
     lines = (out / "cache" / "controlmap.jsonl").read_text().splitlines()
     assert len(lines) == 8 and lines[:4] == first
@@ -48,13 +40,13 @@ def test_eval_writes_reports_and_resumes(sampling_ckpt, tiny_data, tmp_path, cap
     assert rows["/metrics/controlmap/lane_f1"] == set(range(8)) == rows["/metrics/unguided/lane_f1"]
     assert "/sample_1/controlmap/hd/lanes" in rows and "/sample_2/controlmap/hd/lanes" not in rows
     # the cache refuses to mix settings
-    code, _, err = cmtool(capsys, *args, "--n", 8, "--cfg", 0.5)
+    code, _, err = in_process(capsys, *args, "--n", 8, "--cfg", 0.5)
     assert code == 1 and "made with other settings (cfg)" in err
 
 
 def test_unguided_and_guided_differ_only_by_the_control(sampling_ckpt, tiny_data, tmp_path, capsys):
     out = tmp_path / "w0"
-    code, _, err = cmtool(capsys, "eval", "--ckpt", sampling_ckpt["controlmap"], "--data", tiny_data, "--n", 4,
+    code, _, err = in_process(capsys, "eval", "--ckpt", sampling_ckpt["controlmap"], "--data", tiny_data, "--n", 4,
                           "--steps", 2, "--batch", 4, "--cfg", 0, "--out", out, "--no-features", "--quiet")
     assert code == 0, err
     unguided = [json.loads(l)["lanes"] for l in (out / "cache" / "unguided.jsonl").read_text().splitlines()]
@@ -64,7 +56,7 @@ def test_unguided_and_guided_differ_only_by_the_control(sampling_ckpt, tiny_data
 
 
 def test_eval_needs_a_controlmap(sampling_ckpt, tiny_data, tmp_path, capsys):
-    code, _, err = cmtool(capsys, "eval", "--ckpt", sampling_ckpt["dit"], "--data", tiny_data, "--out", tmp_path / "x",
+    code, _, err = in_process(capsys, "eval", "--ckpt", sampling_ckpt["dit"], "--data", tiny_data, "--out", tmp_path / "x",
                           "--no-features")
     assert code == 1 and "give a ControlMap checkpoint" in err
 
@@ -72,7 +64,7 @@ def test_eval_needs_a_controlmap(sampling_ckpt, tiny_data, tmp_path, capsys):
 def test_ablations_write_tables_pictures_and_recording(sampling_ckpt, tiny_data, tmp_path, capsys):
     common = ("--ckpt", sampling_ckpt["controlmap"], "--data", tiny_data, "--n", 3, "--steps", 2, "--out", tmp_path,
               "--quiet")
-    code, out, err = cmtool(capsys, "ablate", "cfg", *common, "--w", "0,0.5,1", "--seeds", 2, "--no-features")
+    code, out, err = in_process(capsys, "ablate", "cfg", *common, "--w", "0,0.5,1", "--seeds", 2, "--no-features")
     assert code == 0, err
     sweep = json.loads((tmp_path / "ablate_cfg.json").read_text())
     assert [r["w"] for r in sweep["rows"]] == [0.0, 0.5, 1.0]
@@ -84,10 +76,10 @@ def test_ablations_write_tables_pictures_and_recording(sampling_ckpt, tiny_data,
         if chunk.entity_path == "/metrics/sd_coverage":
             steps.update(batch.column("cfg").to_pylist())
     assert steps == {0, 500, 1000}
-    code, out, err = cmtool(capsys, "ablate", "city-swap", *common, "--labels", "SGP,LAV")
+    code, out, err = in_process(capsys, "ablate", "city-swap", *common, "--labels", "SGP,LAV")
     assert code == 0, err
     rows = json.loads((tmp_path / "ablate_city_swap.json").read_text())["rows"]
     assert [r["label"] for r in rows] == ["SGP", "LAV"] and [r["drives_on"] for r in rows] == ["left", "right"]
     assert all(r["left_hand"] is None or 0.0 <= r["left_hand"] <= 1.0 for r in rows)
-    code, _, err = cmtool(capsys, "ablate", "city-swap", *common, "--labels", "SGP,XYZ")
+    code, _, err = in_process(capsys, "ablate", "city-swap", *common, "--labels", "SGP,XYZ")
     assert code == 1 and "unknown city 'XYZ'" in err

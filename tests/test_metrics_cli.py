@@ -5,10 +5,10 @@ import json
 import numpy as np
 import pytest
 
-from cmtool.cli import main
 from cmtool.data.lanegraph import LaneGraph, infer_successors, write_jsonl
 from cmtool.data.sd_raster import rasterize_sd
 from cmtool.data.sdmap import Road, SDMap
+from tests.conftest import in_process
 
 pytestmark = pytest.mark.usefixtures("one_thread")
 
@@ -28,14 +28,6 @@ def scenes(n: int, seed: int):
     return graphs, np.stack(sds)
 
 
-def cmtool(capsys, *args):
-    try:
-        main([str(a) for a in args])
-        code = 0
-    except SystemExit as e:
-        code = e.code
-    out = capsys.readouterr()
-    return code, out.out, out.err
 
 
 def test_metrics_end_to_end(tmp_path, capsys):
@@ -43,7 +35,7 @@ def test_metrics_end_to_end(tmp_path, capsys):
     write_jsonl(tmp_path / "ref.jsonl", ref)
     write_jsonl(tmp_path / "same.jsonl", ref)
     np.save(tmp_path / "sd.npy", sd)
-    code, out, err = cmtool(capsys, "metrics", "--generated", tmp_path / "same.jsonl", "--reference",
+    code, out, err = in_process(capsys, "metrics", "--generated", tmp_path / "same.jsonl", "--reference",
                             tmp_path / "ref.jsonl", "--control", tmp_path / "sd.npy", "--json", tmp_path / "m.json")
     assert code == 0, err
     m = json.loads((tmp_path / "m.json").read_text())
@@ -60,7 +52,7 @@ def test_metrics_without_features_on_a_different_set(tmp_path, capsys):
     other, _ = scenes(20, 1)
     write_jsonl(tmp_path / "ref.jsonl", ref)
     write_jsonl(tmp_path / "other.jsonl", other)
-    code, out, err = cmtool(capsys, "metrics", "--generated", tmp_path / "other.jsonl", "--reference",
+    code, out, err = in_process(capsys, "metrics", "--generated", tmp_path / "other.jsonl", "--reference",
                             tmp_path / "ref.jsonl", "--no-features", "--json", tmp_path / "m.json")
     assert code == 0, err
     m = json.loads((tmp_path / "m.json").read_text())
@@ -90,6 +82,6 @@ def test_metrics_errors_are_one_line(case, tmp_path, capsys, monkeypatch):
         np.save(tmp_path / "sd.npy", sd[:2])
         extra = ["--control", tmp_path / "sd.npy", "--no-features"]
         fragment = "2 SD controls for 4 scenes"
-    code, _, err = cmtool(capsys, "metrics", "--generated", gen, "--reference", tmp_path / "ref.jsonl", *extra)
+    code, _, err = in_process(capsys, "metrics", "--generated", gen, "--reference", tmp_path / "ref.jsonl", *extra)
     lines = err.strip().splitlines()
     assert code == 1 and len(lines) == 1 and lines[0].startswith("Error: ") and fragment in lines[0], err

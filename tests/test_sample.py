@@ -18,7 +18,7 @@ from cmtool.cli import main
 from cmtool.data.hdmap import HDMap
 from cmtool.data.lanegraph import LaneGraph, infer_successors, read_jsonl
 from cmtool.viz.trajectory import strips_column, tensor_column
-from tests.conftest import REPO
+from tests.conftest import REPO, in_process
 
 pytestmark = pytest.mark.usefixtures("one_thread")
 SD_PNG = REPO / "sample_data" / "sd_bos.png"
@@ -26,15 +26,6 @@ OSM = REPO / "tests" / "fixtures" / "small.osm"
 STEPS = 5
 
 
-def cmtool(capsys, *args) -> tuple[int, str, str]:
-    """Run the CLI in this process (as `cmtool ARGS`); returns (exit code, stdout, stderr)."""
-    try:
-        main([str(a) for a in args])
-        code = 0
-    except SystemExit as e:
-        code = e.code
-    out = capsys.readouterr()
-    return code, out.out, out.err
 
 
 def read_rrd(path) -> dict[str, list]:
@@ -130,15 +121,15 @@ def test_same_seed_same_json_and_cfg_zero_is_the_unguided_model(sampling_ckpt, t
     cm, dit = sampling_ckpt["controlmap"], sampling_ckpt["dit"]
     common = ("--steps", STEPS, "--city", "PIT", "--no-log", "--quiet")
     for name in ("a", "b"):
-        assert cmtool(capsys, "sample", "--ckpt", cm, "--sd", SD_PNG, "--cfg", 1.0, "--out", tmp_path / name,
+        assert in_process(capsys, "sample", "--ckpt", cm, "--sd", SD_PNG, "--cfg", 1.0, "--out", tmp_path / name,
                       *common)[0] == 0
     assert (tmp_path / "a" / "sd_bos.json").read_bytes() == (tmp_path / "b" / "sd_bos.json").read_bytes()
-    assert cmtool(capsys, "sample", "--ckpt", cm, "--sd", SD_PNG, "--cfg", 1.0, "--seed", 1, "--out", tmp_path / "c",
+    assert in_process(capsys, "sample", "--ckpt", cm, "--sd", SD_PNG, "--cfg", 1.0, "--seed", 1, "--out", tmp_path / "c",
                   *common)[0] == 0
     assert graph_core(tmp_path / "c" / "sd_bos.json") != graph_core(tmp_path / "a" / "sd_bos.json")
     # w = 0: ControlMap with its control ignored equals the plain DiT without any SD input
-    assert cmtool(capsys, "sample", "--ckpt", cm, "--sd", SD_PNG, "--cfg", 0, "--out", tmp_path / "w0", *common)[0] == 0
-    assert cmtool(capsys, "sample", "--ckpt", dit, "--out", tmp_path / "dit", *common)[0] == 0
+    assert in_process(capsys, "sample", "--ckpt", cm, "--sd", SD_PNG, "--cfg", 0, "--out", tmp_path / "w0", *common)[0] == 0
+    assert in_process(capsys, "sample", "--ckpt", dit, "--out", tmp_path / "dit", *common)[0] == 0
     w0, unguided = graph_core(tmp_path / "w0" / "sd_bos.json"), graph_core(tmp_path / "dit" / "uncond.json")
     assert w0 == unguided
     assert w0 != graph_core(tmp_path / "a" / "sd_bos.json")  # and guidance changes the map
@@ -152,7 +143,7 @@ def test_drawings_and_other_sizes_are_converted_with_a_note(sampling_ckpt, tmp_p
     cv2.imwrite(str(sketches / "cross.png"), drawing)
     big = cv2.resize(cv2.imread(str(SD_PNG)), (256, 256), interpolation=cv2.INTER_NEAREST)
     cv2.imwrite(str(sketches / "big.png"), big)
-    code, out, err = cmtool(capsys, "sample", "--ckpt", sampling_ckpt["controlmap"], "--sd", sketches, "--steps", 2,
+    code, out, err = in_process(capsys, "sample", "--ckpt", sampling_ckpt["controlmap"], "--sd", sketches, "--steps", 2,
                             "--out", tmp_path / "out", "--no-log", "--quiet")
     assert code == 0, err
     assert "big.png: resampled the 256 x 256 SD raster to 128 x 128" in err
@@ -162,19 +153,19 @@ def test_drawings_and_other_sizes_are_converted_with_a_note(sampling_ckpt, tmp_p
 
 def test_osm_and_hd_inputs(sampling_ckpt, tmp_path, capsys):
     cm = sampling_ckpt["controlmap"]
-    code, _, err = cmtool(capsys, "sample", "--ckpt", cm, "--osm", OSM, "--center", "40.4410,-79.9900", "--heading", 30,
+    code, _, err = in_process(capsys, "sample", "--ckpt", cm, "--osm", OSM, "--center", "40.4410,-79.9900", "--heading", 30,
                           "--steps", 2, "--out", tmp_path / "osm", "--rrd", tmp_path / "osm.rrd", "--quiet")
     assert code == 0, err
     assert json.loads((tmp_path / "osm" / "small.json").read_text())["meta"]["source"].startswith("osm:small.osm@40.441")
     assert (tmp_path / "osm.rrd").stat().st_size > 0 and not (tmp_path / "osm" / "sample.rrd").exists()
 
-    assert cmtool(capsys, "data", "synth", "--city", "SGP", "--seed", 2, "--extent", 300, "--out",
+    assert in_process(capsys, "data", "synth", "--city", "SGP", "--seed", 2, "--extent", 300, "--out",
                   tmp_path / "sgp.json")[0] == 0
     lanes = list(HDMap.load(tmp_path / "sgp.json").lanes.values())
     poses = tmp_path / "poses.jsonl"
     poses.write_text("".join(json.dumps({"x": l.centerline[0][0], "y": l.centerline[0][1], "yaw": 30.0}) + "\n"
                              for l in lanes[:2]))
-    code, out, err = cmtool(capsys, "sample", "--ckpt", cm, "--from-hd", tmp_path / "sgp.json", "--pose", poses,
+    code, out, err = in_process(capsys, "sample", "--ckpt", cm, "--from-hd", tmp_path / "sgp.json", "--pose", poses,
                             "--steps", 2, "--out", tmp_path / "hd", "--quiet")
     assert code == 0, err
     names = sorted(p.name for p in (tmp_path / "hd").iterdir())
@@ -236,7 +227,7 @@ def test_bad_inputs_are_one_line_errors_with_no_output(case, sampling_ckpt, tmp_
     if "--ckpt" not in args:
         args = (*args, "--ckpt", sampling_ckpt["controlmap"])
     out = tmp_path / "out"
-    code, _, err = cmtool(capsys, "sample", *args, "--steps", 2, "--out", out, "--quiet")
+    code, _, err = in_process(capsys, "sample", *args, "--steps", 2, "--out", out, "--quiet")
     lines = err.strip().splitlines()
     assert code != 0 and len(lines) == 1 and lines[0].startswith("Error: ") and "Traceback" not in err, err
     assert fragment in lines[0], lines[0]
@@ -273,7 +264,7 @@ def test_hand_built_columns_match_rerun_s_own_encoding():
 
 
 def test_bench_sample_prints_both_times_and_the_ratio(sampling_ckpt, capsys):
-    code, out, err = cmtool(capsys, "bench", "sample", "--ckpt", sampling_ckpt["controlmap"], "--steps", 3,
+    code, out, err = in_process(capsys, "bench", "sample", "--ckpt", sampling_ckpt["controlmap"], "--steps", 3,
                             "--batch", 4, "--repeats", 1)
     assert code == 0, err
     assert "batch1_nolog" in out and "batch1_log" in out and "batch4_nolog" in out
@@ -289,7 +280,7 @@ def test_lane_graph_meta_records_how_it_was_made(sampled):
 
 def test_streaming_to_a_viewer(sampling_ckpt, tmp_path, capsys):
     args = ("sample", "--ckpt", sampling_ckpt["controlmap"], "--sd", SD_PNG, "--steps", 2, "--quiet")
-    code, _, err = cmtool(capsys, *args, "--out", tmp_path / "a", "--connect", "rerun+http://127.0.0.1:1/proxy")
+    code, _, err = in_process(capsys, *args, "--out", tmp_path / "a", "--connect", "rerun+http://127.0.0.1:1/proxy")
     assert code == 1 and err.startswith("Error: --connect") and "cannot reach a Rerun viewer" in err
     assert not (tmp_path / "a").exists()
     with socket.socket() as probe:  # a free port
