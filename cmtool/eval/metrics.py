@@ -106,26 +106,31 @@ def geometry(generated, reference, controls: np.ndarray | None) -> dict:
 
 
 def summary_table(results: dict[str, dict]) -> str:
-    """A markdown table with one column per evaluated method (``results``: name -> :func:`evaluate`)."""
+    """Markdown tables with one column per evaluated method (``results``: name -> :func:`evaluate`),
+    shaped like the paper's Table 1 (topology), Table 2 (realism and control fidelity), then ours."""
+    topology = [(f"FD {k}" + (" (x10)" if k in ("connectivity", "convenience") else "") + " ↓",
+                 lambda r, k=k: _num(r["topology_fd"][k])) for k in ("connectivity", "density", "reach", "convenience")]
+    fidelity = [("precision ↑", lambda r: _num(r.get("precision_recall", {}).get("precision"))),
+                ("recall ↑", lambda r: _num(r.get("precision_recall", {}).get("recall"))),
+                ("Control Recall ↑ (p)", lambda r: _recall(r.get("control_recall"))),
+                ("GT Recall ↑ (p)", lambda r: _recall(r.get("gt_recall")))]
+    geometric = [("lane Chamfer m ↓", lambda r: _num(r["geometry"]["chamfer_m"]["mean"])),
+                 ("lane precision @1 m ↑", lambda r: _num(r["geometry"]["lane_precision"]["mean"])),
+                 ("lane recall @1 m ↑", lambda r: _num(r["geometry"]["lane_recall"]["mean"])),
+                 ("lane F1 @1 m ↑", lambda r: _num(r["geometry"]["lane_f1"]["mean"])),
+                 ("SD road within 3 m of a lane ↑", lambda r: _num(r["geometry"].get("sd_coverage", {}).get("mean"))),
+                 ("lane length within 5 m of SD ↑", lambda r: _num(r["geometry"].get("lane_on_sd", {}).get("mean"))),
+                 ("driving side ↑", lambda r: _num(r["geometry"].get("driving_side", {}).get("mean")))]
     names = list(results)
-    rows = [("scenes", lambda r: f"{r['scenes']}")]
-    for k in ("connectivity", "density", "reach", "convenience"):
-        rows.append((f"FD {k}" + (" (x10)" if k in ("connectivity", "convenience") else "") + " ↓",
-                     lambda r, k=k: _num(r["topology_fd"][k])))
-    rows += [("precision ↑", lambda r: _num(r.get("precision_recall", {}).get("precision"))),
-             ("recall ↑", lambda r: _num(r.get("precision_recall", {}).get("recall"))),
-             ("Control Recall ↑ (p)", lambda r: _recall(r.get("control_recall"))),
-             ("GT Recall ↑ (p)", lambda r: _recall(r.get("gt_recall"))),
-             ("lane Chamfer m ↓", lambda r: _num(r["geometry"]["chamfer_m"]["mean"])),
-             ("lane precision @1 m ↑", lambda r: _num(r["geometry"]["lane_precision"]["mean"])),
-             ("lane recall @1 m ↑", lambda r: _num(r["geometry"]["lane_recall"]["mean"])),
-             ("lane F1 @1 m ↑", lambda r: _num(r["geometry"]["lane_f1"]["mean"])),
-             ("SD road within 3 m of a lane ↑", lambda r: _num(r["geometry"].get("sd_coverage", {}).get("mean"))),
-             ("lane length within 5 m of SD ↑", lambda r: _num(r["geometry"].get("lane_on_sd", {}).get("mean"))),
-             ("driving side ↑", lambda r: _num(r["geometry"].get("driving_side", {}).get("mean")))]
-    lines = ["| metric | " + " | ".join(names) + " |", "|---|" + "---|" * len(names)]
-    lines += [f"| {label} | " + " | ".join(fn(results[n]) for n in names) + " |" for label, fn in rows]
-    return "\n".join(lines)
+    scenes = ", ".join(f"{n}: {results[n]['scenes']}" for n in names)
+    parts = [f"Scenes: {scenes}."]
+    for title, rows in (("Topology (Fréchet distances, as the paper's Table 1)", topology),
+                        ("Realism and control fidelity (as the paper's Table 2; p-values in brackets)", fidelity),
+                        ("Lane geometry (ours)", geometric)):
+        lines = [f"### {title}", "", "| metric | " + " | ".join(names) + " |", "|---|" + "---|" * len(names)]
+        lines += [f"| {label} | " + " | ".join(fn(results[n]) for n in names) + " |" for label, fn in rows]
+        parts.append("\n".join(lines))
+    return "\n\n".join(parts)
 
 
 def _num(value) -> str:
