@@ -294,3 +294,31 @@ def test_streaming_to_a_viewer(sampling_ckpt, tmp_path, capsys):
         assert (tmp_path / "b" / "sample.rrd").stat().st_size > 0  # the file is written as well
     finally:
         server.disconnect()
+
+
+def test_steps_where_nothing_is_decoded_still_get_a_row(tmp_path):
+    """A step whose x0 decodes to no lanes or no lights logs an empty row, not an error."""
+    import torch
+
+    from cmtool.sample.diffusion import StepInfo
+    from cmtool.viz.trajectory import TrajectoryLogger
+
+    def decode(latents):  # lanes at even steps only, never lights
+        return [{"lines": np.zeros((2 * (i % 2 == 0), 20, 2), np.float32), "green": np.zeros((0, 20, 2), np.float32),
+                 "red": np.zeros((0, 20, 2), np.float32)} for i in range(len(latents))]
+
+    rec = rr.RecordingStream("test")
+    rec.save(str(tmp_path / "t.rrd"))
+    logger = TrajectoryLogger(rec, [""], decode, cfg=0.0, flush_s=3600)
+    for i in range(4):
+        x = torch.zeros(1, 64, 8, 8)
+        logger(StepInfo(i, 999 - i, x, x, None, x, x, None))
+    logger.flush()
+    rec.flush()
+    rec.disconnect()
+    rows = read_rrd(tmp_path / "t.rrd")
+    assert steps_of(rows, "/diffusion/x0/lanes") == [0, 1, 2, 3]
+    assert steps_of(rows, "/diffusion/x0/lights/green") == [0, 1, 2, 3]
+    sizes = {s: len(r["LineStrips2D:strips"].values) for s, r in rows["/diffusion/x0/lanes"]}
+    assert sizes == {0: 2, 1: 0, 2: 2, 3: 0}
+    assert "/diffusion/eps/cond" not in rows and steps_of(rows, "/diffusion/eps/guided") == [0, 1, 2, 3]

@@ -149,7 +149,8 @@ class TrajectoryLogger:
 
     def _send_lines(self, path: str, times, per_step: list[np.ndarray], colour, radius: float) -> None:
         counts = [len(lines) for lines in per_step]
-        strips = np.concatenate([np.asarray(l, np.float32).reshape(len(l), -1, 2) for l in per_step])
+        nonempty = [np.asarray(lines, np.float32) for lines in per_step if len(lines)]
+        strips = np.concatenate(nonempty) if nonempty else np.zeros((0, 2, 2), np.float32)
         colours = lane_colours(strips) if colour is None else np.tile(np.array(colour, np.uint8), (len(strips), 1))
         columns = rr.LineStrips2D.columns(colors=colours, radii=np.full(len(strips), radius, np.float32))
         columns = ComponentColumnList([*columns, strips_column(strips)])
