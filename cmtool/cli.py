@@ -429,6 +429,38 @@ def eval_cmd(ckpt, data_dir, split, n, cfg, steps, sampler, seed, batch, out, ba
     click.echo(f"wrote {out / 'metrics.json'}, {out / 'summary.md'}, {out / 'eval.rrd'}")
 
 
+@cli.command()
+@click.argument("maps", type=click.Path(dir_okay=False, path_type=Path))
+@click.option("--json", "json_out", type=click.Path(dir_okay=False, path_type=Path), help="Write the full report here.")
+def validate(maps, json_out):
+    """Check lane graphs (a .json scene or a .jsonl of scenes) for what planners need: dangling lanes,
+    bad successor joins, crossings outside intersections, self-intersections, short lanes, kinks;
+    routability; a validity score in [0, 1] per scene."""
+    import numpy as np
+
+    from cmtool.data.jsonio import write_json
+    from cmtool.data.lanegraph import read_jsonl
+    from cmtool.eval.validity import check
+
+    reports = [check(g) for g in read_jsonl(maps)]
+    if not reports:
+        raise CmtoolError(f"{maps}: no scenes")
+    totals: dict[str, int] = {}
+    for r in reports:
+        for k, v in r.counts().items():
+            totals[k] = totals.get(k, 0) + v
+    click.echo(f"{'scene':>5} {'score':>6} {'lanes':>5} {'routable':>8} {'scc':>4}  problems")
+    for i, r in enumerate(reports):
+        problems = ", ".join(f"{k} {v}" for k, v in sorted(r.counts().items())) or "none"
+        click.echo(f"{i:>5} {r.score:>6.3f} {r.lanes:>5} {r.routable_pairs:>8.3f} {r.largest_scc:>4}  {problems}")
+    summary = {"scenes": len(reports), "mean_score": float(np.mean([r.score for r in reports])), "problems": totals}
+    click.echo(f"{len(reports)} scenes, mean validity score {summary['mean_score']:.3f}; problems: "
+               + (", ".join(f"{k} {v}" for k, v in sorted(totals.items())) or "none"))
+    if json_out is not None:
+        write_json(json_out, {**summary, "reports": [r.to_json() for r in reports]})
+        click.echo(f"wrote {json_out}")
+
+
 @cli.group()
 def ablate():
     """Ablations on fixed SD maps and seeds: the guidance weight, the city label."""

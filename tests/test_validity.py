@@ -1,0 +1,90 @@
+"""Validity checks on hand-made lane graphs: each problem found with the right lane ids."""
+
+import numpy as np
+
+from cmtool.data.lanegraph import LaneGraph
+from cmtool.eval.validity import check
+
+
+def straight(x0, y0, x1, y1, n=20):
+    return np.stack([np.linspace(x0, x1, n), np.linspace(y0, y1, n)], axis=-1)
+
+
+def arc(cx, cy, r, a0, a1, n=30):
+    a = np.linspace(a0, a1, n)
+    return np.stack([cx + r * np.cos(a), cy + r * np.sin(a)], axis=-1)
+
+
+def kinds(report):
+    return sorted((p.kind, tuple(p.lanes)) for p in report.problems)
+
+
+def test_a_clean_road_scores_one():
+    lanes = [straight(-32, -1.75, 0, -1.75), straight(0, -1.75, 32, -1.75), straight(32, 1.75, -32, 1.75)]
+    r = check(LaneGraph(lanes=lanes, successors=[(0, 1)]))
+    assert r.problems == [] and r.score == 1.0
+    assert r.routable_pairs == 1 / 6 and r.largest_scc == 1
+    assert check(LaneGraph(lanes=[])).score == 1.0
+
+
+def test_each_problem_is_found_with_its_lanes():
+    lanes = [
+        straight(-32, 0, -5, 0),             # 0 -> 1 with a 4 m gap
+        straight(-1, 0, 32, 0),              # 1
+        straight(-10, 10, 10, 10),           # 2: floats in the middle: dangling
+        straight(0, -32, 0, -20),            # 3 -> 4 turns back by 180 degrees
+        straight(0, -20, 0, -31),            # 4
+        straight(-20, -10, -18.5, -10),      # 5: 1.5 m long, dangling too
+        np.array([[10, -15], [20, -15], [20, -10], [15, -20]], float),  # 6: crosses itself (and kinks)
+        straight(-32, 25, 32, 25),           # 7 and 8 cross far from any junction
+        straight(25, -32, 25, 32),           # 8
+        np.concatenate([straight(-32, -28, -20, -28), straight(-20, -27.5, -20, -20)[1:]]),  # 9: a 90 degree corner
+    ]
+    succ = [(0, 1), (3, 4)]
+    r = check(LaneGraph(lanes=lanes, successors=succ))
+    found = kinds(r)
+    assert ("bad_successor", (0, 1)) in found and ("bad_successor", (3, 4)) in found
+    assert ("dangling", (2,)) in found and ("dangling", (5,)) in found and ("short", (5,)) in found
+    assert ("self_intersection", (6,)) in found and ("kink", (6,)) in found
+    assert ("crossing", (7, 8)) in found and ("kink", (9,)) in found
+    assert ("kink", (7,)) not in found and ("dangling", (7,)) not in found  # border lanes are fine
+    bad = {i for _, ids in found for i in ids}
+    assert r.score == 1.0 - len(bad) / len(lanes)
+    assert r.to_json()["counts"]["bad_successor"] == 2
+
+
+def test_crossings_at_forks_and_merges_are_intersections():
+    approach = straight(-32, -1.75, -8, -1.75)
+    left_turn = arc(-8, 8.25, 10, -np.pi / 2, 0)  # from (-8, -1.75) turning left to (2, 8.25)
+    straight_on = straight(-8, -1.75, 32, -1.75)
+    oncoming_left = arc(8, -8.25, 10, np.pi / 2, np.pi)  # from (8, 1.75) turning to (-2, -8.25)
+    oncoming = straight(32, 1.75, 8, 1.75)
+    lanes = [approach, left_turn, straight_on, oncoming, oncoming_left]
+    r = check(LaneGraph(lanes=lanes, successors=[(0, 1), (0, 2), (3, 4)]))
+    assert [p for p in r.problems if p.kind == "crossing"] == []
+
+
+def test_wide_curves_are_not_kinks():
+    r = check(LaneGraph(lanes=[arc(0, 0, 6.0, 0, np.pi / 2)]))
+    assert not any(p.kind == "kink" for p in r.problems)
+    r = check(LaneGraph(lanes=[arc(0, 0, 3.0, 0, np.pi / 2)]))
+    assert any(p.kind == "kink" and "radius 3.0" in p.detail for p in r.problems)
+
+
+def test_validate_command(tmp_path, capsys):
+    import json
+
+    from cmtool.data.lanegraph import write_jsonl
+    from tests.conftest import in_process
+
+    good = LaneGraph(lanes=[straight(-32, 0, 32, 0)])
+    bad = LaneGraph(lanes=[straight(-10, 0, 10, 0), straight(-32, 20, 32, 20)])
+    write_jsonl(tmp_path / "maps.jsonl", [good, bad])
+    code, out, err = in_process(capsys, "validate", tmp_path / "maps.jsonl", "--json", tmp_path / "v.json")
+    assert code == 0, err
+    report = json.loads((tmp_path / "v.json").read_text())
+    assert [r["score"] for r in report["reports"]] == [1.0, 0.5] and report["problems"] == {"dangling": 1}
+    assert report["reports"][1]["problems"][0]["lanes"] == [0]
+    assert "mean validity score 0.750" in out
+    code, _, err = in_process(capsys, "validate", tmp_path / "none.jsonl")
+    assert code == 1 and "no such file" in err
