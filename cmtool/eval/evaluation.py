@@ -27,10 +27,10 @@ from cmtool.data.cache import load_dataset
 from cmtool.data.jsonio import read_json, write_json, write_text_atomic
 from cmtool.data.lanegraph import LaneGraph, write_jsonl
 from cmtool.errors import CmtoolError
-from cmtool.eval.features import FeatureExtractor
+from cmtool.eval.features import FeatureExtractor, sd_image
 from cmtool.eval.geometric import chamfer
 from cmtool.eval.lanes import lane_scores
-from cmtool.eval.metrics import evaluate, summary_table
+from cmtool.eval.metrics import evaluate, reference_image_features, summary_table
 from cmtool.progress import Progress
 from cmtool.sample.generator import Generator
 from cmtool.viz.recording import log_lanes, log_sd, open_recording
@@ -63,9 +63,12 @@ def run_eval(gen: Generator, settings: EvalSettings, out: Path, extractor: Featu
     reference = [s.to_lanegraph() for s in scenes]
     controls = np.stack([s.sd for s in scenes])
     generated = _generate(gen, scenes, settings, out / "cache", progress)
-    results = {}
-    for method in METHODS:
-        results[method] = evaluate(generated[method], reference, controls, extractor, features=extractor is not None)
+    shared = {}
+    if extractor is not None:  # the ground truth's and the controls' features serve both methods
+        shared = {"reference_features": reference_image_features(reference, extractor),
+                  "control_features": extractor(np.stack([sd_image(sd) for sd in controls]))}
+    results = {m: evaluate(generated[m], reference, controls, extractor, features=extractor is not None, **shared)
+               for m in METHODS}
     report = {"settings": asdict(settings), "methods": results}
     write_json(out / "metrics.json", report)
     write_text_atomic(out / "summary.md", summary_markdown(report))

@@ -54,9 +54,11 @@ def drives_on(city: str | None) -> str:
 
 
 def evaluate(generated, reference, controls: np.ndarray | None = None, extractor: FeatureExtractor | None = None,
-             features: bool = True) -> dict:
+             features: bool = True, reference_features: np.ndarray | None = None,
+             control_features: np.ndarray | None = None) -> dict:
     """Every metric of ``generated`` against ``reference`` (lists of LaneGraph) and ``controls``
-    ((N, 128, 128, 3) SD rasters or None). ``features=False`` skips the ResNet-50 metrics."""
+    ((N, 128, 128, 3) SD rasters or None). ``features=False`` skips the ResNet-50 metrics; the
+    reference's and controls' features can be passed in when several sets share them."""
     if len(generated) != len(reference):
         raise CmtoolError(f"{len(generated)} generated scenes but {len(reference)} reference scenes; "
                           "scene i of one set pairs with scene i of the other")
@@ -72,15 +74,22 @@ def evaluate(generated, reference, controls: np.ndarray | None = None, extractor
     if features:
         extractor = extractor or FeatureExtractor()
         gen = extractor(np.stack([lanes_image(g.lanes, g.frame_m) for g in generated]))
-        ref = extractor(np.stack([lanes_image(g.lanes, g.frame_m) for g in reference]))
+        ref = reference_features if reference_features is not None else reference_image_features(reference, extractor)
         out["backbone"] = {"name": extractor.backbone, "weights": extractor.source}
         out["precision_recall"] = (improved_precision_recall(ref, gen, PR_K) if len(gen) > PR_K else
                                    {"precision": math.nan, "recall": math.nan, "k": PR_K})
         out["gt_recall"] = batch_recall(gen, ref, RECALL_BATCH, RECALL_K)
         if controls is not None:
-            ctrl = extractor(np.stack([sd_image(sd) for sd in controls]))
+            ctrl = control_features
+            if ctrl is None:
+                ctrl = extractor(np.stack([sd_image(sd) for sd in controls]))
             out["control_recall"] = batch_recall(gen, ctrl, RECALL_BATCH, RECALL_K)
     return out
+
+
+def reference_image_features(graphs, extractor: FeatureExtractor) -> np.ndarray:
+    """ResNet-50 features of lane graphs' rasters."""
+    return extractor(np.stack([lanes_image(g.lanes, g.frame_m) for g in graphs]))
 
 
 def geometry(generated, reference, controls: np.ndarray | None) -> dict:
