@@ -23,8 +23,11 @@ def test_eval_writes_reports_and_resumes(sampling_ckpt, tiny_data, tmp_path, cap
     for m in report["methods"].values():
         assert m["scenes"] == 4 and 0.0 <= m["geometry"]["lane_f1"]["mean"] <= 1.0
         assert set(m["topology_fd"]) == {"connectivity", "density", "reach", "convenience"}
+        assert 0.0 <= m["geometry"]["validity"]["mean"] <= 1.0
+    assert 0.0 < report["ground_truth_validity"] <= 1.0
     summary = (out / "summary.md").read_text()
     assert "| metric | unguided | ControlMap |" in summary and "split test, 4 scenes" in summary
+    assert "| validity score ↑ |" in summary and "validity score of the ground truth itself" in summary
     assert "| lane F1 @1 m ↑ |" in stdout
     first = (out / "cache" / "controlmap.jsonl").read_text().splitlines()
     # more scenes later: the first batch comes from the cache, unchanged

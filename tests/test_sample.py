@@ -17,6 +17,7 @@ from rerun.chunk import RrdReader
 from cmtool.cli import main
 from cmtool.data.hdmap import HDMap
 from cmtool.data.lanegraph import LaneGraph, infer_successors, read_jsonl
+from cmtool.eval.validity import check
 from cmtool.viz.trajectory import strips_column, tensor_column
 from tests.conftest import REPO, in_process
 
@@ -109,12 +110,13 @@ def test_outputs_are_valid_lane_graphs_and_pictures(sampled):
         graph = read_jsonl(out / f"sd_bos_s{k}.json")[0]
         assert graph.city == "SGP" and graph.meta["cfg"] == 0.7 and graph.meta["index"] == k
         assert graph.lanes and sorted(graph.successors) == sorted(infer_successors(graph.lanes))
+        assert graph.meta["validity"] == round(check(graph).score, 6)
         picture = cv2.imread(str(out / f"sd_bos_s{k}.png"))
         assert picture.shape[1] == 2 * 256 + 4  # SD | generated
     a, b = (graph_core(out / f"sd_bos_s{k}.json") for k in range(2))
     assert a != b  # two maps per input differ
     table = sampled["stdout"]
-    assert "lanes" in table and "sd_bos_s0" in table and "sd_bos_s1" in table
+    assert "lanes" in table and "validity" in table and "sd_bos_s0" in table and "sd_bos_s1" in table
 
 
 def test_same_seed_same_json_and_cfg_zero_is_the_unguided_model(sampling_ckpt, tmp_path, capsys):

@@ -31,6 +31,7 @@ from cmtool.eval.features import FeatureExtractor, sd_image
 from cmtool.eval.geometric import chamfer
 from cmtool.eval.lanes import lane_scores
 from cmtool.eval.metrics import evaluate, reference_image_features, summary_table
+from cmtool.eval.validity import check
 from cmtool.progress import Progress
 from cmtool.sample.generator import Generator
 from cmtool.viz.recording import log_lanes, log_sd, open_recording
@@ -69,7 +70,8 @@ def run_eval(gen: Generator, settings: EvalSettings, out: Path, extractor: Featu
                   "control_features": extractor(np.stack([sd_image(sd) for sd in controls]))}
     results = {m: evaluate(generated[m], reference, controls, extractor, features=extractor is not None, **shared)
                for m in METHODS}
-    report = {"settings": asdict(settings), "methods": results}
+    report = {"settings": asdict(settings), "methods": results,
+              "ground_truth_validity": float(np.mean([check(g).score for g in reference]))}
     write_json(out / "metrics.json", report)
     write_text_atomic(out / "summary.md", summary_markdown(report))
     _write_recording(out / "eval.rrd", scenes, reference, generated, rrd_samples)
@@ -142,7 +144,8 @@ def summary_markdown(report: dict) -> str:
             f"- ControlMap: guidance w = {s['cfg']}; both: {s['steps']} {s['sampler']} steps, seed {s['seed']}, "
             "the same initial noise per scene",
             f"- unguided: the frozen DiT without SD control or city label (the paper's SLEDGE rows)",
-            f"- features: {backbone}; recall metrics in batches of 64, top 3, p = P(chance >= observed)", "", ""]
+            f"- features: {backbone}; recall metrics in batches of 64, top 3, p = P(chance >= observed)",
+            f"- validity score of the ground truth itself: {report['ground_truth_validity']:.3f}", "", ""]
     return "\n".join(head) + summary_table({("unguided" if k == "unguided" else "ControlMap"): v
                                             for k, v in methods.items()}) + "\n"
 

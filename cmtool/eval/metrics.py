@@ -5,7 +5,7 @@ controls when known; scene i of one set is paired with scene i of the other.
 - improved precision / recall and Ground-Truth Recall on ResNet-50 features of the map rasters,
   Control Recall against the SD rasters (:mod:`cmtool.eval.features`, :mod:`cmtool.eval.retrieval`);
 - lane Chamfer distance, lane precision / recall / F1 at 1 m, SD adherence and driving side
-  (:mod:`cmtool.eval.geometric`), averaged over scenes (scenes where a score is undefined, e.g. an
+  (:mod:`cmtool.eval.geometric`) and the validity score (:mod:`cmtool.eval.validity`), averaged over scenes (scenes where a score is undefined, e.g. an
   empty map's Chamfer distance, are left out of that average and counted).
 """
 
@@ -22,6 +22,7 @@ from cmtool.eval.geometric import chamfer, driving_side, sd_adherence
 from cmtool.eval.lanes import lane_scores
 from cmtool.eval.retrieval import batch_recall, improved_precision_recall
 from cmtool.eval.topology import topology_fd
+from cmtool.eval.validity import check
 
 LEFT_HAND = {"SGP"}  # city labels that drive on the left; all others drive on the right
 RECALL_BATCH, RECALL_K, PR_K = 64, 3, 3
@@ -94,7 +95,7 @@ def reference_image_features(graphs, extractor: FeatureExtractor) -> np.ndarray:
 
 def geometry(generated, reference, controls: np.ndarray | None) -> dict:
     """Per-scene geometric scores, averaged (with the number of scenes each average covers)."""
-    rows: dict[str, list] = {k: [] for k in ("chamfer_m", "lane_precision", "lane_recall", "lane_f1")}
+    rows: dict[str, list] = {k: [] for k in ("chamfer_m", "lane_precision", "lane_recall", "lane_f1", "validity")}
     if controls is not None:
         rows.update({"sd_coverage": [], "lane_on_sd": [], "driving_side": []})
     for i, (g, r) in enumerate(zip(generated, reference)):
@@ -102,6 +103,7 @@ def geometry(generated, reference, controls: np.ndarray | None) -> dict:
         scores = lane_scores(g.lanes, r.lanes, tol=1.0)
         for k in ("precision", "recall", "f1"):
             rows[f"lane_{k}"].append(scores[k])
+        rows["validity"].append(check(g).score)
         if controls is not None:
             for k, v in sd_adherence(g.lanes, controls[i]).items():
                 rows[k].append(v)
@@ -129,7 +131,8 @@ def summary_table(results: dict[str, dict]) -> str:
                  ("lane F1 @1 m ↑", lambda r: _num(r["geometry"]["lane_f1"]["mean"])),
                  ("SD road within 3 m of a lane ↑", lambda r: _num(r["geometry"].get("sd_coverage", {}).get("mean"))),
                  ("lane length within 5 m of SD ↑", lambda r: _num(r["geometry"].get("lane_on_sd", {}).get("mean"))),
-                 ("driving side ↑", lambda r: _num(r["geometry"].get("driving_side", {}).get("mean")))]
+                 ("driving side ↑", lambda r: _num(r["geometry"].get("driving_side", {}).get("mean"))),
+                 ("validity score ↑", lambda r: _num(r["geometry"].get("validity", {}).get("mean")))]
     names = list(results)
     scenes = ", ".join(f"{n}: {results[n]['scenes']}" for n in names)
     parts = [f"Scenes: {scenes}."]

@@ -26,6 +26,7 @@ import torch
 from cmtool.data.jsonio import atomic_open, write_json
 from cmtool.data.lanegraph import LaneGraph
 from cmtool.errors import CmtoolError
+from cmtool.eval.validity import check
 from cmtool.geometry import polyline_length
 from cmtool.progress import Progress
 from cmtool.sample.diffusion import SAMPLERS, SamplingError
@@ -155,6 +156,8 @@ def generate_maps(gen: Generator, jobs: list[Job], settings: SampleSettings, rec
                            sampler=settings.sampler, eta=settings.eta, generator=generator, callback=logger)
             decoded = gen.decode(z)
             graphs = [gen.lane_graph(el, gen.city_name(j.label), _meta(gen, j, settings)) for j, el in zip(batch, decoded)]
+            for graph in graphs:
+                graph.meta["validity"] = round(check(graph).score, 6)
             if logger is not None:
                 logger.flush()
                 for job, graph in zip(batch, graphs):
@@ -261,12 +264,14 @@ def _write_map(out: Path, m: SampledMap, settings: SampleSettings, written: list
 
 
 def summary_table(maps: list[SampledMap]) -> str:
-    """Per map: lanes, successor links, mean lane length, lights, seconds."""
-    head = f"{'map':<24} {'city':<5} {'lanes':>5} {'successors':>10} {'mean lane m':>11} {'lights':>6} {'time s':>7}"
+    """Per map: lanes, successor links, mean lane length, lights, validity score, seconds."""
+    head = (f"{'map':<24} {'city':<5} {'lanes':>5} {'successors':>10} {'mean lane m':>11} {'lights':>6} "
+            f"{'validity':>8} {'time s':>7}")
     rows = [head]
     for m in maps:
         g = m.graph
         mean = np.mean([polyline_length(l) for l in g.lanes]) if g.lanes else 0.0
         rows.append(f"{m.job.name[:24]:<24} {g.city or 'none':<5} {len(g.lanes):>5} {len(g.successors):>10} "
-                    f"{mean:>11.1f} {len(g.green_lights) + len(g.red_lights):>6} {m.seconds:>7.2f}")
+                    f"{mean:>11.1f} {len(g.green_lights) + len(g.red_lights):>6} {g.meta['validity']:>8.3f} "
+                    f"{m.seconds:>7.2f}")
     return "\n".join(rows)
