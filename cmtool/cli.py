@@ -461,6 +461,37 @@ def validate(maps, json_out):
         click.echo(f"wrote {json_out}")
 
 
+@cli.command()
+@click.option("--format", "fmt", required=True, type=click.Choice(["geojson"]), help="Output format.")
+@click.argument("map_path", metavar="MAP", type=click.Path(dir_okay=False, path_type=Path))
+@click.option("--origin", required=True, help="LAT,LON where the scene's origin (the ego) lies.")
+@click.option("--heading", default=0.0, show_default=True, help="Compass heading of the scene's forward axis, degrees.")
+@click.option("--scene", default=0, show_default=True, type=click.IntRange(min=0), help="Scene of a .jsonl file.")
+@click.option("--lane-width", default=3.5, show_default=True, type=click.FloatRange(min=0.5, max=10.0),
+              help="Lane width for the boundaries, metres.")
+@click.option("--out", required=True, type=click.Path(dir_okay=False, path_type=Path), help="File to write.")
+def export(fmt, map_path, origin, heading, scene, lane_width, out):
+    """Export a lane graph (a generated or ground-truth scene) for GIS tools and simulators."""
+    from cmtool.data.geojson import to_geojson
+    from cmtool.data.jsonio import write_json
+    from cmtool.data.lanegraph import read_jsonl
+    from cmtool.sample.inputs import parse_points
+
+    graphs = read_jsonl(map_path)
+    if scene >= len(graphs):
+        raise CmtoolError(f"{map_path}: no scene {scene} ({len(graphs)} scene{'s' if len(graphs) != 1 else ''})")
+    lat0, lon0 = parse_points(origin, ("lat", "lon"), {}, "--origin")[0]
+    if not (-80.0 <= lat0 <= 80.0 and -180.0 <= lon0 <= 180.0):
+        raise CmtoolError(f"--origin {origin}: latitude must be within [-80, 80], longitude within [-180, 180]")
+    collection = to_geojson(graphs[scene], lat0, lon0, heading, lane_width)
+    write_json(out, collection)
+    kinds: dict[str, int] = {}
+    for f in collection["features"]:
+        kinds[f["properties"]["kind"]] = kinds.get(f["properties"]["kind"], 0) + 1
+    plural = {"lane": "lanes", "boundary": "boundaries", "light": "lights"}
+    click.echo(f"{out}: " + ", ".join(f"{v} {plural[k]}" for k, v in kinds.items()))
+
+
 @cli.group()
 def ablate():
     """Ablations on fixed SD maps and seeds: the guidance weight, the city label."""

@@ -1,0 +1,54 @@
+"""Lane graphs as GeoJSON (RFC 7946): WGS84 longitude/latitude, one FeatureCollection per scene.
+
+The scene frame (metres, x forward, y left) is placed with its origin at ``(lat0, lon0)`` and its x
+axis pointing to the compass ``heading`` (0 = north). Features, each with a ``kind`` property:
+
+- ``lane``: the centerline (``id``, ``successors``, ``predecessors``, ``length_m``);
+- ``boundary``: the left and right lane edges, half a lane width from the centerline (``lane``,
+  ``side``);
+- ``light``: traffic-light lines (``state`` green or red).
+"""
+
+from __future__ import annotations
+
+import math
+
+import numpy as np
+
+from cmtool.data.geo import LocalProjection
+from cmtool.geometry import offset, polyline_length
+
+LANE_WIDTH_M = 3.5
+
+
+def to_geojson(graph, lat0: float, lon0: float, heading: float = 0.0, lane_width: float = LANE_WIDTH_M) -> dict:
+    """A FeatureCollection of ``graph`` (a LaneGraph) placed at ``(lat0, lon0)``."""
+    proj = LocalProjection(lat0, lon0)
+    yaw = math.radians(90.0 - heading)  # the scene's x axis in east/north coordinates
+    rot = np.array([[math.cos(yaw), -math.sin(yaw)], [math.sin(yaw), math.cos(yaw)]])
+
+    def lonlat(points) -> list:
+        latlon = proj.to_latlon(np.asarray(points, np.float64) @ rot.T)
+        return [[round(lon, 9), round(lat, 9)] for lat, lon in latlon]
+
+    def feature(points, **props) -> dict:
+        return {"type": "Feature", "geometry": {"type": "LineString", "coordinates": lonlat(points)},
+                "properties": props}
+
+    succ: dict[int, list[int]] = {}
+    pred: dict[int, list[int]] = {}
+    for i, j in graph.successors:
+        succ.setdefault(int(i), []).append(int(j))
+        pred.setdefault(int(j), []).append(int(i))
+    features = []
+    for i, lane in enumerate(graph.lanes):
+        lane = np.asarray(lane, np.float64)
+        features.append(feature(lane, kind="lane", id=i, successors=succ.get(i, []), predecessors=pred.get(i, []),
+                                length_m=round(polyline_length(lane), 3)))
+        for side, sign in (("left", 1.0), ("right", -1.0)):
+            features.append(feature(offset(lane, sign * lane_width / 2.0), kind="boundary", lane=i, side=side))
+    for state, lights in (("green", graph.green_lights), ("red", graph.red_lights)):
+        features += [feature(line, kind="light", state=state) for line in lights]
+    return {"type": "FeatureCollection", "features": features,
+            "properties": {"city": graph.city, "frame_m": graph.frame_m, "origin": [lat0, lon0], "heading": heading,
+                           "lane_width_m": lane_width}}
