@@ -462,7 +462,8 @@ def validate(maps, json_out):
 
 
 @cli.command()
-@click.option("--format", "fmt", required=True, type=click.Choice(["geojson"]), help="Output format.")
+@click.option("--format", "fmt", required=True, type=click.Choice(["lanelet2", "geojson"]),
+              help="lanelet2: a Lanelet2 OSM map (.osm); geojson: GeoJSON features.")
 @click.argument("map_path", metavar="MAP", type=click.Path(dir_okay=False, path_type=Path))
 @click.option("--origin", required=True, help="LAT,LON where the scene's origin (the ego) lies.")
 @click.option("--heading", default=0.0, show_default=True, help="Compass heading of the scene's forward axis, degrees.")
@@ -471,10 +472,11 @@ def validate(maps, json_out):
               help="Lane width for the boundaries, metres.")
 @click.option("--out", required=True, type=click.Path(dir_okay=False, path_type=Path), help="File to write.")
 def export(fmt, map_path, origin, heading, scene, lane_width, out):
-    """Export a lane graph (a generated or ground-truth scene) for GIS tools and simulators."""
+    """Export a lane graph (a generated or ground-truth scene) for simulators and GIS tools."""
     from cmtool.data.geojson import to_geojson
     from cmtool.data.jsonio import write_json
     from cmtool.data.lanegraph import read_jsonl
+    from cmtool.data.lanelet2_export import write_lanelet2
     from cmtool.sample.inputs import parse_points
 
     graphs = read_jsonl(map_path)
@@ -483,6 +485,12 @@ def export(fmt, map_path, origin, heading, scene, lane_width, out):
     lat0, lon0 = parse_points(origin, ("lat", "lon"), {}, "--origin")[0]
     if not (-80.0 <= lat0 <= 80.0 and -180.0 <= lon0 <= 180.0):
         raise CmtoolError(f"--origin {origin}: latitude must be within [-80, 80], longitude within [-180, 180]")
+    if fmt == "lanelet2":
+        graph = graphs[scene]
+        write_lanelet2(graph, out, lat0, lon0, heading, lane_width)
+        click.echo(f"{out}: {len(graph.lanes)} lanelets, {len(graph.successors)} successor joins, "
+                   f"{len(graph.green_lights) + len(graph.red_lights)} light lines")
+        return
     collection = to_geojson(graphs[scene], lat0, lon0, heading, lane_width)
     write_json(out, collection)
     kinds: dict[str, int] = {}

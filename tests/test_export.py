@@ -1,4 +1,5 @@
-"""`cmtool export --format geojson`: WGS84 features that project back onto the scene."""
+"""`cmtool export`: GeoJSON features that project back onto the scene; Lanelet2 maps that load back with
+our importer and route in the `lanelet2` package (when installed)."""
 
 import json
 import math
@@ -8,6 +9,7 @@ import pytest
 
 from cmtool.data.geo import LocalProjection
 from cmtool.data.lanegraph import LaneGraph, write_jsonl
+from cmtool.geometry import resample
 from tests.conftest import in_process
 
 
@@ -48,3 +50,54 @@ def test_export_errors(tmp_path, capsys):
     code, _, err = in_process(capsys, "export", "--format", "geojson", tmp_path / "s.jsonl", "--origin", "49,8",
                               "--scene", 3, "--out", tmp_path / "x.geojson")
     assert code == 1 and "no scene 3 (1 scene)" in err and not (tmp_path / "x.geojson").exists()
+
+
+def neighbours_scene():
+    """Two lanes side by side, each cut into two successive pieces, an oncoming lane and a red light."""
+    def line(x0, y0, x1, y1):
+        return np.stack([np.linspace(x0, x1, 10), np.linspace(y0, y1, 10)], axis=-1)
+
+    lanes = [line(-30, -1.75, 0, -1.75), line(0, -1.75, 30, -1.75), line(-30, -5.25, 0, -5.25),
+             line(0, -5.25, 30, -5.25), line(30, 1.75, -30, 1.75)]
+    return LaneGraph(lanes=lanes, successors=[(0, 1), (2, 3)], red_lights=[line(0, -1.75, 10, -1.75)])
+
+
+def test_lanelet2_export_loads_back_with_our_importer(tmp_path, capsys):
+    from cmtool.data.importers import import_hd_map
+
+    write_jsonl(tmp_path / "s.jsonl", [neighbours_scene()])
+    code, out, err = in_process(capsys, "export", "--format", "lanelet2", tmp_path / "s.jsonl", "--origin", "49.0,8.4",
+                                "--out", tmp_path / "s.osm")
+    assert code == 0, err
+    assert "5 lanelets, 2 successor joins, 1 light lines" in out
+    hd = import_hd_map("lanelet2", tmp_path / "s.osm")
+    assert len(hd.lanes) == 5
+    # the importer centres its projection on the nodes' mean: compare shapes relative to lane 0's start
+    by_index = {i: hd.lanes[str(i + 1)] for i in range(5)}
+    ref = neighbours_scene()
+    origin_new, origin_old = by_index[0].centerline[0], ref.lanes[0][0]
+    for i, lane in by_index.items():
+        np.testing.assert_allclose(resample(lane.centerline, 10) - origin_new,
+                                   (ref.lanes[i] - origin_old) @ np.array([[0.0, 1.0], [-1.0, 0.0]]), atol=0.05)
+    assert by_index[0].successors == ["2"] and by_index[2].successors == ["4"] and not by_index[1].successors
+    assert by_index[0].right_neighbor == "3" and by_index[3].left_neighbor == "2"  # shared bounds: lane changes
+    assert len(hd.stop_lines) == 1 and hd.stop_lines[0].lane_ids == ["2"]
+
+
+def test_lanelet2_package_routes_the_exported_map(tmp_path):
+    lanelet2 = pytest.importorskip("lanelet2")
+    from lanelet2.io import Origin
+    from lanelet2.projection import UtmProjector
+
+    from cmtool.data.lanelet2_export import write_lanelet2
+
+    write_lanelet2(neighbours_scene(), tmp_path / "s.osm", 49.0, 8.4)
+    lanelet_map, errors = lanelet2.io.loadRobust(str(tmp_path / "s.osm"), UtmProjector(Origin(49.0, 8.4)))
+    assert errors == [] and len(lanelet_map.laneletLayer) == 5 and len(lanelet_map.regulatoryElementLayer) == 1
+    rules = lanelet2.traffic_rules.create(lanelet2.traffic_rules.Locations.Germany,
+                                          lanelet2.traffic_rules.Participants.Vehicle)
+    graph = lanelet2.routing.RoutingGraph(lanelet_map, rules)
+    lane = {int(ll.attributes["cmtool:lane"]): ll for ll in lanelet_map.laneletLayer}
+    following = {(i, int(f.attributes["cmtool:lane"])) for i, ll in lane.items() for f in graph.following(ll)}
+    assert following == {(0, 1), (2, 3)}  # the lane graph's successor pairs
+    assert graph.right(lane[0]) is not None and int(graph.right(lane[0]).attributes["cmtool:lane"]) == 2

@@ -1,0 +1,131 @@
+"""Lane graphs as Lanelet2 maps (OSM XML, WGS84), loadable by Lanelet2 and by our own importer.
+
+Every lane becomes a lanelet (``type=lanelet``, ``subtype=road``, ``one_way=yes``) whose left and
+right bounds are ways half a lane width either side of the centerline. For each successor edge
+(i, j) the start of j's bounds is moved onto the end of i's (the first predecessor wins at a
+merge), so the two lanelets share end nodes, which is how Lanelet2 routing finds successors.
+Bounds of neighbouring lanes that coincide (within ``SHARE_M`` on average, in either direction)
+become one way, so routing sees lane changes. Each traffic-light line becomes a
+``regulatory_element`` (``subtype=traffic_light``) with a light way and a stop line across the
+lane it starts on, referenced by that lanelet. The scene frame's origin is placed at
+``(lat0, lon0)`` with its forward axis pointing to the compass ``heading``.
+"""
+
+from __future__ import annotations
+
+import math
+import os
+from xml.sax.saxutils import quoteattr
+
+import numpy as np
+
+from cmtool.data.geo import LocalProjection
+from cmtool.data.jsonio import write_text_atomic
+from cmtool.geometry import offset, resample, unit
+
+LANE_WIDTH_M = 3.5
+SHARE_M = 0.3  # mean distance under which two bounds become one way
+LIGHT_REACH_M = 3.0  # a light line controls the lane starting this close to its start
+
+
+class _Ways:
+    """Nodes (deduplicated to the millimetre) and ways, numbered from 1."""
+
+    def __init__(self):
+        self.node_ids: dict[tuple[int, int], int] = {}
+        self.nodes: list[np.ndarray] = []
+        self.ways: list[tuple[list[int], dict]] = []
+
+    def node(self, p: np.ndarray) -> int:
+        key = (round(float(p[0]) * 1000), round(float(p[1]) * 1000))
+        if key not in self.node_ids:
+            self.node_ids[key] = len(self.nodes) + 1
+            self.nodes.append(np.asarray(p, np.float64))
+        return self.node_ids[key]
+
+    def way(self, points: np.ndarray, **tags) -> int:
+        refs = []
+        for p in points:
+            n = self.node(p)
+            if not refs or refs[-1] != n:
+                refs.append(n)
+        self.ways.append((refs, tags))
+        return len(self.ways)
+
+
+def to_lanelet2(graph, lat0: float, lon0: float, heading: float = 0.0, lane_width: float = LANE_WIDTH_M) -> str:
+    """The OSM XML text of ``graph`` (a LaneGraph) as a Lanelet2 map."""
+    lanes = [np.asarray(l, np.float64) for l in graph.lanes]
+    bounds = [[offset(l, lane_width / 2.0), offset(l, -lane_width / 2.0)] for l in lanes]  # [left, right]
+    first_pred: dict[int, int] = {}
+    for i, j in graph.successors:
+        first_pred.setdefault(int(j), int(i))
+    for j, i in first_pred.items():
+        for side in (0, 1):
+            bounds[j][side][0] = bounds[i][side][-1]
+    ways = _Ways()
+    way_of: dict[tuple[int, int], int] = {}
+    made: list[tuple[np.ndarray, int]] = []  # (bound, way id) of the ways made so far
+    for i in range(len(lanes)):
+        for side in (0, 1):
+            b = bounds[i][side]
+            shared = next((w for other, w in made if _coincide(b, other)), None)
+            if shared is None:
+                shared = ways.way(b, type="line_thin", subtype="dashed")
+                made.append((b, shared))
+            way_of[(i, side)] = shared
+    relations = []
+    for i in range(len(lanes)):
+        relations.append(([("way", way_of[(i, 0)], "left"), ("way", way_of[(i, 1)], "right")],
+                          {"type": "lanelet", "subtype": "road", "location": "urban", "one_way": "yes",
+                           "cmtool:lane": str(i)}))
+    for state, lights in (("green", graph.green_lights), ("red", graph.red_lights)):
+        for line in lights:
+            line = np.asarray(line, np.float64)
+            starts = np.array([l[0] for l in lanes]).reshape(-1, 2)
+            if not len(starts):
+                break
+            k = int(np.argmin(np.linalg.norm(starts - line[0], axis=1)))
+            if np.linalg.norm(starts[k] - line[0]) > LIGHT_REACH_M:
+                continue
+            across = np.array([-1.0, 1.0]) * unit(lanes[k][1] - lanes[k][0])[::-1]
+            stop = np.array([line[0] + across * lane_width / 2.0, line[0] - across * lane_width / 2.0])
+            stop_way = ways.way(stop, type="stop_line")
+            light_way = ways.way(line[:2], type="traffic_light", subtype="red_yellow_green")
+            relations.append(([("way", light_way, "refers"), ("way", stop_way, "ref_line")],
+                              {"type": "regulatory_element", "subtype": "traffic_light", "cmtool:state": state}))
+            relations[k][0].append(("relation", len(relations), "regulatory_element"))
+    return _xml(ways, relations, lat0, lon0, heading)
+
+
+def write_lanelet2(graph, path: str | os.PathLike, lat0: float, lon0: float, heading: float = 0.0,
+                   lane_width: float = LANE_WIDTH_M) -> None:
+    write_text_atomic(path, to_lanelet2(graph, lat0, lon0, heading, lane_width))
+
+
+def _coincide(a: np.ndarray, b: np.ndarray) -> bool:
+    """Whether two bounds run along each other (same or opposite direction)."""
+    ra, rb = resample(a, 10), resample(b, 10)
+    return min(np.linalg.norm(ra - rb, axis=1).mean(), np.linalg.norm(ra - rb[::-1], axis=1).mean()) < SHARE_M
+
+
+def _xml(ways: _Ways, relations, lat0: float, lon0: float, heading: float) -> str:
+    proj = LocalProjection(lat0, lon0)
+    yaw = math.radians(90.0 - heading)
+    rot = np.array([[math.cos(yaw), -math.sin(yaw)], [math.sin(yaw), math.cos(yaw)]])
+    latlon = proj.to_latlon(np.array(ways.nodes).reshape(-1, 2) @ rot.T)
+    out = ['<?xml version="1.0" encoding="UTF-8"?>', '<osm version="0.6" generator="cmtool">']
+    out += [f'  <node id="{i}" lat="{lat:.10f}" lon="{lon:.10f}" version="1"/>'
+            for i, (lat, lon) in enumerate(latlon, start=1)]
+    for k, (refs, tags) in enumerate(ways.ways, start=1):
+        out.append(f'  <way id="{k}" version="1">')
+        out += [f'    <nd ref="{r}"/>' for r in refs]
+        out += [f"    <tag k={quoteattr(t)} v={quoteattr(v)}/>" for t, v in tags.items()]
+        out.append("  </way>")
+    for k, (members, tags) in enumerate(relations, start=1):
+        out.append(f'  <relation id="{k}" version="1">')
+        out += [f'    <member type="{kind}" ref="{ref}" role="{role}"/>' for kind, ref, role in members]
+        out += [f"    <tag k={quoteattr(t)} v={quoteattr(v)}/>" for t, v in tags.items()]
+        out.append("  </relation>")
+    out.append("</osm>")
+    return "\n".join(out) + "\n"
