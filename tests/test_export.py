@@ -101,3 +101,21 @@ def test_lanelet2_package_routes_the_exported_map(tmp_path):
     following = {(i, int(f.attributes["cmtool:lane"])) for i, ll in lane.items() for f in graph.following(ll)}
     assert following == {(0, 1), (2, 3)}  # the lane graph's successor pairs
     assert graph.right(lane[0]) is not None and int(graph.right(lane[0]).attributes["cmtool:lane"]) == 2
+
+
+def test_procedural_scenes_keep_every_lane_and_successor_through_lanelet2(tmp_path):
+    from cmtool.data.importers import import_hd_map
+    from cmtool.data.lanelet2_export import write_lanelet2
+    from cmtool.data.scene import SceneCropper, sample_poses
+    from cmtool.data.synth import generate_city
+
+    for city in ("SGP", "BOS"):  # SGP and BOS have forks and merges at their junctions
+        hd = generate_city(city, seed=1, extent=300.0)
+        cropper = SceneCropper(hd)
+        for pose in sample_poses(hd, 2, np.random.default_rng(0)):
+            graph = cropper.extract(pose, num_lines=300, num_lights=50).to_lanegraph()
+            write_lanelet2(graph, tmp_path / "rt.osm", 1.3, 103.8)
+            back = import_hd_map("lanelet2", tmp_path / "rt.osm")
+            assert len(back.lanes) == len(graph.lanes)
+            got = {(int(a) - 1, int(b) - 1) for a, lane in back.lanes.items() for b in lane.successors}
+            assert got == {(int(i), int(j)) for i, j in graph.successors}

@@ -1,11 +1,11 @@
 """Lane graphs as Lanelet2 maps (OSM XML, WGS84), loadable by Lanelet2 and by our own importer.
 
 Every lane becomes a lanelet (``type=lanelet``, ``subtype=road``, ``one_way=yes``) whose left and
-right bounds are ways half a lane width either side of the centerline. For each successor edge
-(i, j) the start of j's bounds is moved onto the end of i's (the first predecessor wins at a
-merge), so the two lanelets share end nodes, which is how Lanelet2 routing finds successors.
-Bounds of neighbouring lanes that coincide (within ``SHARE_M`` on average, in either direction)
-become one way, so routing sees lane changes. Each traffic-light line becomes a
+right bounds are ways half a lane width either side of the centerline. Lane ends and starts joined
+by successor edges (forks and merges included) get one shared left and one shared right bound
+node, which is how Lanelet2 routing finds successors.
+Bounds of neighbouring lanes that coincide (within ``SHARE_M`` on average and ``SHARE_ENDS_M`` at
+both ends, in either direction) become one way, so routing sees lane changes. Each traffic-light line becomes a
 ``regulatory_element`` (``subtype=traffic_light``) with a light way and a stop line across the
 lane it starts on, referenced by that lanelet. The scene frame's origin is placed at
 ``(lat0, lon0)`` with its forward axis pointing to the compass ``heading``.
@@ -24,7 +24,8 @@ from cmtool.data.jsonio import write_text_atomic
 from cmtool.geometry import offset, resample, unit
 
 LANE_WIDTH_M = 3.5
-SHARE_M = 0.3  # mean distance under which two bounds become one way
+SHARE_M = 0.3  # mean distance under which two bounds become one way ...
+SHARE_ENDS_M = 0.05  # ... when their end points are this close
 LIGHT_REACH_M = 3.0  # a light line controls the lane starting this close to its start
 
 
@@ -57,12 +58,7 @@ def to_lanelet2(graph, lat0: float, lon0: float, heading: float = 0.0, lane_widt
     """The OSM XML text of ``graph`` (a LaneGraph) as a Lanelet2 map."""
     lanes = [np.asarray(l, np.float64) for l in graph.lanes]
     bounds = [[offset(l, lane_width / 2.0), offset(l, -lane_width / 2.0)] for l in lanes]  # [left, right]
-    first_pred: dict[int, int] = {}
-    for i, j in graph.successors:
-        first_pred.setdefault(int(j), int(i))
-    for j, i in first_pred.items():
-        for side in (0, 1):
-            bounds[j][side][0] = bounds[i][side][-1]
+    _join_ends(bounds, graph.successors)
     ways = _Ways()
     way_of: dict[tuple[int, int], int] = {}
     made: list[tuple[np.ndarray, int]] = []  # (bound, way id) of the ways made so far
@@ -103,10 +99,42 @@ def write_lanelet2(graph, path: str | os.PathLike, lat0: float, lon0: float, hea
     write_text_atomic(path, to_lanelet2(graph, lat0, lon0, heading, lane_width))
 
 
+def _join_ends(bounds: list[list[np.ndarray]], successors) -> None:
+    """Give every joint of the successor graph one left and one right bound point: lane ends and
+    starts joined by successor edges (transitively, so forks and merges share one joint) move to
+    the mean of their bound points."""
+    parent = list(range(2 * len(bounds)))  # 2i: start of lane i, 2i + 1: its end
+
+    def find(k: int) -> int:
+        while parent[k] != k:
+            parent[k] = parent[parent[k]]
+            k = parent[k]
+        return k
+
+    for i, j in successors:
+        parent[find(2 * int(i) + 1)] = find(2 * int(j))
+    joints: dict[int, list[int]] = {}
+    for k in range(2 * len(bounds)):
+        joints.setdefault(find(k), []).append(k)
+    for members in joints.values():
+        if len(members) < 2:
+            continue
+        for side in (0, 1):
+            ends = [(bounds[k // 2][side], 0 if k % 2 == 0 else -1) for k in members]
+            mean = np.mean([b[e] for b, e in ends], axis=0)
+            for b, e in ends:
+                b[e] = mean
+
+
 def _coincide(a: np.ndarray, b: np.ndarray) -> bool:
-    """Whether two bounds run along each other (same or opposite direction)."""
+    """Whether two bounds run along each other (same or opposite direction) and end at the same
+    points, so that sharing one way moves no joint by more than ``SHARE_ENDS_M``."""
     ra, rb = resample(a, 10), resample(b, 10)
-    return min(np.linalg.norm(ra - rb, axis=1).mean(), np.linalg.norm(ra - rb[::-1], axis=1).mean()) < SHARE_M
+    for other in (rb, rb[::-1]):
+        ends = max(np.linalg.norm(ra[0] - other[0]), np.linalg.norm(ra[-1] - other[-1]))
+        if ends < SHARE_ENDS_M and np.linalg.norm(ra - other, axis=1).mean() < SHARE_M:
+            return True
+    return False
 
 
 def _xml(ways: _Ways, relations, lat0: float, lon0: float, heading: float) -> str:
