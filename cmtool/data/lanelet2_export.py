@@ -22,6 +22,7 @@ import numpy as np
 from cmtool.data.geo import LocalProjection
 from cmtool.data.jsonio import write_text_atomic
 from cmtool.geometry import offset, resample, unit
+from cmtool.unionfind import UnionFind
 
 LANE_WIDTH_M = 3.5
 SHARE_M = 0.3  # mean distance under which two bounds become one way ...
@@ -103,26 +104,16 @@ def _join_ends(bounds: list[list[np.ndarray]], successors) -> None:
     """Give every joint of the successor graph one left and one right bound point: lane ends and
     starts joined by successor edges (transitively, so forks and merges share one joint) move to
     the mean of their bound points."""
-    parent = list(range(2 * len(bounds)))  # 2i: start of lane i, 2i + 1: its end
-
-    def find(k: int) -> int:
-        while parent[k] != k:
-            parent[k] = parent[parent[k]]
-            k = parent[k]
-        return k
-
+    ends = UnionFind(range(2 * len(bounds)))  # 2i: start of lane i, 2i + 1: its end
     for i, j in successors:
-        parent[find(2 * int(i) + 1)] = find(2 * int(j))
-    joints: dict[int, list[int]] = {}
-    for k in range(2 * len(bounds)):
-        joints.setdefault(find(k), []).append(k)
-    for members in joints.values():
+        ends.union(2 * int(i) + 1, 2 * int(j))
+    for members in ends.groups():
         if len(members) < 2:
             continue
         for side in (0, 1):
-            ends = [(bounds[k // 2][side], 0 if k % 2 == 0 else -1) for k in members]
-            mean = np.mean([b[e] for b, e in ends], axis=0)
-            for b, e in ends:
+            points = [(bounds[k // 2][side], 0 if k % 2 == 0 else -1) for k in members]
+            mean = np.mean([b[e] for b, e in points], axis=0)
+            for b, e in points:
                 b[e] = mean
 
 

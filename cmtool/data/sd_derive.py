@@ -37,6 +37,7 @@ from scipy.ndimage import median_filter
 from cmtool.data.hdmap import HDMap, Lane
 from cmtool.data.sdmap import Road, SDMap
 from cmtool.geometry import arc_length, from_frame, headings, polyline_length, resample_step, unit
+from cmtool.unionfind import UnionFind
 
 ROAD_LANE_TYPES = ("vehicle", "bus")
 MINOR_CLASSES = ("residential", "service", "unclassified")
@@ -179,31 +180,9 @@ class _Carriageway:
     road_id: str | None
 
 
-class _UnionFind:
-    def __init__(self, keys):
-        self.parent = {k: k for k in keys}
-
-    def find(self, k):
-        while self.parent[k] != k:
-            self.parent[k] = self.parent[self.parent[k]]
-            k = self.parent[k]
-        return k
-
-    def union(self, a, b):
-        ra, rb = self.find(a), self.find(b)
-        if ra != rb:
-            self.parent[rb] = ra
-
-    def groups(self) -> list[list]:
-        out = defaultdict(list)
-        for k in self.parent:
-            out[self.find(k)].append(k)
-        return list(out.values())
-
-
 def _intersections(conn: dict[str, Lane]) -> tuple[dict[str, np.ndarray], dict[str, str]]:
     """Intersection centres and the intersection of each connector lane."""
-    uf = _UnionFind(conn)
+    uf = UnionFind(conn)
     by_id = defaultdict(list)
     for i, lane in conn.items():
         if lane.intersection_id is not None:
@@ -228,7 +207,7 @@ def _intersections(conn: dict[str, Lane]) -> tuple[dict[str, np.ndarray], dict[s
 
 def _carriageway_groups(road: dict[str, Lane]) -> list[list[str]]:
     """Road lanes of one direction that belong together (see the module doc)."""
-    uf = _UnionFind(road)
+    uf = UnionFind(road)
 
     def same_road(a: Lane, b: Lane) -> bool:
         return a.road_id is None or b.road_id is None or a.road_id == b.road_id

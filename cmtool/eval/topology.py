@@ -25,6 +25,8 @@ import numpy as np
 from scipy.sparse import csr_matrix
 from scipy.sparse.csgraph import shortest_path
 
+from cmtool.unionfind import UnionFind
+
 STATISTICS = ("connectivity", "density", "reach", "convenience")
 SCALE = {"connectivity": 10.0, "density": 1.0, "reach": 1.0, "convenience": 10.0}
 
@@ -39,19 +41,10 @@ class KeypointGraph:
 
 def keypoint_graph(num_lanes: int, successors) -> KeypointGraph:
     """The keypoint graph of ``num_lanes`` lanes with successor pairs ``(a, b)``."""
-    parent = np.arange(2 * num_lanes)  # keypoint 2i: start of lane i, 2i + 1: its end
-
-    def find(k: int) -> int:
-        while parent[k] != k:
-            parent[k] = parent[parent[k]]
-            k = parent[k]
-        return k
-
+    keypoints = UnionFind(range(2 * num_lanes))  # keypoint 2i: start of lane i, 2i + 1: its end
     for a, b in successors:
-        ra, rb = find(2 * a + 1), find(2 * b)
-        if ra != rb:
-            parent[max(ra, rb)] = min(ra, rb)
-    roots = np.array([find(k) for k in range(2 * num_lanes)], dtype=np.int64)
+        keypoints.union(2 * a + 1, 2 * b)
+    roots = np.array([keypoints.find(k) for k in range(2 * num_lanes)], dtype=np.int64)
     _, ids = np.unique(roots, return_inverse=True)
     edges = np.unique(ids.reshape(-1, 2), axis=0) if num_lanes else np.zeros((0, 2), np.int64)
     return KeypointGraph(int(ids.max(initial=-1)) + 1, edges)
