@@ -28,8 +28,6 @@ from cmtool.data.jsonio import read_json, write_json, write_text_atomic
 from cmtool.data.lanegraph import LaneGraph, write_jsonl
 from cmtool.errors import CmtoolError
 from cmtool.eval.features import FeatureExtractor, sd_image
-from cmtool.eval.geometric import chamfer
-from cmtool.eval.lanes import lane_scores
 from cmtool.eval.metrics import evaluate, reference_image_features, summary_table
 from cmtool.eval.validity import check
 from cmtool.progress import Progress
@@ -74,7 +72,7 @@ def run_eval(gen: Generator, settings: EvalSettings, out: Path, extractor: Featu
               "ground_truth_validity": float(np.mean([check(g).score for g in reference]))}
     write_json(out / "metrics.json", report)
     write_text_atomic(out / "summary.md", summary_markdown(report))
-    _write_recording(out / "eval.rrd", scenes, reference, generated, rrd_samples)
+    _write_recording(out / "eval.rrd", scenes, reference, generated, results, rrd_samples)
     return report
 
 
@@ -150,11 +148,11 @@ def summary_markdown(report: dict) -> str:
                                             for k, v in methods.items()}) + "\n"
 
 
-def _write_recording(path: Path, scenes, reference, generated, rrd_samples: int) -> None:
+def _write_recording(path: Path, scenes, reference, generated, results: dict, rrd_samples: int) -> None:
     rec = open_recording(path)
     shown = min(rrd_samples, len(scenes))
     views = [rrb.Spatial2DView(origin=f"/sample_{k}", name=f"#{k} {scenes[k].city}",
-                               contents=["/sample_{k}/control/sd".format(k=k), f"/sample_{k}/{m}/**"])
+                               contents=[f"/sample_{k}/control/sd", f"/sample_{k}/{m}/**"])
              for k in range(min(shown, 4)) for m in ("unguided", "controlmap", "truth")]
     rec.send_blueprint(rrb.Blueprint(rrb.Vertical(rrb.Grid(*views, grid_columns=3),
                                                   rrb.TimeSeriesView(origin="/metrics", name="per-scene scores")),
@@ -162,13 +160,12 @@ def _write_recording(path: Path, scenes, reference, generated, rrd_samples: int)
     for k, (scene, truth) in enumerate(zip(scenes, reference)):
         rec.set_time("sample", sequence=k)
         for m in METHODS:
-            g = generated[m][k]
-            scores = lane_scores(g.lanes, truth.lanes)
-            rec.log(f"metrics/{m}/lane_f1", rr.Scalars(scores["f1"]))
-            c = chamfer(g.lanes, truth.lanes)
-            if np.isfinite(c):
-                rec.log(f"metrics/{m}/chamfer_m", rr.Scalars(c))
+            for key in ("lane_f1", "chamfer_m"):
+                value = results[m]["geometry"][key]["per_scene"][k]
+                if value is not None:
+                    rec.log(f"metrics/{m}/{key}", rr.Scalars(value))
             if k < shown:
+                g = generated[m][k]
                 log_lanes(rec, f"sample_{k}/{m}/", g.lanes, g.green_lights, g.red_lights, g.successors)
         if k < shown:
             log_sd(rec, f"sample_{k}/", scene.sd, scene.frame_m)

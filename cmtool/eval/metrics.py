@@ -94,7 +94,8 @@ def reference_image_features(graphs, extractor: FeatureExtractor) -> np.ndarray:
 
 
 def geometry(generated, reference, controls: np.ndarray | None) -> dict:
-    """Per-scene geometric scores, averaged (with the number of scenes each average covers)."""
+    """Per-scene geometric scores (``per_scene``, None where undefined) and their averages (with the
+    number of scenes each average covers)."""
     rows: dict[str, list] = {k: [] for k in ("chamfer_m", "lane_precision", "lane_recall", "lane_f1", "validity")}
     if controls is not None:
         rows.update({"sd_coverage": [], "lane_on_sd": [], "driving_side": []})
@@ -112,7 +113,8 @@ def geometry(generated, reference, controls: np.ndarray | None) -> dict:
     for k, values in rows.items():
         v = np.asarray(values, float)
         ok = ~np.isnan(v)
-        out[k] = {"mean": float(v[ok].mean()) if ok.any() else math.nan, "scenes": int(ok.sum())}
+        out[k] = {"mean": float(v[ok].mean()) if ok.any() else math.nan, "scenes": int(ok.sum()),
+                  "per_scene": [None if math.isnan(x) else round(float(x), 6) for x in v]}
     return out
 
 
