@@ -432,17 +432,33 @@ def eval_cmd(ckpt, data_dir, split, n, cfg, steps, sampler, seed, batch, out, ba
 @cli.command()
 @click.argument("maps", type=click.Path(dir_okay=False, path_type=Path))
 @click.option("--json", "json_out", type=click.Path(dir_okay=False, path_type=Path), help="Write the full report here.")
-def validate(maps, json_out):
+@click.option("--repair", is_flag=True, help="Snap near-miss joints, drop lanes under 2 m, merge duplicates; "
+              "report the repaired maps.")
+@click.option("--out", type=click.Path(dir_okay=False, path_type=Path), help="With --repair: the repaired maps (.jsonl).")
+def validate(maps, json_out, repair, out):
     """Check lane graphs (a .json scene or a .jsonl of scenes) for what planners need: dangling lanes,
     bad successor joins, crossings outside intersections, self-intersections, short lanes, kinks;
     routability; a validity score in [0, 1] per scene."""
     import numpy as np
 
     from cmtool.data.jsonio import write_json
-    from cmtool.data.lanegraph import read_jsonl
+    from cmtool.data.lanegraph import read_jsonl, write_jsonl
+    from cmtool.eval.repair import repair as repair_graph
     from cmtool.eval.validity import check
 
-    reports = [check(g) for g in read_jsonl(maps)]
+    if repair != (out is not None):
+        raise CmtoolError("--repair needs --out FILE.jsonl for the repaired maps" if repair else "--out goes with --repair")
+    graphs = read_jsonl(maps)
+    if repair:
+        repaired = [repair_graph(g) for g in graphs]
+        for i, (_, changes) in enumerate(repaired):
+            for change in changes:
+                click.echo(f"scene {i}: {change}")
+        graphs = [g for g, _ in repaired]
+        write_jsonl(out, graphs)
+        click.echo(f"wrote {len(graphs)} repaired scene{'s' if len(graphs) != 1 else ''} to {out} "
+                   f"({sum(len(c) for _, c in repaired)} changes); the report below is of the repaired maps")
+    reports = [check(g) for g in graphs]
     if not reports:
         raise CmtoolError(f"{maps}: no scenes")
     totals: dict[str, int] = {}

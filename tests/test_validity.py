@@ -88,3 +88,36 @@ def test_validate_command(tmp_path, capsys):
     assert "mean validity score 0.750" in out
     code, _, err = in_process(capsys, "validate", tmp_path / "none.jsonl")
     assert code == 1 and "no such file" in err
+
+
+def test_repair_snaps_drops_and_merges_and_reports_each_change(tmp_path, capsys):
+    import json
+
+    from cmtool.data.lanegraph import read_jsonl, write_jsonl
+    from cmtool.eval.repair import repair
+    from tests.conftest import in_process
+
+    lanes = [
+        straight(-32, 0, -1, 0),      # 0 ends 1 m short of 1: a near miss, no successor edge yet
+        straight(0, 0, 32, 0),        # 1
+        straight(10, 10, 11, 10),     # 2: a 1 m fragment
+        straight(-32, 5, 32, 5),      # 3
+        straight(-32, 5.2, 32, 5.2),  # 4: a duplicate of 3
+    ]
+    graph = LaneGraph(lanes=lanes, successors=[(4, 3)])
+    fixed, changes = repair(graph)
+    assert len(fixed.lanes) == 3 and fixed.successors == [(0, 1)]
+    assert "dropped lane 2 (1.00 m long)" in changes and "merged lane 4 into lane 3 (duplicate)" in changes
+    assert "linked lane 0 to lane 1 as its successor" in changes
+    assert any(c.startswith("snapped lane 0 end, lane 1 start to (-0.50, 0.00)") for c in changes)
+    np.testing.assert_allclose(fixed.lanes[0][-1], fixed.lanes[1][0])
+    assert check(fixed).score == 1.0 and check(graph).score < 1.0
+    write_jsonl(tmp_path / "m.jsonl", [graph])
+    code, out, err = in_process(capsys, "validate", tmp_path / "m.jsonl", "--repair", "--out", tmp_path / "r.jsonl",
+                                "--json", tmp_path / "v.json")
+    assert code == 0, err
+    assert "scene 0: dropped lane 2" in out and "(4 changes)" in out
+    assert json.loads((tmp_path / "v.json").read_text())["mean_score"] == 1.0
+    assert len(read_jsonl(tmp_path / "r.jsonl")[0].lanes) == 3
+    code, _, err = in_process(capsys, "validate", tmp_path / "m.jsonl", "--repair")
+    assert code == 1 and "--repair needs --out" in err
