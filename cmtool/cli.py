@@ -103,11 +103,7 @@ def sd(hd_map, out, origin, offset, rotation, drop_minor, seed):
     if to_osm != (origin is not None):
         raise CmtoolError("an .osm output needs --origin LAT,LON" if to_osm else "--origin goes with an .osm output")
     if to_osm:
-        from cmtool.sample.inputs import parse_points
-
-        lat0, lon0 = parse_points(origin, ("lat", "lon"), {}, "--origin")[0]
-        if not (-80.0 <= lat0 <= 80.0 and -180.0 <= lon0 <= 180.0):
-            raise CmtoolError(f"--origin {origin}: latitude must be within [-80, 80], longitude within [-180, 180]")
+        lat0, lon0 = _origin(origin)
     jitter = SDJitter(offset, rotation, drop_minor)
     sd_map = derive_sd(HDMap.load(hd_map), jitter=jitter if jitter.enabled else None, seed=seed)
     if to_osm:
@@ -247,6 +243,16 @@ def train_cmd(stage, recipe, out, resume, steps, device, quiet):
 
     final = train(STAGES[stage](rec, _device(device)), run_dir, resume=resume, progress=not quiet)
     click.echo(f"checkpoint: {final}")
+
+
+def _origin(value: str) -> tuple[float, float]:
+    """``--origin LAT,LON`` as numbers within the range the local projection serves."""
+    from cmtool.sample.inputs import parse_points
+
+    lat0, lon0 = parse_points(value, ("lat", "lon"), {}, "--origin")[0]
+    if not (-80.0 <= lat0 <= 80.0 and -180.0 <= lon0 <= 180.0):
+        raise CmtoolError(f"--origin {value}: latitude must be within [-80, 80], longitude within [-180, 180]")
+    return lat0, lon0
 
 
 def _device(name: str | None):
@@ -493,14 +499,11 @@ def export(fmt, map_path, origin, heading, scene, lane_width, out):
     from cmtool.data.jsonio import write_json
     from cmtool.data.lanegraph import read_jsonl
     from cmtool.data.lanelet2_export import write_lanelet2
-    from cmtool.sample.inputs import parse_points
 
     graphs = read_jsonl(map_path)
     if scene >= len(graphs):
         raise CmtoolError(f"{map_path}: no scene {scene} ({len(graphs)} scene{'s' if len(graphs) != 1 else ''})")
-    lat0, lon0 = parse_points(origin, ("lat", "lon"), {}, "--origin")[0]
-    if not (-80.0 <= lat0 <= 80.0 and -180.0 <= lon0 <= 180.0):
-        raise CmtoolError(f"--origin {origin}: latitude must be within [-80, 80], longitude within [-180, 180]")
+    lat0, lon0 = _origin(origin)
     if fmt == "lanelet2":
         graph = graphs[scene]
         write_lanelet2(graph, out, lat0, lon0, heading, lane_width)

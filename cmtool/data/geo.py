@@ -74,3 +74,10 @@ class LocalProjection:
                 break
         return guess.reshape(xy.shape)
 
+
+def scene_to_latlon(points, lat0: float, lon0: float, heading: float = 0.0) -> np.ndarray:
+    """Scene-frame metres (..., 2) (x forward, y left) -> (..., 2) [lat, lon], with the scene origin
+    at ``(lat0, lon0)`` and its forward axis pointing to the compass ``heading`` (degrees, 0 = north)."""
+    yaw = math.radians(90.0 - heading)  # the forward axis in east/north coordinates
+    rot = np.array([[math.cos(yaw), -math.sin(yaw)], [math.sin(yaw), math.cos(yaw)]])
+    return LocalProjection(lat0, lon0).to_latlon(np.asarray(points, np.float64) @ rot.T)

@@ -11,11 +11,9 @@ axis pointing to the compass ``heading`` (0 = north). Features, each with a ``ki
 
 from __future__ import annotations
 
-import math
-
 import numpy as np
 
-from cmtool.data.geo import LocalProjection
+from cmtool.data.geo import scene_to_latlon
 from cmtool.geometry import offset, polyline_length
 
 LANE_WIDTH_M = 3.5
@@ -23,13 +21,8 @@ LANE_WIDTH_M = 3.5
 
 def to_geojson(graph, lat0: float, lon0: float, heading: float = 0.0, lane_width: float = LANE_WIDTH_M) -> dict:
     """A FeatureCollection of ``graph`` (a LaneGraph) placed at ``(lat0, lon0)``."""
-    proj = LocalProjection(lat0, lon0)
-    yaw = math.radians(90.0 - heading)  # the scene's x axis in east/north coordinates
-    rot = np.array([[math.cos(yaw), -math.sin(yaw)], [math.sin(yaw), math.cos(yaw)]])
-
     def lonlat(points) -> list:
-        latlon = proj.to_latlon(np.asarray(points, np.float64) @ rot.T)
-        return [[round(lon, 9), round(lat, 9)] for lat, lon in latlon]
+        return [[round(lon, 9), round(lat, 9)] for lat, lon in scene_to_latlon(points, lat0, lon0, heading)]
 
     def feature(points, **props) -> dict:
         return {"type": "Feature", "geometry": {"type": "LineString", "coordinates": lonlat(points)},

@@ -13,13 +13,12 @@ lane it starts on, referenced by that lanelet. The scene frame's origin is place
 
 from __future__ import annotations
 
-import math
 import os
 from xml.sax.saxutils import quoteattr
 
 import numpy as np
 
-from cmtool.data.geo import LocalProjection
+from cmtool.data.geo import scene_to_latlon
 from cmtool.data.jsonio import write_text_atomic
 from cmtool.geometry import offset, resample, unit
 from cmtool.unionfind import UnionFind
@@ -76,12 +75,10 @@ def to_lanelet2(graph, lat0: float, lon0: float, heading: float = 0.0, lane_widt
         relations.append(([("way", way_of[(i, 0)], "left"), ("way", way_of[(i, 1)], "right")],
                           {"type": "lanelet", "subtype": "road", "location": "urban", "one_way": "yes",
                            "cmtool:lane": str(i)}))
+    starts = np.array([l[0] for l in lanes]).reshape(-1, 2)
     for state, lights in (("green", graph.green_lights), ("red", graph.red_lights)):
-        for line in lights:
+        for line in lights if len(starts) else []:
             line = np.asarray(line, np.float64)
-            starts = np.array([l[0] for l in lanes]).reshape(-1, 2)
-            if not len(starts):
-                break
             k = int(np.argmin(np.linalg.norm(starts - line[0], axis=1)))
             if np.linalg.norm(starts[k] - line[0]) > LIGHT_REACH_M:
                 continue
@@ -129,10 +126,7 @@ def _coincide(a: np.ndarray, b: np.ndarray) -> bool:
 
 
 def _xml(ways: _Ways, relations, lat0: float, lon0: float, heading: float) -> str:
-    proj = LocalProjection(lat0, lon0)
-    yaw = math.radians(90.0 - heading)
-    rot = np.array([[math.cos(yaw), -math.sin(yaw)], [math.sin(yaw), math.cos(yaw)]])
-    latlon = proj.to_latlon(np.array(ways.nodes).reshape(-1, 2) @ rot.T)
+    latlon = scene_to_latlon(np.array(ways.nodes).reshape(-1, 2), lat0, lon0, heading)
     out = ['<?xml version="1.0" encoding="UTF-8"?>', '<osm version="0.6" generator="cmtool">']
     out += [f'  <node id="{i}" lat="{lat:.10f}" lon="{lon:.10f}" version="1"/>'
             for i, (lat, lon) in enumerate(latlon, start=1)]

@@ -55,7 +55,7 @@ def cfg_sweep(gen: Generator, scenes, weights: list[float], seeds: int, steps: i
     """The sweep's rows (one per w), written with its plot and recording to ``out``."""
     sds = np.stack([s.sd for s in scenes])
     truth = [s.to_lanegraph() for s in scenes]
-    labels = [gen.label(s.city) if s.city in gen.cities else len(gen.cities) for s in scenes]
+    labels = [gen.known_label(s.city) for s in scenes]
     ref_feats = extractor(np.stack([lanes_image(t.lanes) for t in truth])) if extractor else None
     rows, maps_by_w = [], {}
     with Progress(len(weights) * seeds, "ablate cfg", "runs", enabled=progress) as bar:

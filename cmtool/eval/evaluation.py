@@ -105,7 +105,7 @@ def _generate(gen: Generator, scenes, settings: EvalSettings, cache: Path, progr
                 if m == "unguided":
                     labels, sd = [null] * len(batch), None
                 else:
-                    labels = [gen.label(s.city) if s.city in gen.cities else null for s in batch]
+                    labels = [gen.known_label(s.city) for s in batch]
                     sd = np.stack([s.sd for s in batch])
                 z = gen.sample(sd, labels, cfg=settings.cfg if m == "controlmap" else 0.0, steps=settings.steps,
                                sampler=settings.sampler, noise=noise.to(gen.device),
@@ -141,7 +141,7 @@ def summary_markdown(report: dict) -> str:
             f"- checkpoint `{s['checkpoint']}`", f"- data `{s['data']}`, split {s['split']}, {s['n']} scenes",
             f"- ControlMap: guidance w = {s['cfg']}; both: {s['steps']} {s['sampler']} steps, seed {s['seed']}, "
             "the same initial noise per scene",
-            f"- unguided: the frozen DiT without SD control or city label (the paper's SLEDGE rows)",
+            "- unguided: the frozen DiT without SD control or city label (the paper's SLEDGE rows)",
             f"- features: {backbone}; recall metrics in batches of 64, top 3, p = P(chance >= observed)",
             f"- validity score of the ground truth itself: {report['ground_truth_validity']:.3f}", "", ""]
     return "\n".join(head) + summary_table({("unguided" if k == "unguided" else "ControlMap"): v

@@ -75,6 +75,11 @@ class Generator:
                 return i
         raise CmtoolError(f"unknown city {city!r} for {self.path.name} (choose from {', '.join(self.cities)}, {NONE})")
 
+    def known_label(self, city: str | None) -> int:
+        """The label of ``city`` when the checkpoint knows it, else the null label (never an error)."""
+        known = {name.upper(): i for i, name in enumerate(self.cities)}
+        return known.get((city or "").upper(), len(self.cities))
+
     def city_name(self, label: int) -> str | None:
         return self.cities[label] if label < len(self.cities) else None
 

@@ -30,7 +30,7 @@ from cmtool.eval.validity import check
 from cmtool.geometry import polyline_length
 from cmtool.progress import Progress
 from cmtool.sample.diffusion import SAMPLERS, SamplingError
-from cmtool.sample.generator import NONE, Generator
+from cmtool.sample.generator import Generator
 from cmtool.sample.inputs import ControlInput
 from cmtool.viz.draw import graph_panel, legend, sd_panel, title_strip
 from cmtool.viz.recording import log_lanes, log_sd
@@ -89,20 +89,13 @@ def plan(gen: Generator, inputs: list[ControlInput], settings: SampleSettings) -
                           "or no SD input")
     jobs = []
     for item in inputs:
-        label = gen.label(_city(gen, item, settings.city))
+        label = gen.known_label(item.city) if settings.city.lower() == AUTO else gen.label(settings.city)
         for k in range(settings.num):
             jobs.append(Job(item.name if settings.num == 1 else f"{item.name}_s{k}", item, label, k))
     if len(jobs) > 1:
         for i, job in enumerate(jobs):
             job.prefix = f"sample_{i}/"
     return jobs
-
-
-def _city(gen: Generator, item: ControlInput, city: str) -> str | None:
-    if city.lower() != AUTO:
-        return city
-    known = {c.upper() for c in gen.cities}
-    return item.city if item.city and item.city.upper() in known else NONE
 
 
 def run_sample(gen: Generator, jobs: list[Job], settings: SampleSettings, out: Path, rrd: Path | None = None,
