@@ -165,7 +165,8 @@ def build_model(config: dict, where: str = "checkpoint") -> torch.nn.Module:
 
     kind = config["kind"]
     if kind == "rvae":
-        return RVAE(from_table(RVAEConfig, config["model"], f"{where}: ", "model."))
+        return RVAE(from_table(RVAEConfig, config["model"], f"{where}: ", "model."),
+                    encoder=config.get("weights") != "decoder")
     dit = DiT(from_table(DiTConfig, config["model"], f"{where}: ", "model."))
     if kind == "dit":
         return dit

@@ -265,10 +265,10 @@ def _device(name: str | None):
 
 
 def _checkpoint(path: Path | None) -> Path:
-    if path is None:
-        raise CmtoolError("--ckpt: no checkpoint given; pass a ControlMap run folder, e.g. one made by "
-                          "`cmtool train controlnet --recipe recipes/tiny-cpu/controlnet.toml`")
-    return path
+    """``--ckpt``, or the ControlMap shipped with the package when it is not given."""
+    from cmtool.release import bundled_checkpoint
+
+    return bundled_checkpoint() if path is None else path
 
 
 SAMPLE_HELP = """Generate lane-level HD maps from SD maps with ControlMap, recording every denoising step.
@@ -283,7 +283,8 @@ SD input (at most one kind; none: maps from the city label alone):
 
 
 @cli.command(help=SAMPLE_HELP)
-@click.option("--ckpt", type=click.Path(path_type=Path), help="ControlMap (or DiT) checkpoint or run folder.")
+@click.option("--ckpt", type=click.Path(path_type=Path),
+              help="ControlMap (or DiT) checkpoint or run folder [default: the weights shipped with cmtool].")
 @click.option("--sd", "sd_paths", multiple=True, type=click.Path(path_type=Path),
               help="SD raster / road drawing picture, or a folder of them (repeatable).")
 @click.option("--osm", type=click.Path(path_type=Path), help="OpenStreetMap .osm/.osm.pbf file.")
@@ -304,13 +305,15 @@ SD input (at most one kind; none: maps from the city label alone):
 @click.option("--out", default=Path("samples"), show_default=True, type=click.Path(file_okay=False, path_type=Path),
               help="Folder for the lane graphs and pictures.")
 @click.option("--rrd", type=click.Path(dir_okay=False, path_type=Path), help="Recording to write [default: OUT/sample.rrd].")
+@click.option("--grid", type=click.Path(dir_okay=False, path_type=Path),
+              help="Also write all maps' pictures stacked into this PNG (a gallery).")
 @click.option("--spawn", is_flag=True, help="Also stream live to a newly started Rerun viewer.")
 @click.option("--connect", "connect_url", help="Also stream live to a running viewer at this gRPC URL.")
 @click.option("--no-log", is_flag=True, help="No recording (fastest).")
 @click.option("--device", help="torch device [default: cuda when available, else cpu].")
 @click.option("--quiet", is_flag=True, help="No progress line.")
 def sample(ckpt, sd_paths, osm, center, heading, from_hd, pose, num, seed, steps, sampler, eta, city, cfg, batch, out,
-           rrd, spawn, connect_url, no_log, device, quiet):
+           rrd, grid, spawn, connect_url, no_log, device, quiet):
     import shlex
 
     from cmtool.sample import inputs as src
@@ -351,7 +354,8 @@ def sample(ckpt, sd_paths, osm, center, heading, from_hd, pose, num, seed, steps
         rrd = out / "sample.rrd"
     viewer = "spawn" if spawn else connect_url
     command = shlex.join(["cmtool", *sys.argv[1:]])
-    maps = run_sample(gen, jobs, settings, out, None if no_log else rrd, viewer, command, progress=not quiet)
+    maps = run_sample(gen, jobs, settings, out, None if no_log else rrd, viewer, command, progress=not quiet,
+                      grid=grid)
     click.echo(summary_table(maps))
     click.echo(f"wrote {len(maps)} lane graph{'s' if len(maps) > 1 else ''} and picture{'s' if len(maps) > 1 else ''} "
                f"to {out}" + ("" if no_log or rrd is None else f"; recording {rrd}"))
@@ -393,7 +397,8 @@ def metrics(generated, reference, control, json_out, backbone, weights, no_featu
 
 
 @cli.command("eval")
-@click.option("--ckpt", type=click.Path(path_type=Path), help="ControlMap checkpoint or run folder.")
+@click.option("--ckpt", type=click.Path(path_type=Path),
+              help="ControlMap checkpoint or run folder [default: the weights shipped with cmtool].")
 @click.option("--data", "data_dir", required=True, type=click.Path(file_okay=False, path_type=Path),
               help="Dataset cache (cmtool data build).")
 @click.option("--split", default="test", show_default=True, help="Split to evaluate on.")
@@ -499,6 +504,7 @@ def export(fmt, map_path, origin, heading, scene, lane_width, out):
     from cmtool.data.jsonio import write_json
     from cmtool.data.lanegraph import read_jsonl
     from cmtool.data.lanelet2_export import write_lanelet2
+    from cmtool.eval.validity import check
 
     graphs = read_jsonl(map_path)
     if scene >= len(graphs):
@@ -509,6 +515,13 @@ def export(fmt, map_path, origin, heading, scene, lane_width, out):
         write_lanelet2(graph, out, lat0, lon0, heading, lane_width)
         click.echo(f"{out}: {len(graph.lanes)} lanelets, {len(graph.successors)} successor joins, "
                    f"{len(graph.green_lights) + len(graph.red_lights)} light lines")
+        report = check(graph)
+        bad = {i for p in report.problems for i in p.lanes}
+        if bad:
+            click.echo(f"warning: {len(bad)} of {len(graph.lanes)} lanes have validity problems ("
+                       + ", ".join(f"{k} {v}" for k, v in sorted(report.counts().items()))
+                       + "); Lanelet2 may orient the bounds of sharply turning lanes the wrong way and then "
+                         "not route through them (see cmtool validate)", err=True)
         return
     collection = to_geojson(graphs[scene], lat0, lon0, heading, lane_width)
     write_json(out, collection)
@@ -548,7 +561,8 @@ def _floats(value: str, option: str) -> list[float]:
 
 
 _ABLATE_COMMON = [
-    click.option("--ckpt", type=click.Path(path_type=Path), help="ControlMap checkpoint or run folder."),
+    click.option("--ckpt", type=click.Path(path_type=Path),
+                 help="ControlMap checkpoint or run folder [default: the weights shipped with cmtool]."),
     click.option("--data", "data_dir", required=True, type=click.Path(file_okay=False, path_type=Path),
                  help="Dataset cache whose scenes give the SD maps."),
     click.option("--split", default="test", show_default=True),
@@ -612,7 +626,8 @@ def bench():
 
 
 @bench.command("sample")
-@click.option("--ckpt", type=click.Path(path_type=Path), help="ControlMap (or DiT) checkpoint or run folder.")
+@click.option("--ckpt", type=click.Path(path_type=Path),
+              help="ControlMap (or DiT) checkpoint or run folder [default: the weights shipped with cmtool].")
 @click.option("--sd", "sd_path", type=click.Path(path_type=Path), help="SD input [default: a procedural crossing].")
 @click.option("--steps", default=50, show_default=True, type=click.IntRange(min=1), help="Denoising steps.")
 @click.option("--cfg", default=1.0, show_default=True, help="Guidance weight.")
@@ -644,13 +659,37 @@ def bench_sample_cmd(ckpt, sd_path, steps, cfg, batch, repeats, device):
 
 
 @cli.command()
-@click.argument("path", type=click.Path(path_type=Path))
+@click.argument("path", required=False, type=click.Path(path_type=Path))
 @click.option("--json", "as_json", is_flag=True, help="Print the checkpoint's full config as JSON.")
 def info(path, as_json):
-    """What a checkpoint (or run folder) holds, or the model sizes a recipe defines."""
-    from cmtool.info import describe
+    """What a checkpoint (or run folder) holds, or the model sizes a recipe defines.
 
+    Without PATH: the models shipped with cmtool.
+    """
+    from cmtool.info import describe
+    from cmtool.release import BUNDLED, bundled_checkpoint
+
+    if path is None:
+        click.echo(describe(bundled_checkpoint(), as_json=as_json))
+        click.echo("")
+        click.echo(describe(BUNDLED / "rvae", as_json=as_json))
+        return
     click.echo(describe(path, as_json=as_json))
+
+
+@cli.command()
+@click.option("--ckpt", required=True, type=click.Path(path_type=Path), help="ControlMap checkpoint or run folder.")
+@click.option("--out", default=None, type=click.Path(file_okay=False, path_type=Path),
+              help="Folder to write [default: the package's own cmtool/weights].")
+def pack(ckpt, out):
+    """Pack a trained ControlMap (and its RVAE's decoder) as float16 weights to ship with cmtool."""
+    from cmtool.release import BUNDLED, MANIFEST, pack as pack_release
+
+    out = out or BUNDLED
+    manifest = pack_release(ckpt, out)
+    for name, f in manifest["files"].items():
+        click.echo(f"{out / name}  {f['bytes'] / 1e6:.2f} MB  sha256 {f['sha256'][:16]}...")
+    click.echo(f"total {manifest['total_bytes'] / 1e6:.2f} MB; checksums in {out / MANIFEST}")
 
 
 def main(argv=None) -> None:

@@ -62,6 +62,16 @@ def describe(path: Path, as_json: bool = False) -> str:
         rows.append(("trained", f"{format_seconds(tr.get('time_s', 0))} on {tr.get('hardware', '?')}, "
                                 f"{tr.get('samples', 0):,} samples, torch {tr.get('torch', '?')}"))
     rows.append(("recipe", config.get("recipe_path") or "?"))
+    dit = config.get("dit_training")
+    if dit and dit.get("training"):
+        tr = dit["training"]
+        rows.append(("DiT trained", f"{format_seconds(tr.get('time_s', 0))} on {tr.get('hardware', '?')}, "
+                                    f"{dit.get('step')} steps, {tr.get('samples', 0):,} samples, "
+                                    f"recipe {dit.get('recipe_path') or '?'}"))
+    if config.get("weights") == "decoder":
+        rows.append(("weights", "decoder only (latent -> lanes), as shipped; encoding needs the training run"))
+    if config.get("packed_from"):
+        rows.append(("packed from", config["packed_from"]))
     for key in ("data", "rvae", "dit"):
         if key in config:
             rows.append((key, config[key]))

@@ -84,6 +84,15 @@ def test_lanelet2_export_loads_back_with_our_importer(tmp_path, capsys):
     assert len(hd.stop_lines) == 1 and hd.stop_lines[0].lane_ids == ["2"]
 
 
+def test_lanelet2_export_warns_about_lanes_that_fail_validation(tmp_path, capsys):
+    hairpin = np.array([[-32.0, 0.0], [0.0, 0.0], [0.5, 1.0], [-32.0, 1.5]])
+    write_jsonl(tmp_path / "s.jsonl", [LaneGraph(lanes=[hairpin, np.array([[-32.0, -5.0], [32.0, -5.0]])])])
+    code, out, err = in_process(capsys, "export", "--format", "lanelet2", tmp_path / "s.jsonl", "--origin", "49,8",
+                                "--out", tmp_path / "s.osm")
+    assert code == 0 and "2 lanelets" in out
+    assert "warning: 1 of 2 lanes have validity problems (kink 1)" in err
+
+
 def test_lanelet2_package_routes_the_exported_map(tmp_path):
     lanelet2 = pytest.importorskip("lanelet2")
     from lanelet2.io import Origin
@@ -101,6 +110,38 @@ def test_lanelet2_package_routes_the_exported_map(tmp_path):
     following = {(i, int(f.attributes["cmtool:lane"])) for i, ll in lane.items() for f in graph.following(ll)}
     assert following == {(0, 1), (2, 3)}  # the lane graph's successor pairs
     assert graph.right(lane[0]) is not None and int(graph.right(lane[0]).attributes["cmtool:lane"]) == 2
+
+
+def lanelet2_successors(path, lat0, lon0):
+    """(lanelet count, successor pairs by cmtool:lane) as the `lanelet2` package's routing graph sees them."""
+    lanelet2 = pytest.importorskip("lanelet2")
+    from lanelet2.io import Origin
+    from lanelet2.projection import UtmProjector
+
+    lanelet_map, errors = lanelet2.io.loadRobust(str(path), UtmProjector(Origin(lat0, lon0)))
+    assert errors == []
+    rules = lanelet2.traffic_rules.create(lanelet2.traffic_rules.Locations.Germany,
+                                          lanelet2.traffic_rules.Participants.Vehicle)
+    graph = lanelet2.routing.RoutingGraph(lanelet_map, rules)
+    lane = {int(ll.attributes["cmtool:lane"]): ll for ll in lanelet_map.laneletLayer}
+    return len(lane), {(i, int(f.attributes["cmtool:lane"])) for i, ll in lane.items() for f in graph.following(ll)}
+
+
+def test_procedural_scenes_route_the_same_in_the_lanelet2_package(tmp_path):
+    pytest.importorskip("lanelet2")
+    from cmtool.data.lanelet2_export import write_lanelet2
+    from cmtool.data.scene import SceneCropper, sample_poses
+    from cmtool.data.synth import generate_city
+
+    for city in ("LAV", "SGP", "BOS"):
+        hd = generate_city(city, seed=2, extent=300.0)
+        cropper = SceneCropper(hd)
+        for pose in sample_poses(hd, 2, np.random.default_rng(1)):
+            graph = cropper.extract(pose, num_lines=300, num_lights=50).to_lanegraph()
+            write_lanelet2(graph, tmp_path / "rt.osm", 1.3, 103.8)
+            count, following = lanelet2_successors(tmp_path / "rt.osm", 1.3, 103.8)
+            assert count == len(graph.lanes)
+            assert following == {(int(i), int(j)) for i, j in graph.successors}
 
 
 def test_procedural_scenes_keep_every_lane_and_successor_through_lanelet2(tmp_path):

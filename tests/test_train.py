@@ -3,6 +3,7 @@ checkpoints, exact resume after kill -9, DDP on two CPU processes, and `cmtool i
 
 import json
 import os
+import shutil
 import signal
 import subprocess
 import sys
@@ -131,6 +132,18 @@ def test_resume_after_kill_matches_an_uninterrupted_run(runs, tmp_path):
     sa = load_file(str(ckpt.resolve(straight) / ckpt.STATE))
     sb = load_file(str(ckpt.resolve(crashed) / ckpt.STATE))
     assert all(torch.equal(sa[k], sb[k]) for k in sa)
+
+
+def test_finished_controlnet_run_extends_with_resume_and_more_steps(runs, tmp_path):
+    run = tmp_path / "controlnet"
+    shutil.copytree(runs["controlnet"], run)
+    recipe = runs["controlnet_recipe"]
+    same = cli("train", "controlnet", "--recipe", recipe, "--out", run, "--resume", "--quiet")
+    assert same.returncode == 0 and "already complete at step 4" in same.stderr
+    longer = cli("train", "controlnet", "--recipe", recipe, "--out", run, "--resume", "--steps", "6", "--quiet")
+    assert longer.returncode == 0, longer.stderr
+    config = ckpt.load_config(run)
+    assert config["step"] == 6 and config["complete"] and config["training"]["samples"] == 6 * 4
 
 
 def test_ddp_two_cpu_processes_keep_replicas_identical(runs, tmp_path):

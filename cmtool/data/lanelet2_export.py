@@ -36,10 +36,29 @@ class _Ways:
         self.node_ids: dict[tuple[int, int], int] = {}
         self.nodes: list[np.ndarray] = []
         self.ways: list[tuple[list[int], dict]] = []
+        self.aliases: dict[tuple[int, int], tuple[int, int]] = {}
+
+    @staticmethod
+    def _key(p: np.ndarray) -> tuple[int, int]:
+        return round(float(p[0]) * 1000), round(float(p[1]) * 1000)
+
+    def alias(self, p: np.ndarray, q: np.ndarray) -> None:
+        """Make point ``p`` the same node as ``q`` (a shared bound's end, within ``SHARE_ENDS_M``)."""
+        key, target = self._key(p), self._key(q)
+        seen = {key}
+        while target in self.aliases and target not in seen:
+            seen.add(target)
+            target = self.aliases[target]
+        if target not in seen and key not in self.aliases:
+            self.aliases[key] = target
 
     def node(self, p: np.ndarray) -> int:
-        key = (round(float(p[0]) * 1000), round(float(p[1]) * 1000))
+        key = self._key(p)
+        if key in self.aliases:
+            key, p = self.aliases[key], None
         if key not in self.node_ids:
+            if p is None:
+                p = np.array(key, np.float64) / 1000.0
             self.node_ids[key] = len(self.nodes) + 1
             self.nodes.append(np.asarray(p, np.float64))
         return self.node_ids[key]
@@ -60,16 +79,22 @@ def to_lanelet2(graph, lat0: float, lon0: float, heading: float = 0.0, lane_widt
     bounds = [[offset(l, lane_width / 2.0), offset(l, -lane_width / 2.0)] for l in lanes]  # [left, right]
     _join_ends(bounds, graph.successors)
     ways = _Ways()
-    way_of: dict[tuple[int, int], int] = {}
-    made: list[tuple[np.ndarray, int]] = []  # (bound, way id) of the ways made so far
+    owner: dict[tuple[int, int], tuple[int, int]] = {}  # bound -> the first bound it coincides with
     for i in range(len(lanes)):
         for side in (0, 1):
             b = bounds[i][side]
-            shared = next((w for other, w in made if _coincide(b, other)), None)
-            if shared is None:
-                shared = ways.way(b, type="line_thin", subtype="dashed")
-                made.append((b, shared))
-            way_of[(i, side)] = shared
+            owner[(i, side)] = (i, side)
+            for key in dict.fromkeys(owner.values()):
+                other = bounds[key[0]][key[1]]
+                flip = _coincide(b, other)
+                if key != (i, side) and flip is not None:
+                    owner[(i, side)] = key
+                    ways.alias(b[0], other[-1] if flip else other[0])  # joints this bound ends at
+                    ways.alias(b[-1], other[0] if flip else other[-1])  # become the shared way's ends
+                    break
+    made = {key: ways.way(bounds[key[0]][key[1]], type="line_thin", subtype="dashed")
+            for key in dict.fromkeys(owner.values())}
+    way_of = {bound: made[key] for bound, key in owner.items()}
     relations = []
     for i in range(len(lanes)):
         relations.append(([("way", way_of[(i, 0)], "left"), ("way", way_of[(i, 1)], "right")],
@@ -114,15 +139,16 @@ def _join_ends(bounds: list[list[np.ndarray]], successors) -> None:
                 b[e] = mean
 
 
-def _coincide(a: np.ndarray, b: np.ndarray) -> bool:
-    """Whether two bounds run along each other (same or opposite direction) and end at the same
-    points, so that sharing one way moves no joint by more than ``SHARE_ENDS_M``."""
+def _coincide(a: np.ndarray, b: np.ndarray) -> bool | None:
+    """Whether two bounds run along each other and end at the same points, so that sharing one way
+    moves no joint by more than ``SHARE_ENDS_M``: False when in the same direction, True when in
+    opposite directions, None when they do not coincide."""
     ra, rb = resample(a, 10), resample(b, 10)
-    for other in (rb, rb[::-1]):
+    for flip, other in ((False, rb), (True, rb[::-1])):
         ends = max(np.linalg.norm(ra[0] - other[0]), np.linalg.norm(ra[-1] - other[-1]))
         if ends < SHARE_ENDS_M and np.linalg.norm(ra - other, axis=1).mean() < SHARE_M:
-            return True
-    return False
+            return flip
+    return None
 
 
 def _xml(ways: _Ways, relations, lat0: float, lon0: float, heading: float) -> str:

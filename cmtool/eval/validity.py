@@ -8,8 +8,9 @@ Problems (each names its lanes and a position, ego-frame metres):
 - ``crossing``: two lanes that cross away from any intersection (a crossing counts as inside an
   intersection when one of the lanes starts or ends at a fork or merge of the graph, or the
   crossing lies within 20 m of one);
-- ``self_intersection``, ``short`` (under 2 m) and ``kink`` (a turn radius under 4 m, measured on
-  the lane resampled every metre).
+- ``self_intersection``, ``short`` (under 2 m) and ``kink`` (a turn radius under 4 m: at each
+  vertex, the mean length of its segments (the shorter one at a corner of over 45 degrees) over
+  the angle it turns, on vertices thinned to at least 2 m apart, corners always kept).
 
 Routability: the share of ordered lane pairs (i, j), i != j, with a path from i to j along
 successor edges, and the size of the largest strongly connected set of lanes (scipy's csgraph).
@@ -29,7 +30,7 @@ from scipy.sparse.csgraph import connected_components, shortest_path
 from shapely import STRtree
 from shapely.geometry import LineString
 
-from cmtool.geometry import polyline_length, resample_step, unit
+from cmtool.geometry import polyline_length, unit
 
 MAX_GAP_M, MAX_TURN_DEG = 1.5, 60.0
 MIN_LENGTH_M, MIN_RADIUS_M = 2.0, 4.0
@@ -111,17 +112,46 @@ def check(graph) -> Validity:
 
 
 def _min_radius(lane: np.ndarray) -> tuple[float, np.ndarray]:
-    """Smallest circumradius of consecutive point triples of the lane resampled every metre."""
-    p = resample_step(lane, 1.0)
+    """Smallest turn radius along the lane: at each vertex, the mean length of its two segments (the
+    shorter one at a corner) over the angle it turns by, on the vertices thinned to at least 2 m
+    apart with corners (turns over 45 degrees) always kept, so sparse and dense samplings of one
+    curve measure alike and a corner reads as sharp however long its sides."""
+    corner = np.radians(45.0)
+    p = _thinned(lane, 2.0, corner)
     if len(p) < 3:
         return float("inf"), lane[0]
-    a, b, c = p[:-2], p[1:-1], p[2:]
-    ab, bc, ca = (np.linalg.norm(b - a, axis=1), np.linalg.norm(c - b, axis=1), np.linalg.norm(a - c, axis=1))
-    cross = np.abs((b - a)[:, 0] * (c - a)[:, 1] - (b - a)[:, 1] * (c - a)[:, 0])
-    with np.errstate(divide="ignore", invalid="ignore"):
-        radius = np.where(cross > 1e-9, ab * bc * ca / (2.0 * cross), np.inf)
+    turn, seg = _turns(p)
+    legs = np.where(turn > corner, np.minimum(seg[:-1], seg[1:]), (seg[:-1] + seg[1:]) / 2.0)
+    with np.errstate(divide="ignore"):
+        radius = np.where(turn > 1e-9, legs / turn, np.inf)
     k = int(np.argmin(radius))
-    return float(radius[k]), b[k]
+    return float(radius[k]), p[k + 1]
+
+
+def _turns(line: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """The angle each interior vertex turns by, and the segment lengths."""
+    d = np.diff(line, axis=0)
+    seg = np.linalg.norm(d, axis=1)
+    cos = np.einsum("ij,ij->i", d[:-1], d[1:]) / np.maximum(seg[:-1] * seg[1:], 1e-12)
+    return np.arccos(np.clip(cos, -1.0, 1.0)), seg
+
+
+def _thinned(line: np.ndarray, spacing: float, corner: float) -> np.ndarray:
+    """The vertices of ``line`` with each kept one at least ``spacing`` from the one before, except
+    that vertices turning by more than ``corner`` are always kept; the last vertex replaces a kept
+    one closer than that."""
+    line = line[np.r_[True, np.linalg.norm(np.diff(line, axis=0), axis=1) > 1e-9]]
+    sharp = np.r_[False, _turns(line)[0] > corner, False] if len(line) >= 3 else np.zeros(len(line), bool)
+    keep = [0]
+    for i in range(1, len(line)):
+        if sharp[i] or np.linalg.norm(line[i] - line[keep[-1]]) >= spacing:
+            keep.append(i)
+    if keep[-1] != len(line) - 1:
+        if len(keep) > 1 and not sharp[keep[-1]]:
+            keep[-1] = len(line) - 1
+        else:
+            keep.append(len(line) - 1)
+    return line[keep]
 
 
 def _turn_deg(a: np.ndarray, b: np.ndarray) -> float:

@@ -81,11 +81,13 @@ class LineHead(nn.Module):
 class RVAE(nn.Module):
     """HD raster (B, C, H, W) -> latent posterior (B, 64, 8, 8) -> scene vectors."""
 
-    def __init__(self, cfg: RVAEConfig):
+    def __init__(self, cfg: RVAEConfig, encoder: bool = True):
         super().__init__()
         self.cfg = cfg
-        self.trunk, trunk_channels = encoder_trunk(cfg.backbone, cfg.in_channels, cfg.raster_px, cfg.latent_size)
-        self.to_latent = nn.Conv2d(trunk_channels, 2 * cfg.latent_channels, kernel_size=3, padding=1)
+        self.trunk = self.to_latent = None  # without an encoder (the released decoder-only weights)
+        if encoder:
+            self.trunk, trunk_channels = encoder_trunk(cfg.backbone, cfg.in_channels, cfg.raster_px, cfg.latent_size)
+            self.to_latent = nn.Conv2d(trunk_channels, 2 * cfg.latent_channels, kernel_size=3, padding=1)
 
         self.token_proj = nn.Linear(cfg.latent_channels, cfg.d_model)
         self.register_buffer("pos", sine_position_encoding(cfg.latent_size, cfg.d_model), persistent=False)
@@ -97,6 +99,9 @@ class RVAE(nn.Module):
 
     def encode(self, raster: Tensor) -> tuple[Tensor, Tensor]:
         """Raster (B, C, H, W) -> posterior mean and log-variance, each (B, latent_channels, S, S)."""
+        if self.trunk is None:
+            raise CmtoolError("this RVAE holds its decoder only (the released weights); encoding HD rasters "
+                              "needs a full RVAE checkpoint from `cmtool train rvae`")
         if tuple(raster.shape[1:]) != (self.cfg.in_channels, self.cfg.raster_px, self.cfg.raster_px):
             raise ValueError(f"expected rasters of shape (B, {self.cfg.in_channels}, {self.cfg.raster_px}, "
                              f"{self.cfg.raster_px}), got {tuple(raster.shape)}")

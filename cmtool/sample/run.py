@@ -99,9 +99,11 @@ def plan(gen: Generator, inputs: list[ControlInput], settings: SampleSettings) -
 
 
 def run_sample(gen: Generator, jobs: list[Job], settings: SampleSettings, out: Path, rrd: Path | None = None,
-               viewer: str | None = None, command: str = "", progress: bool = True) -> list[SampledMap]:
+               viewer: str | None = None, command: str = "", progress: bool = True,
+               grid: Path | None = None) -> list[SampledMap]:
     """Generate every job's map, write its files to ``out`` and (unless ``rrd`` and ``viewer`` are
-    None) record every step; ``viewer`` is "spawn" or a Rerun gRPC URL to stream to live."""
+    None) record every step; ``viewer`` is "spawn" or a Rerun gRPC URL to stream to live; ``grid``
+    is a PNG that gets all maps' pictures stacked."""
     written: list[Path] = []
     rec = None
     created = not out.exists()
@@ -111,8 +113,12 @@ def run_sample(gen: Generator, jobs: list[Job], settings: SampleSettings, out: P
             rec = sampling_recording(rrd, viewer, written)
             log_run_header(rec, gen, jobs, settings, command)
         maps = generate_maps(gen, jobs, settings, rec, progress)
-        for m in maps:
-            _write_map(out, m, settings, written)
+        bodies = [_write_map(out, m, settings, written) for m in maps]
+        if grid is not None:
+            gap = np.full((4, bodies[0].shape[1], 3), 12, np.uint8)
+            stacked = np.concatenate([x for body in bodies for x in (body, gap)][:-1], axis=0)
+            written.append(grid)
+            _write_png(grid, np.concatenate([stacked, legend(stacked.shape[1])], axis=0))
         if rec is not None:
             rec.flush()
             rec.disconnect()
@@ -229,8 +235,9 @@ def log_run_header(rec, gen: Generator, jobs: list[Job], settings: SampleSetting
                       static=True)
 
 
-def _write_map(out: Path, m: SampledMap, settings: SampleSettings, written: list[Path]) -> None:
-    """Write a map's lane graph JSON, ground truth JSON (when known) and picture; record the paths."""
+def _write_map(out: Path, m: SampledMap, settings: SampleSettings, written: list[Path]) -> np.ndarray:
+    """Write a map's lane graph JSON, ground truth JSON (when known) and picture; record the paths.
+    Returns the picture without its legend."""
     written.append(out / f"{m.job.name}.json")
     write_json(written[-1], m.graph.to_json())
     truth = m.job.source.truth
@@ -247,12 +254,16 @@ def _write_map(out: Path, m: SampledMap, settings: SampleSettings, written: list
     tiles = [np.concatenate([title_strip(t, PANEL), img], axis=0) for t, img in panels]
     gap = np.full((tiles[0].shape[0], 4, 3), 12, np.uint8)
     body = np.concatenate([x for tile in tiles for x in (tile, gap)][:-1], axis=1)
-    picture = np.concatenate([body, legend(body.shape[1])], axis=0)
+    written.append(out / f"{m.job.name}.png")
+    _write_png(written[-1], np.concatenate([body, legend(body.shape[1])], axis=0))
+    return body
+
+
+def _write_png(path: Path, picture: np.ndarray) -> None:
     ok, png = cv2.imencode(".png", cv2.cvtColor(picture, cv2.COLOR_RGB2BGR))
     if not ok:
-        raise CmtoolError(f"{out / m.job.name}.png: could not encode the picture")
-    written.append(out / f"{m.job.name}.png")
-    with atomic_open(written[-1], "wb") as f:
+        raise CmtoolError(f"{path}: could not encode the picture")
+    with atomic_open(path, "wb") as f:
         f.write(png.tobytes())
 
 

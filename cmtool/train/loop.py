@@ -9,6 +9,7 @@ Rerun recording of the run (``train/loss``, ``train/lr``, ``train/grad_norm``, p
 
 from __future__ import annotations
 
+import json
 import math
 from abc import ABC, abstractmethod
 import sys
@@ -131,8 +132,9 @@ def _resume_point(run_dir: Path, resume: bool, kind: str, model_config: dict) ->
         return None
     last = found[-1]
     config = ckpt.load_config(last)
-    if config["kind"] != kind or config.get("model") != model_config.get("model") \
-            or config.get("control") != model_config.get("control"):
+    wanted = json.loads(json.dumps(model_config, default=str))  # as stored: tuples become lists
+    if config["kind"] != kind or config.get("model") != wanted.get("model") \
+            or config.get("control") != wanted.get("control"):
         raise CmtoolError(f"{last}: this run was trained with another model; --resume needs the same recipe")
     if not (last / ckpt.STATE).is_file():
         raise CmtoolError(f"{last}: no training state to resume from")
@@ -161,7 +163,7 @@ def train(stage: Stage, run_dir: Path, resume: bool = False, progress: bool = Tr
         ckpt.load_weights(ema.module, last / ckpt.WEIGHTS)
         ema.n_averaged.fill_(config["step"])
         start, record = config["step"], config["training"]
-        if config.get("complete"):
+        if config.get("complete") and start >= t.steps:
             if info.main:
                 print(f"{run_dir}: training already complete at step {start}", file=sys.stderr)
             D.cleanup()

@@ -49,16 +49,45 @@ def bezier(p0, p1, p2, p3, n: int) -> np.ndarray:
 def hermite(p0: np.ndarray, d0: np.ndarray, p1: np.ndarray, d1: np.ndarray, step: float = 2.0) -> np.ndarray:
     """Smooth curve from ``p0`` leaving along unit ``d0`` to ``p1`` arriving along unit ``d1``.
 
-    The handle lengths are those of a cubic Bezier approximating a circular arc that turns by the
-    angle between ``d0`` and ``d1``, so turns come out round; points about every ``step`` metres.
+    Where the two lines meet at a corner ahead, the curve is the widest round turn that fits: straight
+    along the longer leg until both legs are equal, then a cubic Bezier approximating a circular arc.
+    Otherwise (an S-bend) the Bezier's handles follow the chord. Points about every ``step`` metres.
     """
-    chord = float(np.linalg.norm(p1 - p0))
     turn = min(float(np.arccos(np.clip(np.dot(d0, d1), -1.0, 1.0))), np.radians(170.0))
-    k = chord / 3 if turn < 1e-3 else chord * (2 / 3) * np.tan(turn / 4) / np.sin(turn / 2)
-    n = max(6, int(np.ceil((chord + 2 * k) / step)) + 1)
-    curve = bezier(p0, p0 + k * d0, p1 - k * d1, p1, n)
-    curve[0], curve[-1] = p0, p1
-    return curve
+    corner = _corner(p0, d0, p1, d1) if turn > np.radians(10.0) else None
+    if corner is None:
+        chord = float(np.linalg.norm(p1 - p0))
+        k = chord / 3 if turn < 1e-3 else chord * (2 / 3) * np.tan(turn / 4) / np.sin(turn / 2)
+        return _sampled([p0], p0, p0 + k * d0, p1 - k * d1, p1, [p1], step)
+    leg = min(corner)
+    q0, q1 = p0 + (corner[0] - leg) * d0, p1 - (corner[1] - leg) * d1
+    k = leg * (4 / 3) * np.tan(turn / 4) / np.tan(turn / 2)
+    return _sampled(_straight(p0, q0, step), q0, q0 + k * d0, q1 - k * d1, q1, _straight(p1, q1, step)[::-1], step)
+
+
+def _straight(a: np.ndarray, b: np.ndarray, step: float) -> list[np.ndarray]:
+    """Points from ``a`` towards ``b`` (``b`` excluded) about every ``step`` metres."""
+    n = int(np.ceil(np.linalg.norm(b - a) / step))
+    return [a + (b - a) * i / n for i in range(n)]
+
+
+def _sampled(head, c0, c1, c2, c3, tail, step: float) -> np.ndarray:
+    """``head`` points, then the Bezier ``c0..c3``, then ``tail`` points, without repeated points."""
+    n = max(6, int(np.ceil(float(np.linalg.norm(c1 - c0) + np.linalg.norm(c2 - c1) + np.linalg.norm(c3 - c2))
+                           / step)) + 1)
+    pts = np.concatenate([np.reshape(head, (-1, 2)), bezier(c0, c1, c2, c3, n), np.reshape(tail, (-1, 2))])
+    keep = np.r_[True, np.linalg.norm(np.diff(pts, axis=0), axis=1) > 1e-6]
+    return pts[keep]
+
+
+def _corner(p0, d0, p1, d1) -> tuple[float, float] | None:
+    """Distances from ``p0`` forward along ``d0`` and back from ``p1`` along ``d1`` to where the two
+    lines meet, or None when they do not meet ahead of ``p0`` and behind ``p1``."""
+    a = np.array([d0, d1]).T
+    if abs(np.linalg.det(a)) < 1e-9:
+        return None
+    t0, t1 = np.linalg.solve(a, p1 - p0)
+    return (float(t0), float(t1)) if t0 > 0 and t1 > 0 else None
 
 
 def round_corner(a: np.ndarray, b: np.ndarray, radius: float) -> np.ndarray:

@@ -8,7 +8,7 @@ import numpy as np
 
 from cmtool.data.hdmap import Crosswalk, HDMap, Lane, StopLine
 from cmtool.data.synth.curves import cut, end_tangents, hermite, point_and_tangent
-from cmtool.data.synth.network import CROSSWALK, Network, Road
+from cmtool.data.synth.network import CROSSWALK, MAX_TURN, Network, Road
 from cmtool.geometry import offset, wrap_angle
 
 THROUGH = np.radians(45.0)  # an exit within this angle of the approach heading is straight on
@@ -71,11 +71,14 @@ def _connect(hd: HDMap, node: int, approach: list[Lane], exits: list[list[Lane]]
     near-side turn (right for right-hand traffic) from the outermost to the outermost lane, the
     far-side turn from the innermost to the innermost lane. Without a straight-on exit the inner
     half of the lanes turns to the far side and the outer half to the near side (all of them where
-    only one side has exits). No U-turns onto the approach's own road.
+    only one side has exits). No U-turns onto the approach's own road, and no turns sharper than
+    ``MAX_TURN``.
     """
     heading_in = _heading(end_tangents(approach[0].centerline)[1])
     exits = [e for e in exits if e[0].road_id != approach[0].road_id]
     turn = np.array([wrap_angle(_heading(end_tangents(e[0].centerline)[0]) - heading_in) for e in exits])
+    if degree > 2:
+        exits, turn = [e for e, a in zip(exits, turn) if abs(a) <= MAX_TURN], turn[np.abs(turn) <= MAX_TURN]
     through = int(np.argmin(np.abs(turn))) if len(turn) and np.abs(turn).min() < THROUGH else -1
     near = turn * hand < 0
     n_in = len(approach)

@@ -23,6 +23,8 @@ MIN_ANGLE = np.radians(30.0)  # arms meeting at a node closer than this are not 
 HAIRPIN = np.radians(60.0)  # degree-2 nodes whose arms meet closer than this are removed
 MERGE_DEFLECTION = np.radians(40.0)  # degree-2 nodes bending less than this are merged away
 MARGIN = 3.0  # gap between a road's lanes and the crossing road's edge (m)
+TURN_RADIUS = 6.0  # smallest radius of a turn between two arms of a junction (m)
+MAX_TURN = np.radians(135.0)  # sharper turns between two arms of a junction get no connector
 CROSSWALK = 3.0  # crosswalk depth (m)
 MIN_LANE = 8.0  # shortest road lane kept (m)
 
@@ -361,7 +363,8 @@ def _passable(node: int, rs: list[Road]) -> bool:
 
 def _set_setbacks(roads: list[Road], crosswalks: set[int]) -> None:
     """Stop each road's lanes far enough from a junction that they clear every other arm there
-    (plus a margin, plus room for a crosswalk); dead ends get no setback."""
+    by a margin, and that a turn into any other arm (up to ``MAX_TURN``) has room for a radius of
+    ``TURN_RADIUS`` (plus room for a crosswalk); dead ends get no setback."""
     for n, rs in _incidence(roads).items():
         if len(rs) < 2:
             rs[0].set_setback(n, 0.0)
@@ -370,9 +373,15 @@ def _set_setbacks(roads: list[Road], crosswalks: set[int]) -> None:
         h = np.array([r.half_width for r in rs])
         cos = np.clip(d @ d.T, -1.0, 1.0)
         sin = np.maximum(np.sqrt(1.0 - cos**2), 0.1)
-        need = np.where(cos > 0, (h[None, :] + h[:, None] * cos) / sin, h[None, :])
+        clear = np.where(cos > 0, (h[None, :] + h[:, None] * cos) / sin, h[None, :])
+        # the outermost lanes of two arms at angle a meet at a corner; a turn of radius R between
+        # them needs R / tan(a / 2) of lane before that corner, which lies half a lane inside `clear`
+        half_lane = np.array([r.width / 2 for r in rs])
+        turn = (TURN_RADIUS * (1.0 + cos) - half_lane[None, :] - half_lane[:, None] * cos) / sin
+        turn[cos > np.cos(np.pi - MAX_TURN)] = 0.0
+        need = clear + np.maximum(MARGIN, turn)
         np.fill_diagonal(need, 0.0)
-        extra = MARGIN + (CROSSWALK + 1.0 if n in crosswalks else 0.0)
+        extra = CROSSWALK + 1.0 if n in crosswalks else 0.0
         for r, s in zip(rs, need.max(axis=1) + extra):
             r.set_setback(n, float(s))
 

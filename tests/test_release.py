@@ -1,0 +1,69 @@
+"""The weights shipped with the package: checksums, size, sampling with them; `cmtool pack`."""
+
+
+import numpy as np
+import pytest
+import torch
+
+from cmtool import checkpoint as ckpt
+from cmtool.data.lanegraph import read_jsonl
+from cmtool.data.sd_raster import read_sd_image
+from cmtool.errors import CmtoolError
+from cmtool.release import BUNDLED, MANIFEST, bundled_checkpoint, pack, verify
+from cmtool.sample.generator import Generator
+from tests.conftest import REPO, in_process
+
+
+def test_shipped_weights_match_their_checksums_and_size():
+    assert verify(BUNDLED) == []
+    manifest = (BUNDLED / MANIFEST).read_text()
+    assert "controlmap/model.safetensors" in manifest and "rvae/model.safetensors" in manifest
+    total = sum(p.stat().st_size for p in BUNDLED.rglob("*") if p.is_file())
+    assert total <= 30e6
+
+
+def test_shipped_weights_sample_lane_graphs_for_each_city(tmp_path, capsys):
+    for city in ("LAV", "PIT", "SGP"):
+        out = tmp_path / city
+        code, stdout, err = in_process(capsys, "sample", "--sd", REPO / "sample_data" / f"sd_{city.lower()}.png",
+                                       "--city", city, "--steps", "10", "--no-log", "--quiet", "--out", out)
+        assert code == 0, err
+        (graph,) = read_jsonl(out / f"sd_{city.lower()}.json")
+        assert graph.city == city and graph.meta["checkpoint"] == str(bundled_checkpoint())
+        assert len(graph.lanes) > 0
+        assert all(np.isfinite(lane).all() and np.abs(lane).max() <= 40.0 for lane in graph.lanes)
+        assert all(0 <= i < len(graph.lanes) and 0 <= j < len(graph.lanes) for i, j in graph.successors)
+        assert 0.0 <= graph.meta["validity"] <= 1.0
+
+
+def test_info_without_a_path_describes_the_shipped_models(capsys):
+    code, out, err = in_process(capsys, "info")
+    assert code == 0, err
+    assert "controlmap (complete" in out and "DiT trained" in out and "decoder only" in out
+    assert out.count("trained ") >= 2 and "recipes/tiny-cpu/controlnet.toml" in out
+
+
+def test_pack_writes_float16_weights_that_sample_like_the_original(sampling_ckpt, tmp_path, capsys):
+    code, out, err = in_process(capsys, "pack", "--ckpt", sampling_ckpt["controlmap"], "--out", tmp_path / "w")
+    assert code == 0, err
+    assert verify(tmp_path / "w") == []
+    weights = ckpt.load_tensors(tmp_path / "w" / "rvae" / ckpt.WEIGHTS)
+    assert weights and not any(k.startswith(("trunk.", "to_latent.")) for k in weights)
+    assert all(v.dtype == torch.float16 for v in weights.values())
+
+    original, packed = Generator.load(sampling_ckpt["controlmap"]), Generator.load(tmp_path / "w" / "controlmap")
+    noise = torch.randn(1, *original.model.latent_shape, generator=torch.Generator().manual_seed(0))
+    sd = read_sd_image(REPO / "sample_data" / "sd_lav.png")[0][None]
+    a = original.sample(sd, [original.label("LAV")], cfg=1.0, steps=5, noise=noise)
+    b = packed.sample(sd, [packed.label("LAV")], cfg=1.0, steps=5, noise=noise)
+    assert torch.allclose(a, b, atol=0.05 * float(a.abs().max()))
+    with pytest.raises(CmtoolError, match="decoder only"):
+        packed.rvae.encode(torch.zeros(1, packed.rvae.cfg.in_channels, 128, 128))
+
+    (tmp_path / "w" / "rvae" / ckpt.WEIGHTS).write_bytes(b"tampered")
+    assert verify(tmp_path / "w") == ["rvae/model.safetensors: checksum differs from MANIFEST.json"]
+
+
+def test_pack_refuses_other_checkpoints(sampling_ckpt, tmp_path, capsys):
+    code, _, err = in_process(capsys, "pack", "--ckpt", sampling_ckpt["dit"], "--out", tmp_path / "w")
+    assert code == 1 and "pack takes a ControlMap" in err
