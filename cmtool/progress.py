@@ -59,7 +59,11 @@ class Progress:
             parts.append(f"{self.done}/{self.total} {self.unit} ({100.0 * self.done / self.total:.0f}%)")
         else:
             parts.append(f"{self.done} {self.unit}")
-        parts.append(f"{self.rate:.1f} {self.unit}/s")
+        rate = self.rate
+        if 0 < rate < 0.1:  # slow items: time per item reads better than 0.0 per second
+            parts.append(f"{1.0 / rate:.0f} s per {self.unit.rstrip('s')}")
+        else:
+            parts.append(f"{rate:.1f} {self.unit}/s")
         parts.append(f"elapsed {format_seconds(self.elapsed)}")
         if self.total and 0 < self.done < self.total:
             parts.append(f"ETA {format_seconds((self.total - self.done) / self.rate)}")

@@ -178,3 +178,7 @@ def test_progress_line_reports_rate_and_eta():
     lines = stream.getvalue().splitlines()
     assert lines[0].startswith("build  4/10") and "10/10 scenes (100%)" in lines[-1] and "ETA" not in lines[-1]
     assert format_seconds(75) == "1m15s" and format_seconds(3700) == "1h01m"
+    slow = Progress(total=10, label="ablate", unit="runs", stream=io.StringIO())
+    slow.update(2)
+    slow.start -= 180.0  # two runs in three minutes
+    assert "90 s per run" in slow.line() and "runs/s" not in slow.line()

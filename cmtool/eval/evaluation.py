@@ -31,6 +31,7 @@ from cmtool.eval.features import FeatureExtractor, sd_image
 from cmtool.eval.metrics import evaluate, reference_image_features, summary_table
 from cmtool.eval.validity import check
 from cmtool.progress import Progress
+from cmtool.release import BUNDLED
 from cmtool.sample.generator import Generator
 from cmtool.viz.recording import log_lanes, log_sd, open_recording
 
@@ -137,7 +138,12 @@ def summary_markdown(report: dict) -> str:
     methods = report["methods"]
     first = next(iter(methods.values()))
     backbone = first.get("backbone", {}).get("name", "none (feature metrics skipped)")
-    head = [f"# cmtool eval: {Path(s['checkpoint']).parent.parent.name or s['checkpoint']}", "",
+    path = Path(s["checkpoint"])
+    if path.resolve() == (BUNDLED / "controlmap").resolve():
+        title = "the weights shipped with cmtool"
+    else:
+        title = path.parent.parent.name if path.parent.name == "checkpoints" else str(path)
+    head = [f"# cmtool eval: {title}", "",
             f"- checkpoint `{s['checkpoint']}`", f"- data `{s['data']}`, split {s['split']}, {s['n']} scenes",
             f"- ControlMap: guidance w = {s['cfg']}; both: {s['steps']} {s['sampler']} steps, seed {s['seed']}, "
             "the same initial noise per scene",
