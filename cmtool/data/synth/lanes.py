@@ -72,12 +72,12 @@ def _connect(hd: HDMap, node: int, approach: list[Lane], exits: list[list[Lane]]
     far-side turn from the innermost to the innermost lane. Without a straight-on exit the inner
     half of the lanes turns to the far side and the outer half to the near side (all of them where
     only one side has exits). No U-turns onto the approach's own road, and no turns sharper than
-    ``MAX_TURN``.
+    ``MAX_TURN`` unless there is no other way on.
     """
     heading_in = _heading(end_tangents(approach[0].centerline)[1])
     exits = [e for e in exits if e[0].road_id != approach[0].road_id]
     turn = np.array([wrap_angle(_heading(end_tangents(e[0].centerline)[0]) - heading_in) for e in exits])
-    if degree > 2:
+    if degree > 2 and (np.abs(turn) <= MAX_TURN).any():  # else keep them: a sharp turn beats a dead end
         exits, turn = [e for e, a in zip(exits, turn) if abs(a) <= MAX_TURN], turn[np.abs(turn) <= MAX_TURN]
     through = int(np.argmin(np.abs(turn))) if len(turn) and np.abs(turn).min() < THROUGH else -1
     near = turn * hand < 0
