@@ -124,6 +124,12 @@ def resolve(path) -> Path:
     raise CmtoolError(f"{path}: not a checkpoint (no {CONFIG} + {WEIGHTS}, no checkpoints/step_*)")
 
 
+def linked(checkpoint: Path, target: str) -> Path:
+    """A path a checkpoint config names (its RVAE, its DiT): absolute, or relative to the checkpoint."""
+    path = Path(target)
+    return path if path.is_absolute() else Path(checkpoint) / path
+
+
 def load_config(path) -> dict:
     """The config of a checkpoint (or of a run directory's newest checkpoint)."""
     path = resolve(path) / CONFIG

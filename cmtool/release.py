@@ -43,15 +43,15 @@ def pack(controlmap, out: Path) -> dict:
     config = ckpt.load_config(src)
     if config["kind"] != "controlmap":
         raise CmtoolError(f"{src}: a {config['kind']} checkpoint; pack takes a ControlMap")
-    rvae_src = ckpt.resolve(_relative_to(src, config["rvae"]))
+    rvae_src = ckpt.resolve(ckpt.linked(src, config["rvae"]))
     rvae_config = ckpt.load_config(rvae_src)
     dit_training = None
     if config.get("dit"):
         try:
-            dit_training = {k: v for k, v in ckpt.load_config(_relative_to(src, config["dit"])).items()
+            dit_training = {k: v for k, v in ckpt.load_config(ckpt.linked(src, config["dit"])).items()
                             if k in ("training", "recipe_path", "step", "steps")}
         except CmtoolError:
-            dit_training = None  # the DiT run is gone; its weights are inside the ControlMap anyway
+            pass  # the DiT run is gone; its weights are inside the ControlMap anyway
 
     out = Path(out)
     half = {k: v.half() if v.is_floating_point() else v for k, v in ckpt.load_tensors(src / ckpt.WEIGHTS).items()}
@@ -85,12 +85,6 @@ def verify(root: Path = BUNDLED) -> list[str]:
         elif _sha256(path) != want["sha256"]:
             problems.append(f"{name}: checksum differs from {MANIFEST}")
     return problems
-
-
-def _relative_to(checkpoint: Path, target: str) -> Path:
-    """A path from a checkpoint config: absolute, or relative to the checkpoint directory."""
-    path = Path(target)
-    return path if path.is_absolute() else checkpoint / path
 
 
 def _sha256(path: Path) -> str:

@@ -80,20 +80,22 @@ def to_lanelet2(graph, lat0: float, lon0: float, heading: float = 0.0, lane_widt
     _join_ends(bounds, graph.successors)
     ways = _Ways()
     owner: dict[tuple[int, int], tuple[int, int]] = {}  # bound -> the first bound it coincides with
+    firsts: list[tuple[int, int]] = []  # bounds that coincide with no earlier one: one way each
     for i in range(len(lanes)):
         for side in (0, 1):
             b = bounds[i][side]
             owner[(i, side)] = (i, side)
-            for key in dict.fromkeys(owner.values()):
+            for key in firsts:
                 other = bounds[key[0]][key[1]]
                 flip = _coincide(b, other)
-                if key != (i, side) and flip is not None:
+                if flip is not None:
                     owner[(i, side)] = key
                     ways.alias(b[0], other[-1] if flip else other[0])  # joints this bound ends at
                     ways.alias(b[-1], other[0] if flip else other[-1])  # become the shared way's ends
                     break
-    made = {key: ways.way(bounds[key[0]][key[1]], type="line_thin", subtype="dashed")
-            for key in dict.fromkeys(owner.values())}
+            else:
+                firsts.append((i, side))
+    made = {key: ways.way(bounds[key[0]][key[1]], type="line_thin", subtype="dashed") for key in firsts}
     way_of = {bound: made[key] for bound, key in owner.items()}
     relations = []
     for i in range(len(lanes)):

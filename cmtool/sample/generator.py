@@ -45,9 +45,7 @@ class Generator:
                 raise CmtoolError(f"{path / ckpt.CONFIG}: no {key!r}; not a finished {config['kind']} checkpoint")
         device = torch.device(device)
         model, _ = ckpt.load_model(path, device)
-        rvae_path = Path(config["rvae"])
-        if not rvae_path.is_absolute():
-            rvae_path = path / rvae_path
+        rvae_path = ckpt.linked(path, config["rvae"])
         rvae, rvae_config = ckpt.load_model(rvae_path, device)
         if rvae_config["kind"] != "rvae":
             raise CmtoolError(f"{path}: its rvae {rvae_path} is a {rvae_config['kind']} checkpoint")
