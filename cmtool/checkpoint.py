@@ -17,6 +17,7 @@ maps a run directory to its newest complete checkpoint. Nothing is unpickled whe
 from __future__ import annotations
 
 import dataclasses
+import hashlib
 import json
 import os
 import shutil
@@ -122,6 +123,20 @@ def resolve(path) -> Path:
     if not path.exists():
         raise CmtoolError(f"{path}: no such checkpoint")
     raise CmtoolError(f"{path}: not a checkpoint (no {CONFIG} + {WEIGHTS}, no checkpoints/step_*)")
+
+
+def file_sha256(path: Path) -> str:
+    h = hashlib.sha256()
+    with open(path, "rb") as f:
+        for block in iter(lambda: f.read(1 << 20), b""):
+            h.update(block)
+    return h.hexdigest()
+
+
+def weights_digest(*checkpoints: Path) -> str:
+    """A short SHA-256 over the weights of checkpoint folders: tells their contents apart where
+    their paths are the same (e.g. the shipped weights after a re-pack)."""
+    return hashlib.sha256("".join(file_sha256(Path(c) / WEIGHTS) for c in checkpoints).encode()).hexdigest()[:16]
 
 
 def linked(checkpoint: Path, target: str) -> Path:

@@ -214,7 +214,7 @@ def show(data_dir, n, png, rrd, split, seed):
 
 
 @cli.command("train")
-@click.argument("stage", type=click.Choice(["rvae", "dit", "controlnet"]))
+@click.argument("stage", type=click.Choice(["rvae", "decoder", "dit", "controlnet"]))
 @click.option("--recipe", required=True, type=click.Path(path_type=Path), help="Recipe TOML (see recipes/).")
 @click.option("--out", type=click.Path(file_okay=False, path_type=Path), help="Run folder [default: the recipe's train.out].")
 @click.option("--resume", is_flag=True, help="Continue from the run folder's newest checkpoint.")
@@ -222,7 +222,8 @@ def show(data_dir, n, png, rrd, split, seed):
 @click.option("--device", help="torch device [default: cuda when available, else cpu].")
 @click.option("--quiet", is_flag=True, help="No progress line.")
 def train_cmd(stage, recipe, out, resume, steps, device, quiet):
-    """Train one stage: rvae (stage 1), dit (stage 2) or controlnet (stage 3).
+    """Train one stage: rvae (stage 1), dit (stage 2) or controlnet (stage 3); decoder trains a
+    finished RVAE's decoder further on its frozen encoder's latents (DiTs trained on them stay valid).
 
     Multi-GPU / multi-node: launch with torchrun, e.g.
     torchrun --nproc_per_node 8 -m cmtool train dit --recipe recipes/paper/dit-b.toml
@@ -679,14 +680,17 @@ def info(path, as_json):
 
 @cli.command()
 @click.option("--ckpt", required=True, type=click.Path(path_type=Path), help="ControlMap checkpoint or run folder.")
+@click.option("--rvae", default=None, type=click.Path(path_type=Path),
+              help="RVAE to ship instead of the one the ControlMap was trained on: a `cmtool train decoder` run "
+                   "on that RVAE (same encoder, so the same latent space).")
 @click.option("--out", default=None, type=click.Path(file_okay=False, path_type=Path),
               help="Folder to write [default: the package's own cmtool/weights].")
-def pack(ckpt, out):
+def pack(ckpt, rvae, out):
     """Pack a trained ControlMap (and its RVAE's decoder) as float16 weights to ship with cmtool."""
     from cmtool.release import BUNDLED, MANIFEST, pack as pack_release
 
     out = out or BUNDLED
-    manifest = pack_release(ckpt, out)
+    manifest = pack_release(ckpt, out, rvae=rvae)
     for name, f in manifest["files"].items():
         click.echo(f"{out / name}  {f['bytes'] / 1e6:.2f} MB  sha256 {f['sha256'][:16]}...")
     click.echo(f"total {manifest['total_bytes'] / 1e6:.2f} MB; checksums in {out / MANIFEST}")

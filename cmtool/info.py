@@ -10,7 +10,7 @@ import torch
 from cmtool import checkpoint as ckpt
 from cmtool.progress import format_seconds
 
-KIND_OF_STAGE = {"rvae": "rvae", "dit": "dit", "controlnet": "controlmap"}
+KIND_OF_STAGE = {"rvae": "rvae", "decoder": "rvae", "dit": "dit", "controlnet": "controlmap"}
 
 
 def param_counts(model: torch.nn.Module) -> dict[str, int]:
@@ -72,6 +72,8 @@ def describe(path: Path, as_json: bool = False) -> str:
         rows.append(("weights", "decoder only (latent -> lanes), as shipped; encoding needs the training run"))
     if config.get("packed_from"):
         rows.append(("packed from", config["packed_from"]))
+    if config.get("encoder_from"):
+        rows.append(("encoder", f"frozen, from {config['encoder_from']} (decoder trained further on its latents)"))
     for key in ("data", "rvae", "dit"):
         if key in config:
             rows.append((key, config[key]))
@@ -96,6 +98,8 @@ def describe_recipe(path: Path) -> str:
     config = {"kind": KIND_OF_STAGE[stage]}
     if stage == "rvae":
         config["model"] = dataclasses.asdict(recipe.rvae)
+    elif stage == "decoder":  # the model is the RVAE run's
+        config["model"] = ckpt.load_config(recipe.train.rvae)["model"]
     else:
         cities = len(recipe.data.train_cities)
         config["model"] = dataclasses.asdict(dataclasses.replace(recipe.dit, num_classes=cities))
@@ -104,6 +108,8 @@ def describe_recipe(path: Path) -> str:
     with torch.device("meta"):
         model = ckpt.build_model(config, str(path))
     rows = [("recipe", str(path)), ("stage", stage), ("model", _fields(config["model"]))]
+    if stage == "decoder":
+        rows.append(("trains", f"the decoder of {recipe.train.rvae}; its encoder stays frozen"))
     if stage == "controlnet":
         rows.append(("control", _fields(config["control"])))
     rows.append(("parameters", _count_line(param_counts(model))))

@@ -94,10 +94,10 @@ class DataRecipe:
 class TrainRecipe:
     """How a stage trains: inputs, output, optimiser, schedule, checkpoints (``[train]``)."""
 
-    stage: str = ""  # rvae | dit | controlnet: the stage this recipe trains
+    stage: str = ""  # rvae | decoder | dit | controlnet: the stage this recipe trains
     data: str = ""  # dataset folder (cmtool data build --out)
     out: str = ""  # run folder [default: --out]
-    rvae: str = ""  # RVAE run folder with its latent cache (dit, controlnet stages)
+    rvae: str = ""  # RVAE run folder with its latent cache (decoder, dit, controlnet stages)
     dit: str = ""  # DiT run or checkpoint folder (controlnet stage)
     steps: int = 1000
     batch_size: int = 32  # global: split over the processes of a torchrun launch
@@ -110,6 +110,8 @@ class TrainRecipe:
     grad_clip: float = 1.0
     ema_decay: float = 0.999
     label_dropout: float = 0.2  # probability of replacing the city label by the null label (dit, controlnet)
+    mirror: float = 0.0  # controlnet: probability of a scene mirrored left-right, labelled with a city
+    #                      driving on the other side (teaches the label the driving side; never dropped)
     ckpt_every: int = 500
     keep: int = 2  # checkpoints kept in the run folder
     log_every: int = 10  # steps between scalar logs in the Rerun recording
@@ -125,11 +127,13 @@ class TrainRecipe:
         for key in ("warmup_steps", "weight_decay", "grad_clip", "preview_every", "workers"):
             if getattr(self, key) < 0:
                 raise CmtoolError(f"{where}: train.{key}: must not be negative, got {getattr(self, key)}")
-        if self.stage not in ("", "rvae", "dit", "controlnet"):
-            raise CmtoolError(f"{where}: train.stage: expected rvae, dit or controlnet, got {self.stage!r}")
+        if self.stage not in ("", "rvae", "decoder", "dit", "controlnet"):
+            raise CmtoolError(f"{where}: train.stage: expected rvae, decoder, dit or controlnet, got {self.stage!r}")
+        if self.mirror > 0 and self.stage not in ("", "controlnet"):
+            raise CmtoolError(f"{where}: train.mirror: mirrored scenes are a controlnet-stage option")
         if self.lr_schedule not in ("cosine", "constant"):
             raise CmtoolError(f"{where}: train.lr_schedule: expected cosine or constant, got {self.lr_schedule!r}")
-        for key in ("ema_decay", "label_dropout", "min_lr_ratio"):
+        for key in ("ema_decay", "label_dropout", "mirror", "min_lr_ratio"):
             if not 0.0 <= getattr(self, key) <= 1.0:
                 raise CmtoolError(f"{where}: train.{key}: must lie in [0, 1], got {getattr(self, key)}")
         if len(self.betas) != 2 or not all(0.0 <= b < 1.0 for b in self.betas):

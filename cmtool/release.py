@@ -14,17 +14,18 @@ config as ``dit_training``), so ``cmtool info`` shows how the shipped models wer
 
 from __future__ import annotations
 
-import hashlib
 import json
 from pathlib import Path
+
+import torch
 
 from cmtool import checkpoint as ckpt
 from cmtool.data.jsonio import read_json, write_text_atomic
 from cmtool.errors import CmtoolError
+from cmtool.model.rvae import ENCODER_PREFIXES
 
 BUNDLED = Path(__file__).parent / "weights"
 MANIFEST = "MANIFEST.json"
-ENCODER_PREFIXES = ("trunk.", "to_latent.")  # RVAE parts only training and latent caching use
 
 
 def bundled_checkpoint() -> Path:
@@ -36,14 +37,17 @@ def bundled_checkpoint() -> Path:
     return path
 
 
-def pack(controlmap, out: Path) -> dict:
+def pack(controlmap, out: Path, rvae=None) -> dict:
     """Write the float16 release set of the ControlMap checkpoint ``controlmap`` into ``out``;
-    returns the manifest."""
+    returns the manifest. ``rvae``: an RVAE to ship instead of the ControlMap's own, which must
+    share its encoder (a decoder fine-tune of it) so that it reads the same latent space."""
     src = ckpt.resolve(controlmap)
     config = ckpt.load_config(src)
     if config["kind"] != "controlmap":
         raise CmtoolError(f"{src}: a {config['kind']} checkpoint; pack takes a ControlMap")
     rvae_src = ckpt.resolve(ckpt.linked(src, config["rvae"]))
+    if rvae is not None:
+        rvae_src = _same_latent_space(rvae_src, ckpt.resolve(rvae))
     rvae_config = ckpt.load_config(rvae_src)
     dit_training = None
     if config.get("dit"):
@@ -66,12 +70,26 @@ def pack(controlmap, out: Path) -> dict:
     ckpt.save_checkpoint(out / "rvae", rvae_out, decoder)
 
     files = sorted(p for p in out.rglob("*") if p.is_file() and p.name != MANIFEST)
-    manifest = {"files": {p.relative_to(out).as_posix(): {"sha256": _sha256(p), "bytes": p.stat().st_size}
+    manifest = {"files": {p.relative_to(out).as_posix(): {"sha256": ckpt.file_sha256(p), "bytes": p.stat().st_size}
                           for p in files},
                 "controlmap": str(src), "rvae": str(rvae_src)}
     manifest["total_bytes"] = sum(f["bytes"] for f in manifest["files"].values())
     write_text_atomic(out / MANIFEST, json.dumps(manifest, indent=1) + "\n")
     return manifest
+
+
+def _same_latent_space(trained_on: Path, other: Path) -> Path:
+    """``other`` if its encoder and latent scale equal those of ``trained_on``, else an error."""
+    a, b = ckpt.load_config(trained_on), ckpt.load_config(other)
+    if b["kind"] != "rvae":
+        raise CmtoolError(f"{other}: a {b['kind']} checkpoint; --rvae takes an RVAE")
+    enc_a, enc_b = ({k: v for k, v in ckpt.load_tensors(p / ckpt.WEIGHTS).items() if k.startswith(ENCODER_PREFIXES)}
+                    for p in (trained_on, other))
+    same = enc_a.keys() == enc_b.keys() and all(torch.equal(enc_a[k], enc_b[k]) for k in enc_a)
+    if not same or a.get("latent_scale") != b.get("latent_scale"):
+        raise CmtoolError(f"{other}: its encoder or latent scale differs from {trained_on}, the RVAE the ControlMap "
+                          "was trained on; only a `cmtool train decoder` run on that RVAE reads the same latents")
+    return other
 
 
 def verify(root: Path = BUNDLED) -> list[str]:
@@ -82,15 +100,7 @@ def verify(root: Path = BUNDLED) -> list[str]:
         path = Path(root) / name
         if not path.is_file():
             problems.append(f"{name}: missing")
-        elif _sha256(path) != want["sha256"]:
+        elif ckpt.file_sha256(path) != want["sha256"]:
             problems.append(f"{name}: checksum differs from {MANIFEST}")
     return problems
-
-
-def _sha256(path: Path) -> str:
-    h = hashlib.sha256()
-    with open(path, "rb") as f:
-        for block in iter(lambda: f.read(1 << 20), b""):
-            h.update(block)
-    return h.hexdigest()
 

@@ -86,3 +86,28 @@ def test_ablations_write_tables_pictures_and_recording(sampling_ckpt, tiny_data,
     assert all(r["left_hand"] is None or 0.0 <= r["left_hand"] <= 1.0 for r in rows)
     code, _, err = in_process(capsys, "ablate", "city-swap", *common, "--labels", "SGP,XYZ")
     assert code == 1 and "unknown city 'XYZ'" in err
+
+
+def test_eval_cache_tells_weights_apart_at_the_same_path(sampling_ckpt, tiny_data, tmp_path, capsys):
+    import shutil
+
+    from safetensors.torch import load_file, save_file
+
+    from cmtool import checkpoint as ckpt
+
+    src = ckpt.resolve(sampling_ckpt["controlmap"])
+    cm = tmp_path / "cm"
+    shutil.copytree(src, cm)
+    config = json.loads((cm / ckpt.CONFIG).read_text())
+    config["rvae"] = str(ckpt.resolve(ckpt.linked(src, config["rvae"])))
+    (cm / ckpt.CONFIG).write_text(json.dumps(config))
+    args = ("eval", "--ckpt", cm, "--data", tiny_data, "--n", 4, "--steps", 2, "--batch", 4, "--out", tmp_path / "e",
+            "--no-features", "--rrd-samples", 0, "--quiet")
+    code, _, err = in_process(capsys, *args)
+    assert code == 0, err
+    weights = load_file(str(cm / ckpt.WEIGHTS))  # re-trained (or re-packed) weights in the same folder
+    name = next(k for k in weights if k.startswith("zero."))
+    weights[name] = weights[name] + 0.01
+    save_file(weights, str(cm / ckpt.WEIGHTS))
+    code, _, err = in_process(capsys, *args)
+    assert code == 1 and "made with other settings (weights)" in err

@@ -135,3 +135,15 @@ def test_sd_rasters_of_other_sizes_are_resampled_with_a_note():
     out, note = convert_sd_image(big)
     assert np.array_equal(out, raster) and "resampled the 256 x 256 SD raster" in note
     assert convert_sd_image(raster)[1] is None
+
+
+def test_mirror_sd_flips_columns_and_one_way_headings():
+    from cmtool.data.sd_raster import decode_direction, direction_value, mirror_sd
+
+    sd = np.zeros((4, 4, 3), np.uint8)
+    sd[1, 0] = (255, 64, direction_value(0.3))  # one-way road heading 0.3 rad at the left edge
+    sd[2, 1] = (255, 96, 0)                     # two-way road
+    m = mirror_sd(sd)
+    assert tuple(m[1, 3, :2]) == (255, 64) and abs(decode_direction(m[1, 3, 2]) + 0.3) < 0.02
+    assert tuple(m[2, 2]) == (255, 96, 0) and m[..., 2].sum() == m[1, 3, 2]
+    assert np.array_equal(mirror_sd(m), sd)

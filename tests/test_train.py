@@ -9,11 +9,12 @@ import subprocess
 import sys
 import time
 
+import cv2
 import numpy as np
 import pytest
 import torch
 from rerun.chunk import RrdReader
-from safetensors.torch import load_file
+from safetensors.torch import load_file, save_file
 
 from cmtool import checkpoint as ckpt
 from cmtool.errors import CmtoolError
@@ -23,6 +24,7 @@ TINY_MODELS = {
     "rvae": '[rvae]\nd_model = 32\ndecoder_layers = 1\nheads = 2\nffn = 64\ndropout = 0.0\n',
     "dit": '[dit]\nsize = "tiny"\ndepth = 2\nhidden = 32\nheads = 2\n',
     "controlnet": '[dit]\nsize = "tiny"\ndepth = 2\nhidden = 32\nheads = 2\n[control]\nnum_blocks = 2\nwidths = [8, 8, 16, 16]\ngroups = 4\n',
+    "decoder": "",  # the decoder stage takes its model from the RVAE run
 }
 
 
@@ -146,6 +148,76 @@ def test_finished_controlnet_run_extends_with_resume_and_more_steps(runs, tmp_pa
     assert config["step"] == 6 and config["complete"] and config["training"]["samples"] == 6 * 4
 
 
+def _encoder(tensors):
+    return {k: v for k, v in tensors.items() if k.startswith(("trunk.", "to_latent."))}
+
+
+def test_decoder_stage_trains_the_decoder_on_the_frozen_encoder(runs, tmp_path):
+    root = runs["root"]
+    recipe = write_recipe(tmp_path / "decoder.toml", "decoder", 4, data=str(runs["data"]), rvae=str(root / "rvae"))
+    result = cli("train", "decoder", "--recipe", recipe, "--out", tmp_path / "dec", "--quiet")
+    assert result.returncode == 0, result.stderr
+    assert "decoder: held-out reconstruction at 1 m" in result.stdout
+    parent, config = ckpt.load_config(root / "rvae"), ckpt.load_config(tmp_path / "dec")
+    assert config["kind"] == "rvae" and config["latent_scale"] == parent["latent_scale"]
+    assert config["latents"] == str((root / "rvae" / "latents").resolve()) and not (tmp_path / "dec" / "latents").exists()
+    before = load_file(str(ckpt.resolve(root / "rvae") / ckpt.WEIGHTS))
+    after = load_file(str(ckpt.resolve(tmp_path / "dec") / ckpt.WEIGHTS))
+    assert all(torch.equal(v, after[k]) for k, v in _encoder(before).items())
+    assert not torch.equal(before["query.weight"], after["query.weight"])  # the decoder did train
+    assert "frozen, from" in cli("info", tmp_path / "dec").stdout
+    assert "its encoder stays frozen" in cli("info", recipe).stdout
+    # a DiT trains on the decoder run: it reads the parent's latent cache
+    dit = write_recipe(tmp_path / "dit.toml", "dit", 2, rvae=str(tmp_path / "dec"), preview_every=0)
+    assert cli("train", "dit", "--recipe", dit, "--out", tmp_path / "dit", "--quiet").returncode == 0
+
+    # cmtool pack --rvae ships the fine-tuned decoder with a ControlMap trained on the parent
+    packed = cli("pack", "--ckpt", runs["controlnet"], "--rvae", tmp_path / "dec", "--out", tmp_path / "w")
+    assert packed.returncode == 0, packed.stderr
+    shipped = load_file(str(tmp_path / "w" / "rvae" / ckpt.WEIGHTS))
+    assert not _encoder(shipped) and torch.equal(shipped["query.weight"], after["query.weight"].half())
+    # ... but refuses an RVAE with another encoder
+    other = tmp_path / "other"
+    shutil.copytree(ckpt.resolve(tmp_path / "dec"), other)
+    after["trunk.0.weight"] = after["trunk.0.weight"] + 1.0
+    save_file(after, str(other / ckpt.WEIGHTS))
+    refused = cli("pack", "--ckpt", runs["controlnet"], "--rvae", other, "--out", tmp_path / "w2")
+    assert refused.returncode == 1 and "encoder or latent scale differs" in refused.stderr
+
+
+def test_mirrored_scenes_take_a_label_of_the_other_driving_side(runs, tmp_path):
+    from cmtool.data.cache import load_dataset
+    from cmtool.recipe import load_recipe
+    from cmtool.train.data import SceneRasters
+    from cmtool.train.stages import ControlNetStage
+
+    # the mirrored HD raster is the plain one flipped left-right (to within the one pixel by which
+    # OpenCV's thick lines lean), its heading sine negated
+    scenes = load_dataset(runs["data"], "train")
+    plain, mirrored = SceneRasters(scenes)[0]["raster"].numpy(), SceneRasters(scenes, mirror=True)[0]["raster"].numpy()
+    a, b = plain[0, :, ::-1] > 0, mirrored[0] > 0
+    near = lambda m: cv2.dilate(m.astype(np.uint8), np.ones((3, 3), np.uint8)) > 0  # noqa: E731
+    assert a.sum() > 100 and (a & near(b)).sum() / a.sum() > 0.97 and (b & near(a)).sum() / b.sum() > 0.97
+    both = a & b
+    assert np.abs(mirrored[1][both] - (1.0 - plain[1, :, ::-1][both])).mean() < 0.05
+    assert np.abs(mirrored[0][both] - plain[0, :, ::-1][both]).mean() < 0.05
+
+    root = runs["root"]
+    rvae = tmp_path / "rvae"
+    shutil.copytree(root / "rvae", rvae)
+    recipe = write_recipe(tmp_path / "c.toml", "controlnet", 2, data=str(runs["data"]), rvae=str(rvae),
+                          dit=str(root / "dit"), mirror=0.5, preview_every=0)
+    result = cli("train", "controlnet", "--recipe", recipe, "--out", tmp_path / "cn", "--quiet")
+    assert result.returncode == 0, result.stderr
+    with np.load(rvae / "latents" / "train.npz") as p, np.load(rvae / "latents" / "train_mirrored.npz") as m:
+        assert p["mean"].shape == m["mean"].shape and not np.array_equal(p["mean"], m["mean"])
+        assert np.array_equal(p["pose"], m["pose"])
+    stage = ControlNetStage(load_recipe(recipe), torch.device("cpu"))
+    assert stage.cities == ["LAV", "PIT", "SGP"]
+    # right-hand LAV and PIT become left-hand SGP; SGP cycles through LAV and PIT
+    assert stage.mirror_labels(np.array(["LAV", "PIT", "SGP", "SGP"])).tolist() == [2, 2, 0, 1]
+
+
 def test_ddp_two_cpu_processes_keep_replicas_identical(runs, tmp_path):
     root = runs["root"]
     recipe = write_recipe(tmp_path / "dit.toml", "dit", 4, rvae=str(root / "rvae"), preview_every=0)
@@ -189,6 +261,8 @@ def test_user_errors_are_one_line(runs, tmp_path):
         (["train", "dit", "--recipe", write_recipe(tmp_path / "d.toml", "dit", 2, rvae=str(tmp_path / "none")),
           "--out", tmp_path / "z"], "no such checkpoint"),
         (["info", tmp_path], "not a checkpoint"),
+        (["train", "dit", "--recipe", write_recipe(tmp_path / "m.toml", "dit", 2, rvae=str(root / "rvae"), mirror=0.5),
+          "--out", tmp_path / "m"], "controlnet-stage option"),
     ]
     for args, fragment in bad:
         result = cli(*args)

@@ -53,6 +53,15 @@ def decode_direction(value) -> np.ndarray:
     return (np.asarray(value, dtype=np.float64) - 1.0) / 254.0 * 2.0 * np.pi - np.pi
 
 
+def mirror_sd(sd: np.ndarray) -> np.ndarray:
+    """The SD raster of the scene mirrored left-right (y -> -y): columns reversed, one-way headings
+    theta -> -theta. Right-hand traffic becomes left-hand traffic and vice versa."""
+    out = np.ascontiguousarray(sd[:, ::-1])
+    b = out[..., 2].astype(np.int32)
+    out[..., 2] = np.where(b > 0, 256 - b, 0).astype(np.uint8)  # value 1 (-pi) maps to 255 (pi): the same heading
+    return out
+
+
 def rasterize_sd(sd: SDMap, x: float, y: float, yaw: float, frame_m: float = FRAME_M, size: int = SIZE) -> np.ndarray:
     """Draw the roads of ``sd`` around the ego pose (x, y, yaw) into a (size, size, 3) uint8 RGB raster."""
     img = np.zeros((size, size, 3), dtype=np.uint8)

@@ -23,6 +23,7 @@ import rerun as rr
 import rerun.blueprint as rrb
 import torch
 
+from cmtool import checkpoint as ckpt
 from cmtool.data.cache import load_dataset
 from cmtool.data.jsonio import read_json, write_json, write_text_atomic
 from cmtool.data.lanegraph import LaneGraph, write_jsonl
@@ -49,6 +50,7 @@ class EvalSettings:
     seed: int = 0
     batch: int = 64
     checkpoint: str = ""
+    weights: str = ""  # digest of the ControlMap's and its RVAE's weights (a re-pack keeps the path)
 
 
 def run_eval(gen: Generator, settings: EvalSettings, out: Path, extractor: FeatureExtractor | None,
@@ -59,6 +61,7 @@ def run_eval(gen: Generator, settings: EvalSettings, out: Path, extractor: Featu
     data = load_dataset(settings.data, settings.split)
     n = min(settings.n, len(data))
     settings.n, settings.checkpoint = n, str(gen.path)
+    settings.weights = ckpt.weights_digest(gen.path, ckpt.resolve(ckpt.linked(gen.path, gen.config["rvae"])))
     scenes = [data.scene(i) for i in range(n)]
     reference = [s.to_lanegraph() for s in scenes]
     controls = np.stack([s.sd for s in scenes])

@@ -23,6 +23,7 @@ from cmtool.model.config import RVAEConfig
 
 ELEMENTS = ("lines", "green", "red")
 BACKBONES = ("resnet18", "resnet34", "resnet50")
+ENCODER_PREFIXES = ("trunk.", "to_latent.")  # state-dict keys of the encoder (raster -> posterior)
 _RESNET_STRIDE = 32
 _STRIDED_LAYERS = ("layer4", "layer3", "layer2")  # whose stride 2 can be dropped, last first
 
@@ -118,9 +119,13 @@ class RVAE(nn.Module):
             out[name], out[f"{name}_logit"] = self.heads[name](part)
         return out
 
-    def forward(self, raster: Tensor, sample: bool = True) -> tuple[dict[str, Tensor], Tensor, Tensor]:
-        """Encode, take z (reparameterised sample, or the mean when ``sample`` is False), decode."""
-        mean, logvar = self.encode(raster)
+    def forward(self, raster: Tensor | None, sample: bool = True,
+                posterior: tuple[Tensor, Tensor] | None = None) -> tuple[dict[str, Tensor], Tensor, Tensor]:
+        """Encode, take z (reparameterised sample, or the mean when ``sample`` is False), decode.
+
+        ``posterior``: a (mean, logvar) pair to decode instead of encoding ``raster`` (decoder
+        fine-tuning on a latent cache)."""
+        mean, logvar = posterior if posterior is not None else self.encode(raster)
         z = mean + torch.exp(0.5 * logvar) * torch.randn_like(mean) if sample else mean
         return self.decode(z), mean, logvar
 

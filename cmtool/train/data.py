@@ -1,4 +1,4 @@
-"""Torch datasets of the three stages, and the step-indexed batch order shared by all of them.
+"""Torch datasets of the training stages, and the step-indexed batch order shared by all of them.
 
 Batches are a pure function of (seed, step, rank): each epoch is a ``DistributedSampler``
 shuffle cut into fixed batches, so a resumed run sees exactly the batches the crashed run would
@@ -13,34 +13,66 @@ from torch.utils.data import Dataset, DistributedSampler, Sampler
 
 from cmtool.data.cache import SceneDataset
 from cmtool.data.hd_raster import rasterize_scene
+from cmtool.data.sd_raster import mirror_sd
 from cmtool.errors import CmtoolError
 from cmtool.model.controlmap import sd_tensor
 
 
-class SceneRasters(Dataset):
-    """Stage 1 items: the HD raster of a scene and its vector targets (metres, ego frame)."""
+VECTORS = ("lines", "green", "red")
+MIRROR = np.array([1.0, -1.0], np.float32)  # y -> -y: the scene mirrored left-right
 
-    def __init__(self, scenes: SceneDataset):
-        self.scenes = scenes
+
+class SceneRasters(Dataset):
+    """Stage 1 items: the HD raster of a scene and its vector targets (metres, ego frame);
+    ``mirror``: of the scene mirrored left-right (right-hand traffic becomes left-hand)."""
+
+    def __init__(self, scenes: SceneDataset, mirror: bool = False):
+        self.scenes, self.mirror = scenes, mirror
 
     def __len__(self) -> int:
         return len(self.scenes)
 
     def __getitem__(self, i: int) -> dict[str, torch.Tensor]:
         a = self.scenes.arrays
-        raster = rasterize_scene(a["lines"][i], a["line_mask"][i], a["green"][i], a["green_mask"][i],
-                                 a["red"][i], a["red_mask"][i], px_m=self.scenes.px_m, frame_m=self.scenes.frame_m)
+        vec = {k: a[k][i] * MIRROR if self.mirror else a[k][i] for k in VECTORS}
+        raster = rasterize_scene(vec["lines"], a["line_mask"][i], vec["green"], a["green_mask"][i],
+                                 vec["red"], a["red_mask"][i], px_m=self.scenes.px_m, frame_m=self.scenes.frame_m)
         item = {"raster": torch.from_numpy(raster)}
-        for key in ("lines", "line_mask", "green", "green_mask", "red", "red_mask"):
+        for key in VECTORS:
+            item[key] = torch.from_numpy(np.ascontiguousarray(vec[key], dtype=np.float32))
+        for key in ("line_mask", "green_mask", "red_mask"):
             item[key] = torch.from_numpy(np.ascontiguousarray(a[key][i]))
         return item
 
 
-class Latents(Dataset):
-    """Stage 2/3 items: a latent posterior (mean, logvar), the city label and, for stage 3, the SD raster."""
+class CachedPosteriors(Dataset):
+    """Decoder fine-tuning items: a scene's cached latent posterior (mean, logvar) and its vector targets."""
 
-    def __init__(self, mean: np.ndarray, logvar: np.ndarray, label: np.ndarray, sd: np.ndarray | None = None):
-        self.mean, self.logvar, self.label, self.sd = mean, logvar, label, sd
+    def __init__(self, mean: np.ndarray, logvar: np.ndarray, scenes: SceneDataset):
+        self.mean, self.logvar, self.scenes = mean, logvar, scenes
+
+    def __len__(self) -> int:
+        return len(self.mean)
+
+    def __getitem__(self, i: int) -> dict[str, torch.Tensor]:
+        item = {"mean": torch.from_numpy(self.mean[i].astype(np.float32)),
+                "logvar": torch.from_numpy(self.logvar[i].astype(np.float32))}
+        for key in ("lines", "line_mask", "green", "green_mask", "red", "red_mask"):
+            item[key] = torch.from_numpy(np.ascontiguousarray(self.scenes.arrays[key][i]))
+        return item
+
+
+class Latents(Dataset):
+    """Stage 2/3 items: a latent posterior (mean, logvar), the city label and, for stage 3, the SD raster.
+
+    With ``mirrored`` (the posteriors of the scenes mirrored left-right and the labels they take),
+    items also hold ``mirror_mean``, ``mirror_logvar``, ``mirror_label`` and, with SD rasters,
+    ``mirror_sd``; the loss picks one of the two versions per item.
+    """
+
+    def __init__(self, mean: np.ndarray, logvar: np.ndarray, label: np.ndarray, sd: np.ndarray | None = None,
+                 mirrored: tuple[np.ndarray, np.ndarray, np.ndarray] | None = None):
+        self.mean, self.logvar, self.label, self.sd, self.mirrored = mean, logvar, label, sd, mirrored
 
     def __len__(self) -> int:
         return len(self.mean)
@@ -51,6 +83,13 @@ class Latents(Dataset):
                 "label": torch.tensor(int(self.label[i]))}
         if self.sd is not None:
             item["sd"] = sd_tensor(self.sd[i])
+        if self.mirrored is not None:
+            mean, logvar, label = self.mirrored
+            item["mirror_mean"] = torch.from_numpy(mean[i].astype(np.float32))
+            item["mirror_logvar"] = torch.from_numpy(logvar[i].astype(np.float32))
+            item["mirror_label"] = torch.tensor(int(label[i]))
+            if self.sd is not None:
+                item["mirror_sd"] = sd_tensor(mirror_sd(self.sd[i]))
         return item
 
 

@@ -36,6 +36,7 @@ class Stage(ABC):
     """What one training stage trains: subclasses implement the abstract methods."""
 
     kind: str  # checkpoint kind: rvae | dit | controlmap
+    name = ""  # how progress lines call the stage [default: kind]
 
     def __init__(self, recipe: Recipe, device: torch.device):
         self.recipe, self.device = recipe, device
@@ -199,7 +200,7 @@ def train(stage: Stage, run_dir: Path, resume: bool = False, progress: bool = Tr
         D.barrier()
         return target
 
-    bar = Progress(t.steps - start, label=f"train {stage.kind}", unit="steps", enabled=progress and info.main)
+    bar = Progress(t.steps - start, label=f"train {stage.name or stage.kind}", unit="steps", enabled=progress and info.main)
     t0, step = time.perf_counter() - record["time_s"], start
     model.train()
     for step, batch in enumerate(loader, start=start):
@@ -245,7 +246,7 @@ def train(stage: Stage, run_dir: Path, resume: bool = False, progress: bool = Tr
     final = save(t.steps, complete=True, extra=extra)
     if info.main:
         rec.flush()
-        print(f"{stage.kind}: {t.steps} steps in {record['time_s']:.0f} s, last loss {record.get('last_loss', float('nan')):.4f} -> {final}",
+        print(f"{stage.name or stage.kind}: {t.steps} steps in {record['time_s']:.0f} s, last loss {record.get('last_loss', float('nan')):.4f} -> {final}",
               file=sys.stderr)
     D.cleanup()
     return final

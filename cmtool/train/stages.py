@@ -1,4 +1,5 @@
-"""The three training stages: RVAE (1), DiT baseline (2), ControlMap's control branch (3)."""
+"""The training stages: RVAE (1), its decoder fine-tuned on a frozen encoder (1b), DiT baseline (2),
+ControlMap's control branch (3)."""
 
 from __future__ import annotations
 
@@ -13,13 +14,14 @@ from cmtool import checkpoint as ckpt
 from cmtool.data.cache import load_dataset, load_manifest
 from cmtool.errors import CmtoolError
 from cmtool.eval.lanes import lane_scores
+from cmtool.eval.metrics import drives_on
 from cmtool.model.controlmap import ControlMap, sd_tensor
 from cmtool.model.dit import DiT, DiTConfig
-from cmtool.model.rvae import RVAE, decoded_elements
+from cmtool.model.rvae import ENCODER_PREFIXES, RVAE, decoded_elements
 from cmtool.model.rvae_loss import rvae_loss
 from cmtool.sample.diffusion import NoiseSchedule, sample
-from cmtool.train.data import Latents, SceneRasters
-from cmtool.train.latents import read_latents, write_latents
+from cmtool.train.data import CachedPosteriors, Latents, SceneRasters
+from cmtool.train.latents import latent_dir, mirrored_latents, read_latents, write_latents
 from cmtool.train.loop import Stage
 from cmtool.viz.recording import log_lanes, log_sd
 
@@ -91,6 +93,65 @@ class RVAEStage(Stage):
         return {"latent_scale": scale, "latents": "latents", "reconstruction": recon}
 
 
+class DecoderStage(RVAEStage):
+    """Stage 1b: train the decoder of a finished RVAE further, its encoder frozen.
+
+    The decoder learns from the parent run's latent cache (a posterior sample per scene and step),
+    so the latent space, and with it every DiT and ControlMap trained on that cache, stays valid:
+    the result is an RVAE checkpoint they can decode with (``cmtool pack --rvae``). The model is
+    the parent's (the recipe's ``[rvae]`` section is not used); ``[rvae_loss]`` weighs the loss.
+    """
+
+    name = "decoder"
+
+    def __init__(self, recipe, device):
+        Stage.__init__(self, recipe, device)
+        self.data_dir = _path(recipe.train.data, "data", recipe.path)
+        self.parent_run = _path(recipe.train.rvae, "rvae", recipe.path).resolve()
+        self.parent_config = ckpt.load_config(self.parent_run)
+        if self.parent_config["kind"] != "rvae" or "latent_scale" not in self.parent_config:
+            raise CmtoolError(f"{self.parent_run}: train.rvae must be a finished RVAE run (with its latent cache)")
+        self.latents = latent_dir(self.parent_run, self.parent_config).resolve()
+        self._preview = None
+
+    def model(self):
+        model, _ = ckpt.load_model(self.parent_run, "cpu")
+        if model.trunk is None:
+            raise CmtoolError(f"{self.parent_run}: a decoder-only RVAE; the decoder stage needs the full run")
+        for p in (*model.trunk.parameters(), *model.to_latent.parameters()):
+            p.requires_grad_(False)
+        return model
+
+    def dataset(self):
+        scenes = load_dataset(self.data_dir, "train")
+        lat = read_latents(self.latents, "train")
+        if len(scenes) != len(lat.mean) or not np.array_equal(scenes.arrays["pose"], lat.pose):
+            raise CmtoolError(f"{self.data_dir}: its train split does not match the latent cache {self.latents} "
+                              "(train.data must be the dataset the RVAE was trained on)")
+        return CachedPosteriors(lat.mean, lat.logvar, scenes)
+
+    def loss(self, model, batch):
+        decoded, mean, logvar = model(None, posterior=(batch["mean"], batch["logvar"]))
+        return rvae_loss(decoded, mean, logvar, batch, self.recipe.rvae_loss)
+
+    def config(self):
+        return {"kind": self.kind, "model": self.parent_config["model"],
+                "loss": dataclasses.asdict(self.recipe.rvae_loss), "data": str(self.data_dir.resolve()),
+                "encoder_from": str(ckpt.resolve(self.parent_run))}
+
+    def finish(self, model, run_dir):
+        parent = ckpt.load_tensors(ckpt.resolve(self.parent_run) / ckpt.WEIGHTS)
+        own = model.state_dict()
+        if not all(torch.equal(own[k].cpu(), v) for k, v in parent.items() if k.startswith(ENCODER_PREFIXES)):
+            raise CmtoolError(f"{run_dir}: the encoder changed during decoder training (it must stay frozen)")
+        recon = reconstruction_scores(model, self.data_dir, _preview_split(self.data_dir), self.device)
+        before = self.parent_config.get("reconstruction", {}).get("f1", float("nan"))
+        print(f"decoder: held-out reconstruction at 1 m: precision {recon['precision']:.3f} recall "
+              f"{recon['recall']:.3f} F1 {recon['f1']:.3f} ({recon['scenes']} scenes; the parent RVAE: F1 {before:.3f})")
+        return {"latent_scale": self.parent_config["latent_scale"], "latents": str(self.latents),
+                "reconstruction": recon}
+
+
 @torch.no_grad()
 def reconstruction_scores(rvae, data_dir, split: str, device, n: int = RECON_EVAL, tol: float = 1.0) -> dict:
     """Mean lane precision / recall / F1 at ``tol`` metres of RVAE reconstructions (posterior mean)."""
@@ -119,6 +180,7 @@ class _DiffusionStage(Stage):
             raise CmtoolError(f"{self.rvae_run}: not a finished RVAE run (no latent scale); finish it with "
                               "`cmtool train rvae --resume`")
         self.scale = float(self.rvae_config["latent_scale"])
+        self.latent_dir = latent_dir(self.rvae_run, self.rvae_config)
         self.schedule = NoiseSchedule(recipe.diffusion)
         self._rvae = None
 
@@ -132,11 +194,19 @@ class _DiffusionStage(Stage):
         return np.array([lookup.get(str(c), len(self.cities)) for c in cities], np.int64)
 
     def diffusion_loss(self, model, batch, **extra):
-        z = (batch["mean"] + torch.exp(0.5 * batch["logvar"]) * torch.randn_like(batch["mean"])) * self.scale
+        mean, logvar, y = batch["mean"], batch["logvar"], batch["label"]
+        keep_label = torch.zeros_like(y, dtype=torch.bool)
+        if "mirror_mean" in batch:  # train.mirror: swap in mirrored scenes, whose labels are never dropped
+            keep_label = torch.rand(len(y), device=y.device) < self.recipe.train.mirror
+            pick = lambda a, b: torch.where(keep_label.view(-1, *[1] * (a.dim() - 1)), b, a)  # noqa: E731
+            mean, logvar, y = pick(mean, batch["mirror_mean"]), pick(logvar, batch["mirror_logvar"]), \
+                pick(y, batch["mirror_label"])
+            if "control" in extra:
+                extra["control"] = pick(extra["control"], batch["mirror_sd"])
+        z = (mean + torch.exp(0.5 * logvar) * torch.randn_like(mean)) * self.scale
         t = torch.randint(0, self.schedule.cfg.train_steps, (len(z),), device=z.device)
         noise = torch.randn_like(z)
-        y = batch["label"]
-        drop = torch.rand(len(y), device=y.device) < self.recipe.train.label_dropout
+        drop = (torch.rand(len(y), device=y.device) < self.recipe.train.label_dropout) & ~keep_label
         y = torch.where(drop, torch.full_like(y, len(self.cities)), y)
         eps = model(self.schedule.q_sample(z, t, noise), t, y, **extra)
         return F.mse_loss(eps.float(), noise), {}
@@ -157,7 +227,7 @@ class DiTStage(_DiffusionStage):
 
     def __init__(self, recipe, device):
         super().__init__(recipe, device)
-        self.latents = read_latents(self.rvae_run / "latents", "train")
+        self.latents = read_latents(self.latent_dir, "train")
         self.cities = sorted({str(c) for c in self.latents.city})
         self.dit_config = dataclasses.replace(recipe.dit, num_classes=len(self.cities)).resolved()
 
@@ -205,7 +275,7 @@ class ControlNetStage(_DiffusionStage):
             raise CmtoolError(f"{recipe.path}: the [diffusion] schedule differs from the DiT checkpoint's "
                               f"({dit_config['schedule']}); the control branch must train on the DiT's schedule")
         self.data_dir = _path(recipe.train.data, "data", recipe.path)
-        self.latents = read_latents(self.rvae_run / "latents", "train")
+        self.latents = read_latents(self.latent_dir, "train")
         self._preview = None
 
     def model(self):
@@ -220,7 +290,23 @@ class ControlNetStage(_DiffusionStage):
         if len(scenes) != len(lat.mean) or not np.array_equal(scenes.arrays["pose"], lat.pose):
             raise CmtoolError(f"{self.data_dir}: its train split does not match the latent cache of {self.rvae_run} "
                               "(train.data must be the dataset the RVAE was trained on)")
-        return Latents(lat.mean, lat.logvar, self.labels(lat.city), scenes.arrays["sd"])
+        mirrored = None
+        if self.recipe.train.mirror > 0:
+            flipped = mirrored_latents(self.rvae, self.data_dir, self.latent_dir, self.device)
+            mirrored = (flipped.mean, flipped.logvar, self.mirror_labels(lat.city))
+        return Latents(lat.mean, lat.logvar, self.labels(lat.city), scenes.arrays["sd"], mirrored)
+
+    def mirror_labels(self, cities: np.ndarray) -> np.ndarray:
+        """Per scene, the label of a city driving on the other side (cycling through them when several)."""
+        sides = {side: [i for i, c in enumerate(self.cities) if drives_on(c) == side] for side in ("left", "right")}
+        if not all(sides.values()):
+            raise CmtoolError(f"train.mirror needs train cities driving on each side; {', '.join(self.cities)} "
+                              f"all drive on the {'left' if sides['left'] else 'right'}")
+        out = np.empty(len(cities), np.int64)
+        for i, city in enumerate(cities):
+            other = sides["right" if drives_on(str(city)) == "left" else "left"]
+            out[i] = other[i % len(other)]
+        return out
 
     def loss(self, model, batch):
         return self.diffusion_loss(model, batch, control=batch["sd"])
@@ -243,4 +329,4 @@ class ControlNetStage(_DiffusionStage):
             log_lanes(rec, f"train/preview/sample_{k}/generated/", el["lines"], el["green"], el["red"])
 
 
-STAGES = {"rvae": RVAEStage, "dit": DiTStage, "controlnet": ControlNetStage}
+STAGES = {"rvae": RVAEStage, "decoder": DecoderStage, "dit": DiTStage, "controlnet": ControlNetStage}
