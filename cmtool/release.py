@@ -17,12 +17,10 @@ from __future__ import annotations
 import json
 from pathlib import Path
 
-import torch
-
 from cmtool import checkpoint as ckpt
 from cmtool.data.jsonio import read_json, write_text_atomic
 from cmtool.errors import CmtoolError
-from cmtool.model.rvae import ENCODER_PREFIXES
+from cmtool.model.rvae import ENCODER_PREFIXES, same_encoder
 
 BUNDLED = Path(__file__).parent / "weights"
 MANIFEST = "MANIFEST.json"
@@ -83,9 +81,7 @@ def _same_latent_space(trained_on: Path, other: Path) -> Path:
     a, b = ckpt.load_config(trained_on), ckpt.load_config(other)
     if b["kind"] != "rvae":
         raise CmtoolError(f"{other}: a {b['kind']} checkpoint; --rvae takes an RVAE")
-    enc_a, enc_b = ({k: v for k, v in ckpt.load_tensors(p / ckpt.WEIGHTS).items() if k.startswith(ENCODER_PREFIXES)}
-                    for p in (trained_on, other))
-    same = enc_a.keys() == enc_b.keys() and all(torch.equal(enc_a[k], enc_b[k]) for k in enc_a)
+    same = same_encoder(*(ckpt.load_tensors(p / ckpt.WEIGHTS) for p in (trained_on, other)))
     if not same or a.get("latent_scale") != b.get("latent_scale"):
         raise CmtoolError(f"{other}: its encoder or latent scale differs from {trained_on}, the RVAE the ControlMap "
                           "was trained on; only a `cmtool train decoder` run on that RVAE reads the same latents")

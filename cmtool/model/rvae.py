@@ -130,6 +130,12 @@ class RVAE(nn.Module):
         return self.decode(z), mean, logvar
 
 
+def same_encoder(a: dict[str, Tensor], b: dict[str, Tensor]) -> bool:
+    """Whether two RVAE state dicts hold the same encoder (and so encode to the same latent space)."""
+    enc_a, enc_b = ({k: v for k, v in t.items() if k.startswith(ENCODER_PREFIXES)} for t in (a, b))
+    return enc_a.keys() == enc_b.keys() and all(torch.equal(v.cpu(), enc_b[k].cpu()) for k, v in enc_a.items())
+
+
 def decoded_elements(decoded: dict[str, Tensor], threshold: float = 0.5) -> list[dict[str, np.ndarray]]:
     """Per batch item, the polylines whose existence probability exceeds ``threshold``:
     ``{"lines": (n, P, 2) float32, "green": ..., "red": ...}``."""

@@ -16,10 +16,22 @@ from cmtool.data.hd_raster import rasterize_scene
 from cmtool.data.sd_raster import mirror_sd
 from cmtool.errors import CmtoolError
 from cmtool.model.controlmap import sd_tensor
+from cmtool.model.rvae import ELEMENTS
+from cmtool.model.rvae_loss import MASK_KEYS
 
 
-VECTORS = ("lines", "green", "red")
 MIRROR = np.array([1.0, -1.0], np.float32)  # y -> -y: the scene mirrored left-right
+
+
+def vector_targets(arrays: dict, i: int, mirror: bool = False) -> dict[str, torch.Tensor]:
+    """The RVAE targets of scene ``i``: polylines (metres, ego frame; mirrored left-right on request)
+    and their masks."""
+    out = {}
+    for key in ELEMENTS:
+        out[key] = torch.from_numpy(np.ascontiguousarray(arrays[key][i] * MIRROR if mirror else arrays[key][i],
+                                                         dtype=np.float32))
+        out[MASK_KEYS[key]] = torch.from_numpy(np.ascontiguousarray(arrays[MASK_KEYS[key]][i]))
+    return out
 
 
 class SceneRasters(Dataset):
@@ -33,16 +45,10 @@ class SceneRasters(Dataset):
         return len(self.scenes)
 
     def __getitem__(self, i: int) -> dict[str, torch.Tensor]:
-        a = self.scenes.arrays
-        vec = {k: a[k][i] * MIRROR if self.mirror else a[k][i] for k in VECTORS}
-        raster = rasterize_scene(vec["lines"], a["line_mask"][i], vec["green"], a["green_mask"][i],
-                                 vec["red"], a["red_mask"][i], px_m=self.scenes.px_m, frame_m=self.scenes.frame_m)
-        item = {"raster": torch.from_numpy(raster)}
-        for key in VECTORS:
-            item[key] = torch.from_numpy(np.ascontiguousarray(vec[key], dtype=np.float32))
-        for key in ("line_mask", "green_mask", "red_mask"):
-            item[key] = torch.from_numpy(np.ascontiguousarray(a[key][i]))
-        return item
+        t = vector_targets(self.scenes.arrays, i, self.mirror)
+        parts = (t[k].numpy() for k in ("lines", "line_mask", "green", "green_mask", "red", "red_mask"))
+        raster = rasterize_scene(*parts, px_m=self.scenes.px_m, frame_m=self.scenes.frame_m)
+        return {"raster": torch.from_numpy(raster), **t}
 
 
 class CachedPosteriors(Dataset):
@@ -55,11 +61,8 @@ class CachedPosteriors(Dataset):
         return len(self.mean)
 
     def __getitem__(self, i: int) -> dict[str, torch.Tensor]:
-        item = {"mean": torch.from_numpy(self.mean[i].astype(np.float32)),
-                "logvar": torch.from_numpy(self.logvar[i].astype(np.float32))}
-        for key in ("lines", "line_mask", "green", "green_mask", "red", "red_mask"):
-            item[key] = torch.from_numpy(np.ascontiguousarray(self.scenes.arrays[key][i]))
-        return item
+        return {"mean": torch.from_numpy(self.mean[i].astype(np.float32)),
+                "logvar": torch.from_numpy(self.logvar[i].astype(np.float32)), **vector_targets(self.scenes.arrays, i)}
 
 
 class Latents(Dataset):

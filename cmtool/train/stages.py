@@ -17,7 +17,7 @@ from cmtool.eval.lanes import lane_scores
 from cmtool.eval.metrics import drives_on
 from cmtool.model.controlmap import ControlMap, sd_tensor
 from cmtool.model.dit import DiT, DiTConfig
-from cmtool.model.rvae import ENCODER_PREFIXES, RVAE, decoded_elements
+from cmtool.model.rvae import RVAE, decoded_elements, same_encoder
 from cmtool.model.rvae_loss import rvae_loss
 from cmtool.sample.diffusion import NoiseSchedule, sample
 from cmtool.train.data import CachedPosteriors, Latents, SceneRasters
@@ -140,14 +140,13 @@ class DecoderStage(RVAEStage):
                 "encoder_from": str(ckpt.resolve(self.parent_run))}
 
     def finish(self, model, run_dir):
-        parent = ckpt.load_tensors(ckpt.resolve(self.parent_run) / ckpt.WEIGHTS)
-        own = model.state_dict()
-        if not all(torch.equal(own[k].cpu(), v) for k, v in parent.items() if k.startswith(ENCODER_PREFIXES)):
+        if not same_encoder(model.state_dict(), ckpt.load_tensors(ckpt.resolve(self.parent_run) / ckpt.WEIGHTS)):
             raise CmtoolError(f"{run_dir}: the encoder changed during decoder training (it must stay frozen)")
         recon = reconstruction_scores(model, self.data_dir, _preview_split(self.data_dir), self.device)
         before = self.parent_config.get("reconstruction", {}).get("f1", float("nan"))
         print(f"decoder: held-out reconstruction at 1 m: precision {recon['precision']:.3f} recall "
-              f"{recon['recall']:.3f} F1 {recon['f1']:.3f} ({recon['scenes']} scenes; the parent RVAE: F1 {before:.3f})")
+              f"{recon['recall']:.3f} F1 {recon['f1']:.3f} ({recon['scenes']} scenes; "
+              f"the parent RVAE: F1 {before:.3f})")
         return {"latent_scale": self.parent_config["latent_scale"], "latents": str(self.latents),
                 "reconstruction": recon}
 
