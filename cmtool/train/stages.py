@@ -39,6 +39,15 @@ def _brief(cfg: dict) -> str:
     return f"depth {cfg['depth']}, hidden {cfg['hidden']}, heads {cfg['heads']}"
 
 
+def _train_scenes(data_dir, latents, cache):
+    """The train split of ``data_dir``, checked to line up scene by scene with the latent cache."""
+    scenes = load_dataset(data_dir, "train")
+    if len(scenes) != len(latents.mean) or not np.array_equal(scenes.arrays["pose"], latents.pose):
+        raise CmtoolError(f"{data_dir}: its train split does not match the latent cache {cache} "
+                          "(train.data must be the dataset the RVAE was trained on)")
+    return scenes
+
+
 def _preview_split(data_dir) -> str:
     return "test" if "test" in load_manifest(data_dir)["splits"] else "train"
 
@@ -123,11 +132,8 @@ class DecoderStage(RVAEStage):
         return model
 
     def dataset(self):
-        scenes = load_dataset(self.data_dir, "train")
         lat = read_latents(self.latents, "train")
-        if len(scenes) != len(lat.mean) or not np.array_equal(scenes.arrays["pose"], lat.pose):
-            raise CmtoolError(f"{self.data_dir}: its train split does not match the latent cache {self.latents} "
-                              "(train.data must be the dataset the RVAE was trained on)")
+        scenes = _train_scenes(self.data_dir, lat, self.latents)
         return CachedPosteriors(lat.mean, lat.logvar, scenes)
 
     def loss(self, model, batch):
@@ -284,11 +290,8 @@ class ControlNetStage(_DiffusionStage):
         return model
 
     def dataset(self):
-        scenes = load_dataset(self.data_dir, "train")
         lat = self.latents
-        if len(scenes) != len(lat.mean) or not np.array_equal(scenes.arrays["pose"], lat.pose):
-            raise CmtoolError(f"{self.data_dir}: its train split does not match the latent cache of {self.rvae_run} "
-                              "(train.data must be the dataset the RVAE was trained on)")
+        scenes = _train_scenes(self.data_dir, lat, self.latent_dir)
         mirrored = None
         if self.recipe.train.mirror > 0:
             flipped = mirrored_latents(self.rvae, self.data_dir, self.latent_dir, self.device)
