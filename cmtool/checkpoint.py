@@ -66,6 +66,11 @@ def _plain(obj):
     raise TypeError(f"not JSON serialisable: {type(obj).__name__}")
 
 
+def as_stored(config: dict) -> dict:
+    """``config`` as a checkpoint's config.json holds it (tuples become lists, paths strings)."""
+    return json.loads(json.dumps(config, default=_plain))
+
+
 def save_checkpoint(target: Path, config: dict, weights: dict[str, torch.Tensor],
                     state: dict[str, torch.Tensor] | None = None, state_meta: dict | None = None) -> Path:
     """Write a checkpoint directory at ``target`` atomically (replacing an existing one)."""

@@ -74,7 +74,7 @@ def describe(path: Path, as_json: bool = False) -> str:
         rows.append(("packed from", config["packed_from"]))
     if config.get("encoder_from"):
         rows.append(("encoder", f"frozen, from {config['encoder_from']} (decoder trained further on its latents)"))
-    for key in ("data", "rvae", "dit"):
+    for key in ("data", "rvae", "dit", "branch_from"):
         if key in config:
             rows.append((key, config[key]))
     rec = config.get("reconstruction")

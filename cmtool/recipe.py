@@ -99,6 +99,8 @@ class TrainRecipe:
     out: str = ""  # run folder [default: --out]
     rvae: str = ""  # RVAE run folder with its latent cache (decoder, dit, controlnet stages)
     dit: str = ""  # DiT run or checkpoint folder (controlnet stage)
+    branch_from: str = ""  # controlnet: start the control branch from this ControlMap run or checkpoint
+    #                        (same [control]), e.g. after its DiT was trained further; "" = zero-initialised
     steps: int = 1000
     batch_size: int = 32  # global: split over the processes of a torchrun launch
     lr: float = 1e-4
@@ -131,6 +133,8 @@ class TrainRecipe:
             raise CmtoolError(f"{where}: train.stage: expected rvae, decoder, dit or controlnet, got {self.stage!r}")
         if self.mirror > 0 and self.stage not in ("", "controlnet"):
             raise CmtoolError(f"{where}: train.mirror: mirrored scenes are a controlnet-stage option")
+        if self.branch_from and self.stage not in ("", "controlnet"):
+            raise CmtoolError(f"{where}: train.branch_from: a control branch is a controlnet-stage option")
         if self.lr_schedule not in ("cosine", "constant"):
             raise CmtoolError(f"{where}: train.lr_schedule: expected cosine or constant, got {self.lr_schedule!r}")
         for key in ("ema_decay", "label_dropout", "mirror", "min_lr_ratio"):

@@ -84,6 +84,8 @@ def test_ablations_write_tables_pictures_and_recording(sampling_ckpt, tiny_data,
     rows = json.loads((tmp_path / "ablate_city_swap.json").read_text())["rows"]
     assert [r["label"] for r in rows] == ["SGP", "LAV"] and [r["drives_on"] for r in rows] == ["left", "right"]
     assert all(r["left_hand"] is None or 0.0 <= r["left_hand"] <= 1.0 for r in rows)
+    assert all(r["left_hand_oncoming"] is None or 0.0 <= r["left_hand_oncoming"] <= 1.0 for r in rows)
+    assert "left_hand_oncoming" in (tmp_path / "ablate_city_swap.md").read_text()
     code, _, err = in_process(capsys, "ablate", "city-swap", *common, "--labels", "SGP,XYZ")
     assert code == 1 and "unknown city 'XYZ'" in err
 

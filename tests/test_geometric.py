@@ -7,7 +7,7 @@ import pytest
 
 from cmtool.data.sd_raster import rasterize_sd
 from cmtool.data.sdmap import Road, SDMap
-from cmtool.eval.geometric import chamfer, driving_side, sd_adherence
+from cmtool.eval.geometric import chamfer, driving_side, oncoming_side, sd_adherence
 
 
 def line(y, x0=-30.0, x1=30.0, n=20):
@@ -52,3 +52,21 @@ def test_driving_side():
     assert math.isnan(driving_side([line(25.0)], sd, "right")[0])
     with pytest.raises(ValueError):
         driving_side(right_hand, sd, "middle")
+
+
+def test_oncoming_side_needs_no_sd_map():
+    right_hand = [line(-1.75), line(1.75)[::-1]]  # oncoming lane on the left of each
+    share, judged = oncoming_side(right_hand, "right")
+    assert share == 1.0 and judged > 100
+    assert oncoming_side(right_hand, "left")[0] == 0.0
+    assert oncoming_side([line(1.75), line(-1.75)[::-1]], "left")[0] == 1.0
+    # two lanes of one direction, lanes too far apart, or a single lane: nothing to judge
+    assert oncoming_side([line(-1.75), line(1.75)], "right")[1] == 0
+    assert oncoming_side([line(-8.0), line(8.0)[::-1]], "right")[1] == 0
+    assert math.isnan(oncoming_side([line(-1.75)], "right")[0])
+    # a crossing road's lane (perpendicular) does not count; a second road, left-hand, halves the share
+    crossing = [np.stack([np.full(65, 10.0), np.linspace(-32, 32, 65)], 1)]
+    assert oncoming_side(right_hand + crossing, "right")[0] == 1.0
+    assert oncoming_side(right_hand + [line(21.75), line(18.25)[::-1]], "right")[0] == pytest.approx(0.5)
+    with pytest.raises(ValueError):
+        oncoming_side(right_hand, "middle")

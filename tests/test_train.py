@@ -218,6 +218,33 @@ def test_mirrored_scenes_take_a_label_of_the_other_driving_side(runs, tmp_path):
     assert stage.mirror_labels(np.array(["LAV", "PIT", "SGP", "SGP"])).tolist() == [2, 2, 0, 1]
 
 
+def test_control_branch_starts_from_another_controlmap(runs, tmp_path):
+    from cmtool.recipe import load_recipe
+    from cmtool.train.stages import ControlNetStage
+
+    root = runs["root"]
+    recipe = write_recipe(tmp_path / "c.toml", "controlnet", 2, data=str(runs["data"]), rvae=str(root / "rvae"),
+                          dit=str(root / "dit"), branch_from=str(runs["controlnet"]), preview_every=0)
+    model = ControlNetStage(load_recipe(recipe), torch.device("cpu")).model()
+    start = model.state_dict()
+    branch = load_file(str(ckpt.resolve(runs["controlnet"]) / ckpt.WEIGHTS))
+    dit = load_file(str(ckpt.resolve(runs["dit"]) / ckpt.WEIGHTS))
+    assert any("zero" in k and v.abs().sum() > 0 for k, v in branch.items())  # a trained branch, not zeros
+    for k, v in start.items():
+        want = dit[k[len("base."):]] if k.startswith("base.") else branch[k]
+        assert torch.equal(v, want), k
+
+    result = cli("train", "controlnet", "--recipe", recipe, "--out", tmp_path / "cn", "--quiet")
+    assert result.returncode == 0, result.stderr
+    assert ckpt.load_config(tmp_path / "cn")["branch_from"] == str(ckpt.resolve(runs["controlnet"]).resolve())
+    assert "branch_from" in cli("info", tmp_path / "cn").stdout
+
+    other = recipe.read_text().replace("num_blocks = 2", "num_blocks = 1")
+    (tmp_path / "other.toml").write_text(other)
+    with pytest.raises(CmtoolError, match="branch_from needs a ControlMap"):
+        ControlNetStage(load_recipe(tmp_path / "other.toml"), torch.device("cpu")).model()
+
+
 def test_ddp_two_cpu_processes_keep_replicas_identical(runs, tmp_path):
     root = runs["root"]
     recipe = write_recipe(tmp_path / "dit.toml", "dit", 4, rvae=str(root / "rvae"), preview_every=0)
@@ -263,6 +290,9 @@ def test_user_errors_are_one_line(runs, tmp_path):
         (["info", tmp_path], "not a checkpoint"),
         (["train", "dit", "--recipe", write_recipe(tmp_path / "m.toml", "dit", 2, rvae=str(root / "rvae"), mirror=0.5),
           "--out", tmp_path / "m"], "controlnet-stage option"),
+        (["train", "dit", "--recipe", write_recipe(tmp_path / "b.toml", "dit", 2, rvae=str(root / "rvae"),
+                                                    branch_from=str(runs["controlnet"])),
+          "--out", tmp_path / "b"], "controlnet-stage option"),
     ]
     for args, fragment in bad:
         result = cli(*args)

@@ -24,7 +24,7 @@ import torch
 from cmtool.data.jsonio import write_json, write_text_atomic
 from cmtool.data.lanegraph import LaneGraph
 from cmtool.eval.features import FeatureExtractor, lanes_image
-from cmtool.eval.geometric import chamfer, driving_side, sd_adherence
+from cmtool.eval.geometric import chamfer, driving_side, oncoming_side, sd_adherence
 from cmtool.eval.metrics import drives_on
 from cmtool.eval.retrieval import batch_recall
 from cmtool.progress import Progress
@@ -98,7 +98,8 @@ def cfg_sweep(gen: Generator, scenes, weights: list[float], seeds: int, steps: i
 
 def city_swap(gen: Generator, scenes, labels: list[str], steps: int, cfg: float, seed: int, out,
               progress: bool = True) -> list[dict]:
-    """Driving side per city label on the same SD maps and noise, written to ``out``."""
+    """Driving side per city label on the same SD maps and noise (judged against the two-way SD roads
+    and by the side of oncoming lanes), written to ``out``."""
     sds = np.stack([s.sd for s in scenes])
     rows, maps = [], {}
     with Progress(len(labels), "ablate city-swap", "labels", enabled=progress) as bar:
@@ -106,15 +107,19 @@ def city_swap(gen: Generator, scenes, labels: list[str], steps: int, cfg: float,
             y = gen.label(name)
             maps[name] = generate(gen, sds, [y] * len(scenes), cfg, steps, seed)
             shares = [driving_side(m.lanes, sd, "left") for m, sd in zip(maps[name], sds)]
+            oncoming = [oncoming_side(m.lanes, "left") for m in maps[name]]
             left = _weighted([s for s, n in shares], [n for s, n in shares])
             rows.append({"label": name, "drives_on": drives_on(name), "left_hand": left,
                          "right_hand": None if left is None else 1.0 - left,
-                         "judged_points": int(sum(n for _, n in shares))})
+                         "judged_points": int(sum(n for _, n in shares)),
+                         "left_hand_oncoming": _weighted([s for s, n in oncoming], [n for s, n in oncoming]),
+                         "oncoming_points": int(sum(n for _, n in oncoming))})
             bar.update()
     out.mkdir(parents=True, exist_ok=True)
     write_json(out / "ablate_city_swap.json", {"scenes": len(scenes), "cfg": cfg, "steps": steps, "rows": rows})
     write_text_atomic(out / "ablate_city_swap.md", _table(rows, ["label", "drives_on", "left_hand", "right_hand",
-                                                                 "judged_points"]))
+                                                                 "judged_points", "left_hand_oncoming",
+                                                                 "oncoming_points"]))
     tiles = []
     for k, scene in enumerate(scenes[:PICTURE_SCENES]):
         tiles.append(_titled("SD", sd_panel(scene.sd)))

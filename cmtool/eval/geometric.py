@@ -6,7 +6,9 @@ beyond the paper). Lanes are ego-frame polylines in metres; SD rasters follow DE
   length within 5 m of an SD road. Road length is measured by road pixels (roads are drawn at a
   constant width);
 - :func:`driving_side`: share of generated lane length along two-way SD roads that lies on the side
-  of the road the city drives on.
+  of the road the city drives on;
+- :func:`oncoming_side`: the same judged from the lanes alone, by the side on which oncoming lanes
+  run (needs no SD map, so it also judges unguided samples).
 """
 
 from __future__ import annotations
@@ -16,6 +18,7 @@ from typing import Sequence
 
 import cv2
 import numpy as np
+from scipy.spatial import cKDTree
 
 from cmtool.eval.lanes import distance_to_polylines, sample_points
 from cmtool.geometry import as_polyline, resample_step
@@ -97,6 +100,43 @@ def driving_side(lanes: Sequence[np.ndarray], sd: np.ndarray, drives_on: str, re
     if not judged.any():
         return math.nan, 0
     share_right = float(np.mean(centre[judged] > 0))
+    return (share_right if drives_on == "right" else 1.0 - share_right), int(judged.sum())
+
+
+def oncoming_side(lanes: Sequence[np.ndarray], drives_on: str, reach: tuple[float, float] = (1.5, 10.0),
+                  step: float = 1.0, neighbours: int = 48) -> tuple[float, int]:
+    """Share of lane points whose nearest oncoming lane runs on the side that ``drives_on`` implies
+    (on their left for right-hand traffic), and how many points were judged.
+
+    At each point (every ``step`` m), the nearest point of another lane heading the other way
+    (within 37 degrees of opposite) between ``reach`` metres away and more beside than ahead of it
+    decides; points without one are not judged.
+    """
+    if drives_on not in ("right", "left"):
+        raise ValueError(f"drives_on must be 'right' or 'left', got {drives_on!r}")
+    pieces = [resample_step(as_polyline(l), step) for l in lanes]
+    pieces = [p for p in pieces if len(p) >= 2]
+    if len(pieces) < 2:
+        return math.nan, 0
+    points = np.concatenate(pieces)
+    owner = np.concatenate([np.full(len(p), i) for i, p in enumerate(pieces)])
+    dirs = np.concatenate([np.gradient(p, axis=0) for p in pieces])
+    dirs /= np.maximum(np.linalg.norm(dirs, axis=1, keepdims=True), 1e-9)
+    k = min(neighbours, len(points))
+    dist, idx = cKDTree(points).query(points, k=k, distance_upper_bound=reach[1])
+    found = np.isfinite(dist)
+    idx = np.where(found, idx, 0)
+    offset = points[idx] - points[:, None, :]
+    along = np.abs(np.einsum("nkd,nd->nk", offset, dirs))
+    ok = found & (dist > reach[0]) & (owner[idx] != owner[:, None]) & (along < 0.5 * dist) \
+        & (np.einsum("nkd,nd->nk", dirs[idx], dirs) < -0.8)
+    judged = ok.any(axis=1)
+    if not judged.any():
+        return math.nan, 0
+    first = np.argmax(ok, axis=1)  # neighbours come sorted by distance: the nearest oncoming point
+    near = offset[np.arange(len(points)), first]
+    on_left = dirs[:, 0] * near[:, 1] - dirs[:, 1] * near[:, 0] > 0
+    share_right = float(np.mean(on_left[judged]))
     return (share_right if drives_on == "right" else 1.0 - share_right), int(judged.sum())
 
 

@@ -9,7 +9,6 @@ Rerun recording of the run (``train/loss``, ``train/lr``, ``train/grad_norm``, p
 
 from __future__ import annotations
 
-import json
 import math
 from abc import ABC, abstractmethod
 import sys
@@ -133,7 +132,7 @@ def _resume_point(run_dir: Path, resume: bool, kind: str, model_config: dict) ->
         return None
     last = found[-1]
     config = ckpt.load_config(last)
-    wanted = json.loads(json.dumps(model_config, default=str))  # as stored: tuples become lists
+    wanted = ckpt.as_stored(model_config)
     if config["kind"] != kind or config.get("model") != wanted.get("model") \
             or config.get("control") != wanted.get("control"):
         raise CmtoolError(f"{last}: this run was trained with another model; --resume needs the same recipe")

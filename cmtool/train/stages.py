@@ -281,13 +281,30 @@ class ControlNetStage(_DiffusionStage):
                               f"({dit_config['schedule']}); the control branch must train on the DiT's schedule")
         self.data_dir = _path(recipe.train.data, "data", recipe.path)
         self.latents = read_latents(self.latent_dir, "train")
+        self.branch_from = ckpt.resolve(recipe.train.branch_from).resolve() if recipe.train.branch_from else None
         self._preview = None
 
     def model(self):
         dit, _ = ckpt.load_model(self.dit_path, "cpu")
         model = ControlMap(dit, self.recipe.control)
+        if self.branch_from is not None:
+            self.load_branch(model)
         model.freeze_base()
         return model
+
+    def load_branch(self, model: ControlMap) -> None:
+        """Copy the control branch (everything but the base DiT) of ``train.branch_from`` into ``model``."""
+        path = self.branch_from
+        config = ckpt.load_config(path)
+        wanted = ckpt.as_stored({"control": self.recipe.control, "model": self.dit_config["model"]})
+        if config["kind"] != "controlmap" or {k: config.get(k) for k in wanted} != wanted:
+            raise CmtoolError(f"{path}: train.branch_from needs a ControlMap with this recipe's [control] and "
+                              f"DiT size")
+        branch = {k: v for k, v in ckpt.load_tensors(path / ckpt.WEIGHTS).items() if not k.startswith("base.")}
+        own = {k: v for k, v in model.state_dict().items() if not k.startswith("base.")}
+        if set(branch) != set(own):
+            raise CmtoolError(f"{path}: its control branch does not match the model this recipe builds")
+        model.load_state_dict({k: v.to(own[k].dtype) for k, v in branch.items()}, strict=False)
 
     def dataset(self):
         lat = self.latents
@@ -315,7 +332,8 @@ class ControlNetStage(_DiffusionStage):
 
     def config(self):
         return {"kind": self.kind, "model": self.dit_config["model"], "control": dataclasses.asdict(self.recipe.control),
-                **self.common_config(), "dit": str(self.dit_path)}
+                **self.common_config(), "dit": str(self.dit_path),
+                **({"branch_from": str(self.branch_from)} if self.branch_from else {})}
 
     def preview(self, model, rec):
         if self._preview is None:
