@@ -97,6 +97,34 @@ def test_loss_zero_when_prediction_is_permuted_target():
     assert total.item() == pytest.approx(cfg.l1_weight * valid / 16, rel=1e-4)
 
 
+def test_aux_outputs_match_the_torch_decoder_and_add_their_loss():
+    torch.manual_seed(0)
+    model = RVAE(RVAEConfig(**{**SMALL, "decoder_layers": 3})).eval()
+    z = torch.randn(2, 64, 8, 8)
+    with torch.no_grad():
+        out = model.decode(z, aux=True)
+        memory = model.token_proj(z.flatten(2).transpose(1, 2)) + model.pos
+        reference = model._read(model.decoder(model.query.weight.expand(2, -1, -1), memory))
+    assert len(out["aux"]) == 2 and "aux" not in model.decode(z)
+    torch.testing.assert_close(out["lines"], reference["lines"])
+    assert not torch.allclose(out["aux"][0]["lines"], out["lines"])
+
+    rng = np.random.default_rng(3)
+    batch = random_batch(2, rng)
+    perfect = {}
+    for name, mask in (("lines", "line_mask"), ("green", "green_mask"), ("red", "red_mask")):
+        perfect[name] = batch[name]
+        perfect[f"{name}_logit"] = torch.where(batch[mask], 20.0, -20.0)
+    shifted = {**perfect, "lines": perfect["lines"] + 1.0}  # L1 = 1/16 half-frame per valid line
+    zeros = torch.zeros(2, 64, 8, 8)
+    cfg = RVAELossConfig(aux_weight=0.5)
+    total, parts = rvae_loss({**perfect, "aux": [shifted, perfect]}, zeros, zeros, batch, cfg)
+    expected = 0.5 * cfg.l1_weight * batch["line_mask"].float().mean().item() / 16
+    assert parts["aux"] == pytest.approx(expected, rel=1e-4) and total.item() == pytest.approx(expected, rel=1e-4)
+    total, parts = rvae_loss({**perfect, "aux": [shifted]}, zeros, zeros, batch, RVAELossConfig())
+    assert "aux" not in parts and total.item() < 1e-6
+
+
 def test_kl_and_gradients():
     zeros = torch.zeros(3, 64, 8, 8)
     assert kl_divergence(zeros, zeros).item() == 0.0

@@ -40,6 +40,7 @@ class RVAELossConfig:
     l1_weight: float = 64.0
     existence_weight: float = 5.0
     kl_weight: float = 0.1
+    aux_weight: float = 0.0  # weight of the same loss on each earlier decoder layer (0: final layer only)
     frame_m: float = 64.0
 
 

@@ -5,7 +5,8 @@ HD raster (DESIGN.md §3) to a Gaussian posterior over a ``latent_channels x lat
 latent. The decoder is DETR-style: one learned query per output slot (lines, green-light lines,
 red-light lines) attends to the latent tokens through a pre-norm transformer decoder; per element type
 an MLP head regresses the polyline points (ego-frame metres, tanh-bounded to the frame) and a linear
-layer its existence logit.
+layer its existence logit. The same heads can read every decoder layer (DETR's auxiliary outputs,
+used by the training loss only).
 """
 
 from __future__ import annotations
@@ -109,25 +110,40 @@ class RVAE(nn.Module):
         mean, logvar = self.to_latent(self.trunk(raster)).chunk(2, dim=1)
         return mean, logvar
 
-    def decode(self, z: Tensor) -> dict[str, Tensor]:
-        """Latent (B, latent_channels, S, S) -> {"lines", "lines_logit", "green", "green_logit", "red", "red_logit"}."""
+    def decode(self, z: Tensor, aux: bool = False) -> dict[str, Tensor]:
+        """Latent (B, latent_channels, S, S) -> {"lines", "lines_logit", "green", "green_logit", "red", "red_logit"}.
+
+        With ``aux``, also ``"aux"``: such dicts read from each earlier decoder layer, first to last."""
         b = z.shape[0]
         memory = self.token_proj(z.flatten(2).transpose(1, 2)) + self.pos
-        h = self.decoder(self.query.weight.expand(b, -1, -1), memory)
+        h = self.query.weight.expand(b, -1, -1)
+        earlier = []
+        for i, layer in enumerate(self.decoder.layers):
+            h = layer(h, memory)
+            if aux and i < len(self.decoder.layers) - 1:
+                earlier.append(self._read(self.decoder.norm(h)))
+        out = self._read(self.decoder.norm(h))
+        if aux:
+            out["aux"] = earlier
+        return out
+
+    def _read(self, h: Tensor) -> dict[str, Tensor]:
+        """Decoder states (B, Q, d_model) -> the heads' polylines and logits per element type."""
         out = {}
         for name, part in zip(ELEMENTS, h.split(list(self.cfg.queries.values()), dim=1)):
             out[name], out[f"{name}_logit"] = self.heads[name](part)
         return out
 
     def forward(self, raster: Tensor | None, sample: bool = True,
-                posterior: tuple[Tensor, Tensor] | None = None) -> tuple[dict[str, Tensor], Tensor, Tensor]:
+                posterior: tuple[Tensor, Tensor] | None = None,
+                aux: bool = False) -> tuple[dict[str, Tensor], Tensor, Tensor]:
         """Encode, take z (reparameterised sample, or the mean when ``sample`` is False), decode.
 
         ``posterior``: a (mean, logvar) pair to decode instead of encoding ``raster`` (decoder
-        fine-tuning on a latent cache)."""
+        fine-tuning on a latent cache); ``aux``: see :meth:`decode`."""
         mean, logvar = posterior if posterior is not None else self.encode(raster)
         z = mean + torch.exp(0.5 * logvar) * torch.randn_like(mean) if sample else mean
-        return self.decode(z), mean, logvar
+        return self.decode(z, aux), mean, logvar
 
 
 def same_encoder(a: dict[str, Tensor], b: dict[str, Tensor]) -> bool:

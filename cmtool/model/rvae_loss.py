@@ -8,6 +8,9 @@ ordered points (lines are directed: no reversal), in units of half the frame, so
 query slots, the existence BCE over all queries (matched = 1, others = 0), and the KL divergence of
 the posterior to N(0, I) averaged over latent elements.
 
+With ``aux_weight`` > 0 the matched L1 and existence terms are added again, so weighted, for the
+outputs of each earlier decoder layer, each matched on its own (DETR's auxiliary decoding losses).
+
 Weights follow SLEDGE (line reconstruction 2.0 per metre, existence 5.0, KL 0.1); SLEDGE measures L1
 in metres, so its reconstruction weight is multiplied by the half frame (32 m) to keep the same
 balance with the normalised L1.
@@ -56,15 +59,9 @@ def kl_divergence(mean: Tensor, logvar: Tensor) -> Tensor:
     return -0.5 * torch.mean(1.0 + logvar - mean.square() - logvar.exp())
 
 
-def rvae_loss(decoded: dict[str, Tensor], mean: Tensor, logvar: Tensor, batch: dict[str, Tensor],
-              cfg: RVAELossConfig) -> tuple[Tensor, dict[str, float]]:
-    """Total loss and its unweighted parts ``{"l1/lines", "exist/lines", ..., "kl"}`` as floats.
-
-    ``batch`` holds the targets: "lines" (B, L, P, 2) metres with "line_mask" (B, L) bool, and
-    "green"/"green_mask", "red"/"red_mask" likewise.
-    """
+def set_loss(decoded: dict[str, Tensor], batch: dict[str, Tensor], cfg: RVAELossConfig) -> dict[str, Tensor]:
+    """Matched L1 and existence BCE per element type of one set of outputs: ``{"l1/lines", "exist/lines", ...}``."""
     parts: dict[str, Tensor] = {}
-    total = mean.new_zeros(())
     for name in ELEMENTS:
         pred, logit = decoded[name], decoded[f"{name}_logit"]
         gt, mask = batch[name].to(pred), batch[MASK_KEYS[name]].to(pred.device)
@@ -72,12 +69,29 @@ def rvae_loss(decoded: dict[str, Tensor], mean: Tensor, logvar: Tensor, batch: d
         b = torch.cat([torch.full((len(p),), i, dtype=torch.int64) for i, (p, _) in enumerate(pairs)]).to(pred.device)
         q = torch.from_numpy(np.concatenate([p for p, _ in pairs])).to(pred.device)
         g = torch.from_numpy(np.concatenate([t for _, t in pairs])).to(pred.device)
-        l1 = line_l1(pred[b, q], gt[b, g], cfg.frame_m).sum() / logit.numel()
         target = torch.zeros_like(logit)
         target[b, q] = 1.0
-        exist = F.binary_cross_entropy_with_logits(logit, target)
-        total = total + cfg.l1_weight * l1 + cfg.existence_weight * exist
-        parts[f"l1/{name}"], parts[f"exist/{name}"] = l1, exist
+        parts[f"l1/{name}"] = line_l1(pred[b, q], gt[b, g], cfg.frame_m).sum() / logit.numel()
+        parts[f"exist/{name}"] = F.binary_cross_entropy_with_logits(logit, target)
+    return parts
+
+
+def _weighted(parts: dict[str, Tensor], cfg: RVAELossConfig) -> Tensor:
+    return sum((cfg.l1_weight if k.startswith("l1/") else cfg.existence_weight) * v for k, v in parts.items())
+
+
+def rvae_loss(decoded: dict[str, Tensor], mean: Tensor, logvar: Tensor, batch: dict[str, Tensor],
+              cfg: RVAELossConfig) -> tuple[Tensor, dict[str, float]]:
+    """Total loss and its unweighted parts ``{"l1/lines", "exist/lines", ..., "kl"}`` (and ``"aux"``, the
+    weighted loss of the earlier layers, when ``decoded`` holds them and ``cfg.aux_weight`` > 0) as floats.
+
+    ``batch`` holds the targets: "lines" (B, L, P, 2) metres with "line_mask" (B, L) bool, and
+    "green"/"green_mask", "red"/"red_mask" likewise.
+    """
+    parts = set_loss(decoded, batch, cfg)
     parts["kl"] = kl_divergence(mean, logvar)
-    total = total + cfg.kl_weight * parts["kl"]
+    total = _weighted({k: v for k, v in parts.items() if k != "kl"}, cfg) + cfg.kl_weight * parts["kl"]
+    if cfg.aux_weight > 0 and decoded.get("aux"):
+        parts["aux"] = cfg.aux_weight * sum(_weighted(set_loss(d, batch, cfg), cfg) for d in decoded["aux"])
+        total = total + parts["aux"]
     return total, {k: float(v.detach()) for k, v in parts.items()}

@@ -74,7 +74,7 @@ class RVAEStage(Stage):
         return SceneRasters(load_dataset(self.data_dir, "train"))
 
     def loss(self, model, batch):
-        decoded, mean, logvar = model(batch["raster"])
+        decoded, mean, logvar = model(batch["raster"], aux=self.recipe.rvae_loss.aux_weight > 0)
         return rvae_loss(decoded, mean, logvar, batch, self.recipe.rvae_loss)
 
     def config(self):
@@ -137,7 +137,8 @@ class DecoderStage(RVAEStage):
         return CachedPosteriors(lat.mean, lat.logvar, scenes)
 
     def loss(self, model, batch):
-        decoded, mean, logvar = model(None, posterior=(batch["mean"], batch["logvar"]))
+        decoded, mean, logvar = model(None, posterior=(batch["mean"], batch["logvar"]),
+                                      aux=self.recipe.rvae_loss.aux_weight > 0)
         return rvae_loss(decoded, mean, logvar, batch, self.recipe.rvae_loss)
 
     def config(self):
