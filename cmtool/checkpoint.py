@@ -34,6 +34,7 @@ FORMAT = "cmtool.checkpoint"
 CONFIG, WEIGHTS = "config.json", "model.safetensors"
 STATE, STATE_META = "train_state.safetensors", "train_state.json"
 KINDS = ("rvae", "dit", "controlmap")
+DIT_RECORD = ("step", "steps", "training", "recipe_path", "init_from")  # how a DiT was trained (packs keep it)
 
 
 def _fsync_dir(path: Path) -> None:

@@ -682,7 +682,8 @@ def info(path, as_json):
 @click.option("--ckpt", required=True, type=click.Path(path_type=Path), help="ControlMap checkpoint or run folder.")
 @click.option("--rvae", default=None, type=click.Path(path_type=Path),
               help="RVAE to ship instead of the one the ControlMap was trained on: a `cmtool train decoder` run "
-                   "on that RVAE (same encoder, so the same latent space).")
+                   "on that RVAE (same encoder, so the same latent space), or an already packed decoder "
+                   "with the same latent scale (e.g. cmtool/weights/rvae).")
 @click.option("--out", default=None, type=click.Path(file_okay=False, path_type=Path),
               help="Folder to write [default: the package's own cmtool/weights].")
 def pack(ckpt, rvae, out):

@@ -34,6 +34,12 @@ def _fields(obj: dict) -> str:
     return " ".join(f"{k}={v}" for k, v in obj.items())
 
 
+def _dit_line(record: dict) -> str:
+    tr = record["training"]
+    return (f"{format_seconds(tr.get('time_s', 0))} on {tr.get('hardware', '?')}, {record.get('step')} steps, "
+            f"{tr.get('samples', 0):,} samples, recipe {record.get('recipe_path') or '?'}")
+
+
 def describe(path: Path, as_json: bool = False) -> str:
     path = Path(path)
     if path.suffix == ".toml":
@@ -64,10 +70,12 @@ def describe(path: Path, as_json: bool = False) -> str:
     rows.append(("recipe", config.get("recipe_path") or "?"))
     dit = config.get("dit_training")
     if dit and dit.get("training"):
-        tr = dit["training"]
-        rows.append(("DiT trained", f"{format_seconds(tr.get('time_s', 0))} on {tr.get('hardware', '?')}, "
-                                    f"{dit.get('step')} steps, {tr.get('samples', 0):,} samples, "
-                                    f"recipe {dit.get('recipe_path') or '?'}"))
+        rows.append(("DiT trained", _dit_line(dit)))
+    source = (dit or config).get("init_from")
+    while source:  # a DiT trained further from another one's weights, and so on back
+        rows.append(("DiT started from", f"{source['path']}: {_dit_line(source)}" if source.get("training")
+                     else source["path"]))
+        source = source.get("init_from")
     if config.get("weights") == "decoder":
         rows.append(("weights", "decoder only (latent -> lanes), as shipped; encoding needs the training run"))
     if config.get("packed_from"):

@@ -101,6 +101,8 @@ class TrainRecipe:
     dit: str = ""  # DiT run or checkpoint folder (controlnet stage)
     branch_from: str = ""  # controlnet: start the control branch from this ControlMap run or checkpoint
     #                        (same [control]), e.g. after its DiT was trained further; "" = zero-initialised
+    init_from: str = ""  # dit: start from this DiT's weights, or a ControlMap's frozen DiT (e.g. the shipped
+    #                      cmtool/weights/controlmap), to train it further on the same latents; "" = random
     steps: int = 1000
     batch_size: int = 32  # global: split over the processes of a torchrun launch
     lr: float = 1e-4
@@ -135,6 +137,8 @@ class TrainRecipe:
             raise CmtoolError(f"{where}: train.mirror: mirrored scenes are a controlnet-stage option")
         if self.branch_from and self.stage not in ("", "controlnet"):
             raise CmtoolError(f"{where}: train.branch_from: a control branch is a controlnet-stage option")
+        if self.init_from and self.stage not in ("", "dit"):
+            raise CmtoolError(f"{where}: train.init_from: a dit-stage option (the controlnet stage has branch_from)")
         if self.lr_schedule not in ("cosine", "constant"):
             raise CmtoolError(f"{where}: train.lr_schedule: expected cosine or constant, got {self.lr_schedule!r}")
         for key in ("ema_decay", "label_dropout", "mirror", "min_lr_ratio"):

@@ -51,7 +51,7 @@ def pack(controlmap, out: Path, rvae=None) -> dict:
     if config.get("dit"):
         try:
             dit_training = {k: v for k, v in ckpt.load_config(ckpt.linked(src, config["dit"])).items()
-                            if k in ("training", "recipe_path", "step", "steps")}
+                            if k in ckpt.DIT_RECORD}
         except CmtoolError:
             pass  # the DiT run is gone; its weights are inside the ControlMap anyway
 
@@ -64,7 +64,7 @@ def pack(controlmap, out: Path, rvae=None) -> dict:
     decoder = {k: v.half() for k, v in ckpt.load_tensors(rvae_src / ckpt.WEIGHTS).items()
                if not k.startswith(ENCODER_PREFIXES)}
     rvae_out = {k: v for k, v in rvae_config.items() if k not in ("format", "version")}
-    rvae_out.update(weights="decoder", packed_from=str(rvae_src))
+    rvae_out.update(weights="decoder", packed_from=rvae_config.get("packed_from", str(rvae_src)))
     ckpt.save_checkpoint(out / "rvae", rvae_out, decoder)
 
     files = sorted(p for p in out.rglob("*") if p.is_file() and p.name != MANIFEST)
@@ -77,11 +77,13 @@ def pack(controlmap, out: Path, rvae=None) -> dict:
 
 
 def _same_latent_space(trained_on: Path, other: Path) -> Path:
-    """``other`` if its encoder and latent scale equal those of ``trained_on``, else an error."""
+    """``other`` if its encoder and latent scale equal those of ``trained_on``, else an error. A packed
+    decoder (``other`` holding no encoder, e.g. the shipped one) is judged by its latent scale alone."""
     a, b = ckpt.load_config(trained_on), ckpt.load_config(other)
     if b["kind"] != "rvae":
         raise CmtoolError(f"{other}: a {b['kind']} checkpoint; --rvae takes an RVAE")
-    same = same_encoder(*(ckpt.load_tensors(p / ckpt.WEIGHTS) for p in (trained_on, other)))
+    same = b.get("weights") == "decoder" or \
+        same_encoder(*(ckpt.load_tensors(p / ckpt.WEIGHTS) for p in (trained_on, other)))
     if not same or a.get("latent_scale") != b.get("latent_scale"):
         raise CmtoolError(f"{other}: its encoder or latent scale differs from {trained_on}, the RVAE the ControlMap "
                           "was trained on; only a `cmtool train decoder` run on that RVAE reads the same latents")

@@ -183,6 +183,16 @@ def test_decoder_stage_trains_the_decoder_on_the_frozen_encoder(runs, tmp_path):
     save_file(after, str(other / ckpt.WEIGHTS))
     refused = cli("pack", "--ckpt", runs["controlnet"], "--rvae", other, "--out", tmp_path / "w2")
     assert refused.returncode == 1 and "encoder or latent scale differs" in refused.stderr
+    # an already packed decoder (no encoder to compare) ships again when its latent scale matches
+    repacked = cli("pack", "--ckpt", runs["controlnet"], "--rvae", tmp_path / "w" / "rvae", "--out", tmp_path / "w3")
+    assert repacked.returncode == 0, repacked.stderr
+    again = load_file(str(tmp_path / "w3" / "rvae" / ckpt.WEIGHTS))
+    assert again.keys() == shipped.keys() and all(torch.equal(v, shipped[k]) for k, v in again.items())
+    assert ckpt.load_config(tmp_path / "w3" / "rvae")["packed_from"] == str(ckpt.resolve(tmp_path / "dec"))
+    config = json.loads((tmp_path / "w" / "rvae" / ckpt.CONFIG).read_text())
+    (tmp_path / "w" / "rvae" / ckpt.CONFIG).write_text(json.dumps({**config, "latent_scale": config["latent_scale"] * 2}))
+    refused = cli("pack", "--ckpt", runs["controlnet"], "--rvae", tmp_path / "w" / "rvae", "--out", tmp_path / "w4")
+    assert refused.returncode == 1 and "encoder or latent scale differs" in refused.stderr
 
 
 def test_mirrored_scenes_take_a_label_of_the_other_driving_side(runs, tmp_path):
@@ -245,6 +255,34 @@ def test_control_branch_starts_from_another_controlmap(runs, tmp_path):
         ControlNetStage(load_recipe(tmp_path / "other.toml"), torch.device("cpu")).model()
 
 
+def test_dit_starts_from_a_dit_or_a_controlmaps_frozen_base(runs, tmp_path):
+    from cmtool.recipe import load_recipe
+    from cmtool.train.stages import DiTStage
+
+    root = runs["root"]
+    dit = load_file(str(ckpt.resolve(runs["dit"]) / ckpt.WEIGHTS))
+    base = {k[len("base."):]: v for k, v in load_file(str(ckpt.resolve(runs["controlnet"]) / ckpt.WEIGHTS)).items()
+            if k.startswith("base.")}
+    assert not any(torch.equal(v, torch.zeros_like(v)) for k, v in dit.items() if "adaLN" in k)  # trained, not init
+    for source, want in ((runs["dit"], dit), (runs["controlnet"], base)):
+        recipe = write_recipe(tmp_path / "d.toml", "dit", 2, rvae=str(root / "rvae"), init_from=str(source),
+                              preview_every=0)
+        start = DiTStage(load_recipe(recipe), torch.device("cpu")).model().state_dict()
+        assert start.keys() == want.keys() and all(torch.equal(start[k], want[k]) for k in want)
+
+    result = cli("train", "dit", "--recipe", recipe, "--out", tmp_path / "further", "--quiet")
+    assert result.returncode == 0, result.stderr
+    record = ckpt.load_config(tmp_path / "further")["init_from"]
+    assert record["path"] == str(ckpt.resolve(runs["controlnet"]).resolve())
+    assert record["training"] == ckpt.load_config(runs["dit"])["training"]  # the ControlMap's DiT, not the ControlMap
+    assert record["training"] != ckpt.load_config(runs["controlnet"])["training"]
+    assert "DiT started from" in cli("info", tmp_path / "further").stdout
+
+    (tmp_path / "deeper.toml").write_text(recipe.read_text().replace("depth = 2", "depth = 3"))
+    with pytest.raises(CmtoolError, match="not the one this recipe builds"):
+        DiTStage(load_recipe(tmp_path / "deeper.toml"), torch.device("cpu")).model()
+
+
 def test_ddp_two_cpu_processes_keep_replicas_identical(runs, tmp_path):
     root = runs["root"]
     recipe = write_recipe(tmp_path / "dit.toml", "dit", 4, rvae=str(root / "rvae"), preview_every=0)
@@ -293,6 +331,10 @@ def test_user_errors_are_one_line(runs, tmp_path):
         (["train", "dit", "--recipe", write_recipe(tmp_path / "b.toml", "dit", 2, rvae=str(root / "rvae"),
                                                     branch_from=str(runs["controlnet"])),
           "--out", tmp_path / "b"], "controlnet-stage option"),
+        (["train", "controlnet", "--recipe", write_recipe(tmp_path / "i.toml", "controlnet", 2, data=str(runs["data"]),
+                                                           rvae=str(root / "rvae"), dit=str(root / "dit"),
+                                                           init_from=str(root / "dit")),
+          "--out", tmp_path / "i"], "dit-stage option"),
     ]
     for args, fragment in bad:
         result = cli(*args)

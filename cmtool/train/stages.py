@@ -236,9 +236,36 @@ class DiTStage(_DiffusionStage):
         self.latents = read_latents(self.latent_dir, "train")
         self.cities = sorted({str(c) for c in self.latents.city})
         self.dit_config = dataclasses.replace(recipe.dit, num_classes=len(self.cities)).resolved()
+        self.init_from = ckpt.resolve(recipe.train.init_from).resolve() if recipe.train.init_from else None
 
     def model(self):
-        return DiT(self.dit_config)
+        model = DiT(self.dit_config)
+        if self.init_from is not None:
+            model.load_state_dict(self.init_weights())
+        return model
+
+    def init_weights(self) -> dict[str, torch.Tensor]:
+        """The DiT weights of ``train.init_from`` (a DiT, or a ControlMap's frozen base), checked to fit."""
+        path, config = self.init_from, ckpt.load_config(self.init_from)
+        if config["kind"] not in ("dit", "controlmap"):
+            raise CmtoolError(f"{path}: a {config['kind']} checkpoint; train.init_from needs a DiT or a ControlMap")
+        if config["model"] != ckpt.as_stored(self.dit_config):
+            raise CmtoolError(f"{path}: its DiT ({_brief(config['model'])}) is not the one this recipe builds "
+                              f"({_brief(dataclasses.asdict(self.dit_config))})")
+        if config.get("cities") != self.cities or config.get("latent_scale") != self.scale:
+            raise CmtoolError(f"{path}: trained on other latents (cities {config.get('cities')}, latent scale "
+                              f"{config.get('latent_scale')}; this RVAE's: {self.cities}, {self.scale})")
+        tensors = ckpt.load_tensors(path / ckpt.WEIGHTS)
+        if config["kind"] == "controlmap":
+            tensors = {k[len("base."):]: v for k, v in tensors.items() if k.startswith("base.")}
+        return {k: v.float() for k, v in tensors.items()}
+
+    def init_record(self) -> dict:
+        """How the DiT of ``train.init_from`` was trained (recorded in this run's config)."""
+        config = ckpt.load_config(self.init_from)
+        if config["kind"] == "controlmap":
+            config = config.get("dit_training") or ckpt.load_config(ckpt.linked(self.init_from, config["dit"]))
+        return {"path": str(self.init_from), **{k: v for k, v in config.items() if k in ckpt.DIT_RECORD}}
 
     def dataset(self):
         lat = self.latents
@@ -248,7 +275,8 @@ class DiTStage(_DiffusionStage):
         return self.diffusion_loss(model, batch)
 
     def config(self):
-        return {"kind": self.kind, "model": dataclasses.asdict(self.dit_config), **self.common_config()}
+        return {"kind": self.kind, "model": dataclasses.asdict(self.dit_config), **self.common_config(),
+                **({"init_from": self.init_record()} if self.init_from else {})}
 
     def preview(self, model, rec):
         y = torch.arange(PREVIEWS, device=self.device) % (len(self.cities) + 1)
