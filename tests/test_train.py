@@ -255,7 +255,7 @@ def test_control_branch_starts_from_another_controlmap(runs, tmp_path):
         ControlNetStage(load_recipe(tmp_path / "other.toml"), torch.device("cpu")).model()
 
 
-def test_dit_starts_from_a_dit_or_a_controlmaps_frozen_base(runs, tmp_path):
+def test_dit_starts_from_a_dit_or_a_controlmaps_frozen_base(runs, tmp_path, capsys):
     from cmtool.recipe import load_recipe
     from cmtool.train.stages import DiTStage
 
@@ -281,6 +281,16 @@ def test_dit_starts_from_a_dit_or_a_controlmaps_frozen_base(runs, tmp_path):
     (tmp_path / "deeper.toml").write_text(recipe.read_text().replace("depth = 2", "depth = 3"))
     with pytest.raises(CmtoolError, match="not the one this recipe builds"):
         DiTStage(load_recipe(tmp_path / "deeper.toml"), torch.device("cpu")).model()
+    # a DiT of another RVAE's latents is a starting point only: a warning, recorded
+    other = tmp_path / "other_dit"
+    shutil.copytree(ckpt.resolve(runs["dit"]), other)
+    config = json.loads((other / ckpt.CONFIG).read_text())
+    (other / ckpt.CONFIG).write_text(json.dumps({**config, "latent_scale": config["latent_scale"] * 1.01}))
+    (tmp_path / "other.toml").write_text(recipe.read_text().replace(str(runs["controlnet"]), str(other)))
+    stage = DiTStage(load_recipe(tmp_path / "other.toml"), torch.device("cpu"))
+    stage.model()
+    assert "trained on other latents" in capsys.readouterr().err
+    assert stage.config()["init_from"]["latent_scale"] == config["latent_scale"] * 1.01
 
 
 def test_ddp_two_cpu_processes_keep_replicas_identical(runs, tmp_path):

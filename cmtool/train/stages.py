@@ -4,6 +4,7 @@ ControlMap's control branch (3)."""
 from __future__ import annotations
 
 import dataclasses
+import sys
 from pathlib import Path
 
 import numpy as np
@@ -252,9 +253,12 @@ class DiTStage(_DiffusionStage):
         if config["model"] != ckpt.as_stored(self.dit_config):
             raise CmtoolError(f"{path}: its DiT ({_brief(config['model'])}) is not the one this recipe builds "
                               f"({_brief(dataclasses.asdict(self.dit_config))})")
-        if config.get("cities") != self.cities or config.get("latent_scale") != self.scale:
-            raise CmtoolError(f"{path}: trained on other latents (cities {config.get('cities')}, latent scale "
-                              f"{config.get('latent_scale')}; this RVAE's: {self.cities}, {self.scale})")
+        if config.get("cities") != self.cities:
+            raise CmtoolError(f"{path}: its city labels {config.get('cities')} differ from this RVAE's latent "
+                              f"cache's {self.cities}")
+        if config.get("latent_scale") != self.scale:
+            print(f"warning: {path} was trained on other latents (latent scale {config.get('latent_scale')}, this "
+                  f"RVAE's {self.scale}); its weights are only a starting point", file=sys.stderr)
         tensors = ckpt.load_tensors(path / ckpt.WEIGHTS)
         if config["kind"] == "controlmap":
             tensors = {k[len("base."):]: v for k, v in tensors.items() if k.startswith("base.")}
@@ -265,7 +269,9 @@ class DiTStage(_DiffusionStage):
         config = ckpt.load_config(self.init_from)
         if config["kind"] == "controlmap":
             config = config.get("dit_training") or ckpt.load_config(ckpt.linked(self.init_from, config["dit"]))
-        return {"path": str(self.init_from), **{k: v for k, v in config.items() if k in ckpt.DIT_RECORD}}
+        scale = ckpt.load_config(self.init_from)["latent_scale"]
+        return {"path": str(self.init_from), "latent_scale": scale,
+                **{k: v for k, v in config.items() if k in ckpt.DIT_RECORD}}
 
     def dataset(self):
         lat = self.latents
