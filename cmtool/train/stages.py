@@ -266,12 +266,11 @@ class DiTStage(_DiffusionStage):
 
     def init_record(self) -> dict:
         """How the DiT of ``train.init_from`` was trained (recorded in this run's config)."""
-        config = ckpt.load_config(self.init_from)
-        if config["kind"] == "controlmap":
-            config = config.get("dit_training") or ckpt.load_config(ckpt.linked(self.init_from, config["dit"]))
-        scale = ckpt.load_config(self.init_from)["latent_scale"]
-        return {"path": str(self.init_from), "latent_scale": scale,
-                **{k: v for k, v in config.items() if k in ckpt.DIT_RECORD}}
+        source = ckpt.load_config(self.init_from)
+        dit = source if source["kind"] == "dit" else \
+            source.get("dit_training") or ckpt.load_config(ckpt.linked(self.init_from, source["dit"]))
+        return {"path": str(self.init_from), "latent_scale": source["latent_scale"],
+                **{k: v for k, v in dit.items() if k in ckpt.DIT_RECORD}}
 
     def dataset(self):
         lat = self.latents
