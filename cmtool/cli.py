@@ -14,6 +14,7 @@ import click
 
 from cmtool import __version__
 from cmtool.errors import CmtoolError
+from cmtool.sample import DEFAULT_SAMPLER, SAMPLERS
 
 CITY_CHOICES = ("LAV", "PIT", "SGP", "BOS")
 
@@ -139,6 +140,40 @@ def raster(sd_map, x, y, yaw, png):
     if not cv2.imwrite(str(png), cv2.cvtColor(image, cv2.COLOR_RGB2BGR)):
         raise CmtoolError(f"{png}: could not write the picture (is the extension .png?)")
     click.echo(f"{png}: SD raster, {int((image[..., 0] > 0).sum())} road pixels")
+
+
+@data.command()
+@click.argument("hd_map", type=click.Path(path_type=Path))
+@click.option("--n", default=1, show_default=True, type=click.IntRange(min=1), help="Poses to print.")
+@click.option("--seed", default=0, show_default=True, help="Random seed.")
+@click.option("--near-junction", type=click.FloatRange(min=0), help="Only poses within this many metres of an "
+              "intersection lane.")
+def poses(hd_map, n, seed, near_junction):
+    """Ego poses as the dataset crops its scenes: on a drivable lane, heading along it.
+
+    One JSON line {x, y, yaw} (metres, degrees) per pose, for `data raster --x --y --yaw` and
+    `sample --from-hd --pose`. An SD raster centred anywhere else (between roads, north up) is
+    unlike every training scene, and the models answer it with tangles.
+    """
+    import json
+    import math
+
+    import numpy as np
+
+    from cmtool.data.hdmap import HDMap
+    from cmtool.data.scene import near_junction as near, sample_poses
+
+    hd = HDMap.load(hd_map)
+    rng = np.random.default_rng(seed)
+    if near_junction is None:
+        picked = sample_poses(hd, n, rng)
+    else:
+        picked = near(hd, sample_poses(hd, 50 * n, rng), near_junction)[:n]
+    if len(picked) < n:
+        raise CmtoolError(f"{hd_map}: found {len(picked)} of {n} drivable poses"
+                          + ("" if near_junction is None else f" within {near_junction:g} m of a junction"))
+    for p in picked:
+        click.echo(json.dumps({"x": round(p.x, 2), "y": round(p.y, 2), "yaw": round(math.degrees(p.yaw), 1)}))
 
 
 @data.command()
@@ -297,7 +332,7 @@ SD input (at most one kind; none: maps from the city label alone):
 @click.option("--num", default=1, show_default=True, type=click.IntRange(min=1), help="Maps per SD input.")
 @click.option("--seed", default=0, show_default=True, help="Random seed.")
 @click.option("--steps", default=50, show_default=True, type=click.IntRange(min=1), help="Denoising steps.")
-@click.option("--sampler", default="ddim", show_default=True, type=click.Choice(["ddim", "ddpm"]))
+@click.option("--sampler", default=DEFAULT_SAMPLER, show_default=True, type=click.Choice(SAMPLERS))
 @click.option("--eta", default=0.0, show_default=True, help="DDIM noise (0 deterministic, 1 like DDPM).")
 @click.option("--city", default="auto", show_default=True,
               help="City label of the checkpoint, or none; auto: the HD map's city, else none.")
@@ -406,7 +441,7 @@ def metrics(generated, reference, control, json_out, backbone, weights, no_featu
 @click.option("--n", default=3904, show_default=True, type=click.IntRange(min=1), help="Scenes (the first N of the split).")
 @click.option("--cfg", default=1.0, show_default=True, help="ControlMap's guidance weight.")
 @click.option("--steps", default=50, show_default=True, type=click.IntRange(min=1), help="Denoising steps.")
-@click.option("--sampler", default="ddim", show_default=True, type=click.Choice(["ddim", "ddpm"]))
+@click.option("--sampler", default=DEFAULT_SAMPLER, show_default=True, type=click.Choice(SAMPLERS))
 @click.option("--seed", default=0, show_default=True, help="Random seed (the same noise for both methods).")
 @click.option("--batch", default=64, show_default=True, type=click.IntRange(min=1), help="Maps per forward pass.")
 @click.option("--out", required=True, type=click.Path(file_okay=False, path_type=Path),
@@ -569,6 +604,7 @@ _ABLATE_COMMON = [
     click.option("--split", default="test", show_default=True),
     click.option("--n", default=64, show_default=True, type=click.IntRange(min=1), help="Scenes (the first N)."),
     click.option("--steps", default=50, show_default=True, type=click.IntRange(min=1), help="Denoising steps."),
+    click.option("--sampler", default=DEFAULT_SAMPLER, show_default=True, type=click.Choice(SAMPLERS)),
     click.option("--out", required=True, type=click.Path(file_okay=False, path_type=Path), help="Output folder."),
     click.option("--device", help="torch device [default: cuda when available, else cpu]."),
     click.option("--quiet", is_flag=True, help="No progress line."),
@@ -589,7 +625,7 @@ def _ablate_options(fn):
               type=click.Choice(["resnet50-seeded", "resnet50-imagenet"]), help="Feature network of GT Recall.")
 @click.option("--weights-file", type=click.Path(dir_okay=False, path_type=Path), help="ImageNet ResNet-50 weights.")
 @click.option("--no-features", is_flag=True, help="Skip GT Recall.")
-def ablate_cfg(ckpt, data_dir, split, n, steps, out, device, quiet, weights, seeds, backbone, weights_file,
+def ablate_cfg(ckpt, data_dir, split, n, steps, sampler, out, device, quiet, weights, seeds, backbone, weights_file,
                no_features):
     """Sweep the guidance weight w: SD adherence, GT Recall and diversity against w."""
     from cmtool.eval.ablations import cfg_sweep
@@ -598,7 +634,7 @@ def ablate_cfg(ckpt, data_dir, split, n, steps, out, device, quiet, weights, see
     ws = _floats(weights, "--w")
     gen, scenes = _ablation_setup(ckpt, data_dir, split, n, device)
     extractor = None if no_features else FeatureExtractor(backbone, weights_file, gen.device)
-    cfg_sweep(gen, scenes, ws, seeds, steps, extractor, out, progress=not quiet)
+    cfg_sweep(gen, scenes, ws, seeds, steps, extractor, out, progress=not quiet, sampler=sampler)
     click.echo((out / "ablate_cfg.md").read_text().rstrip())
     click.echo(f"wrote {out / 'ablate_cfg.md'}, {out / 'ablate_cfg.png'}, {out / 'ablate_cfg.rrd'}")
 
@@ -608,7 +644,7 @@ def ablate_cfg(ckpt, data_dir, split, n, steps, out, device, quiet, weights, see
 @click.option("--labels", default="SGP,LAV", show_default=True, help="City labels to compare (or none).")
 @click.option("--cfg", default=1.0, show_default=True, help="Guidance weight.")
 @click.option("--seed", default=0, show_default=True, help="Random seed (the same noise for every label).")
-def ablate_city_swap(ckpt, data_dir, split, n, steps, out, device, quiet, labels, cfg, seed):
+def ablate_city_swap(ckpt, data_dir, split, n, steps, sampler, out, device, quiet, labels, cfg, seed):
     """Swap the city label on the same SD maps: the driving side per label (SGP drives on the left)."""
     from cmtool.eval.ablations import city_swap
 
@@ -616,7 +652,7 @@ def ablate_city_swap(ckpt, data_dir, split, n, steps, out, device, quiet, labels
     gen, scenes = _ablation_setup(ckpt, data_dir, split, n, device)
     for name in names:
         gen.label(name)  # unknown labels fail before any work
-    city_swap(gen, scenes, names, steps, cfg, seed, out, progress=not quiet)
+    city_swap(gen, scenes, names, steps, cfg, seed, out, progress=not quiet, sampler=sampler)
     click.echo((out / "ablate_city_swap.md").read_text().rstrip())
     click.echo(f"wrote {out / 'ablate_city_swap.md'}, {out / 'ablate_city_swap.png'}")
 
@@ -651,7 +687,7 @@ def bench_sample_cmd(ckpt, sd_path, steps, cfg, batch, repeats, device):
     gen = Generator.load(_checkpoint(ckpt), dev)
     params = sum(p.numel() for p in gen.model.parameters())
     click.echo(f"{gen.path}: {gen.config['kind']}, {params / 1e6:.1f}M parameters; {dev} "
-               f"({torch.get_num_threads()} threads); {steps} ddim steps, cfg {cfg}")
+               f"({torch.get_num_threads()} threads); {steps} {settings.sampler} steps, cfg {cfg}")
     r = bench_sample(gen, sd, settings, batch=batch, repeats=repeats)
     verdict = "within" if r["log_ratio"] <= LOG_LIMIT else "OVER"
     click.echo(f"full logging / --no-log at batch 1: {r['log_ratio']:.3f} ({verdict} the {LOG_LIMIT:.2f} limit)")

@@ -4,6 +4,7 @@ import json
 
 import numpy as np
 import pytest
+import shapely
 
 from cmtool.data.hdmap import HDMap
 from cmtool.data.sd_raster import sd_raster_from_image
@@ -37,6 +38,34 @@ def test_sd_derives_from_a_synth_map(run_cli, tmp_path):
     image = sd_raster_from_image(tmp_path / "sd.png")
     assert image.shape == (128, 128, 3) and image[..., 0].any()
     assert set(np.unique(image[..., 0])) == {0, 255} and set(np.unique(image[..., 1])) <= {32 * k for k in range(8)}
+
+
+def test_poses_lie_on_drivable_lanes_heading_along_them_and_near_a_junction(run_cli, tmp_path):
+    assert run_cli("data", "synth", "--city", "PIT", "--extent", "300", "--out", tmp_path / "c.json").returncode == 0
+    hd = HDMap.load(tmp_path / "c.json")
+    lanes = [l for l in hd.lanes.values() if l.lane_type in ("vehicle", "bus")]
+    junctions = shapely.MultiLineString([l.centerline for l in lanes if l.is_intersection])
+    for near in (None, 8.0):
+        r = run_cli("data", "poses", tmp_path / "c.json", "--n", 5, "--seed", 2,
+                    *(() if near is None else ("--near-junction", near)))
+        assert r.returncode == 0, r.stderr
+        poses = [json.loads(line) for line in r.stdout.splitlines()]
+        assert len(poses) == 5
+        for p in poses:
+            point = shapely.Point(p["x"], p["y"])
+            on = [shapely.LineString(l.centerline) for l in lanes]
+            on = [line for line in on if line.distance(point) < 0.01]
+            assert on, p
+            headings = []
+            for line in on:
+                s = line.project(point)
+                a, b = line.interpolate(max(s - 0.5, 0)), line.interpolate(min(s + 0.5, line.length))
+                headings.append(np.degrees(np.arctan2(b.y - a.y, b.x - a.x)))
+            assert min(abs((h - p["yaw"] + 180) % 360 - 180) for h in headings) < 5.0
+            if near is not None:
+                assert junctions.distance(point) <= near + 0.01
+    assert_one_line_error(run_cli("data", "poses", tmp_path / "c.json", "--near-junction", 0, "--n", 3),
+                          "0 of 3 drivable poses within 0 m of a junction")
 
 
 @pytest.mark.parametrize(

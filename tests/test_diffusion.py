@@ -10,7 +10,7 @@ from cmtool.errors import CmtoolError
 from cmtool.model.config import ControlConfig, DiTConfig, ScheduleConfig
 from cmtool.model.controlmap import ControlMap
 from cmtool.model.dit import DiT
-from cmtool.sample.diffusion import NoiseSchedule, StepInfo, sample
+from cmtool.sample.diffusion import NoiseSchedule, StepInfo, sample, step_generator
 from tests.conftest import perturb
 
 pytestmark = pytest.mark.usefixtures("one_thread")  # tiny models run fastest single-threaded
@@ -81,9 +81,20 @@ def test_same_seed_same_samples(models, sampler, eta):
 def test_ddim_eta0_is_deterministic_given_the_noise(models):
     dit, _ = models
     noise = torch.randn(2, 64, 8, 8, generator=gen(5))
-    a = sample(dit, SCHEDULE, Y, steps=6, noise=noise, generator=gen(1))
-    b = sample(dit, SCHEDULE, Y, steps=6, noise=noise, generator=gen(2))
+    a = sample(dit, SCHEDULE, Y, steps=6, sampler="ddim", noise=noise, generator=gen(1))
+    b = sample(dit, SCHEDULE, Y, steps=6, sampler="ddim", noise=noise, generator=gen(2))
     assert torch.equal(a, b)
+
+
+def test_step_noise_is_a_stream_apart_from_the_initial_noise(models):
+    """Seeding the step noise like x_T would add x_T back in at the first DDPM step."""
+    dit, _ = models
+    shape = (len(Y), *dit.latent_shape)
+    x_t = torch.randn(shape, generator=torch.Generator().manual_seed(3))
+    assert torch.equal(torch.randn(shape, generator=torch.Generator().manual_seed(3)), x_t)  # the trap
+    assert not torch.allclose(torch.randn(shape, generator=step_generator(3)), x_t, atol=0.5)
+    run = lambda: sample(dit, SCHEDULE, Y, steps=3, sampler="ddpm", noise=x_t, generator=step_generator(3))
+    assert torch.equal(run(), run())
 
 
 def test_ddim_eta1_matches_ddpm(models):

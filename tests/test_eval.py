@@ -81,8 +81,15 @@ def test_ablations_write_tables_pictures_and_recording(sampling_ckpt, tiny_data,
     assert steps == {0, 500, 1000}
     code, out, err = in_process(capsys, "ablate", "city-swap", *common, "--labels", "SGP,LAV")
     assert code == 0, err
-    rows = json.loads((tmp_path / "ablate_city_swap.json").read_text())["rows"]
+    swap = json.loads((tmp_path / "ablate_city_swap.json").read_text())
+    rows = swap["rows"]
     assert [r["label"] for r in rows] == ["SGP", "LAV"] and [r["drives_on"] for r in rows] == ["left", "right"]
+    assert swap["sampler"] == sweep["sampler"] == "ddpm"  # the default: every step draws fresh noise ...
+    again = tmp_path / "again"
+    code, _, err = in_process(capsys, "ablate", "city-swap", *common[:-3], "--out", again, "--quiet",
+                              "--labels", "SGP,LAV")
+    assert code == 0, err
+    assert json.loads((again / "ablate_city_swap.json").read_text()) == swap  # ... from the seed
     assert all(r["left_hand"] is None or 0.0 <= r["left_hand"] <= 1.0 for r in rows)
     assert all(r["left_hand_oncoming"] is None or 0.0 <= r["left_hand_oncoming"] <= 1.0 for r in rows)
     assert "left_hand_oncoming" in (tmp_path / "ablate_city_swap.md").read_text()

@@ -18,6 +18,7 @@ from cmtool.cli import main
 from cmtool.data.hdmap import HDMap
 from cmtool.data.lanegraph import LaneGraph, infer_successors, read_jsonl
 from cmtool.eval.validity import check
+from cmtool.sample import DEFAULT_SAMPLER
 from cmtool.viz.trajectory import strips_column, tensor_column
 from tests.conftest import REPO, in_process
 
@@ -277,7 +278,7 @@ def test_bench_sample_prints_both_times_and_the_ratio(sampling_ckpt, capsys):
 def test_lane_graph_meta_records_how_it_was_made(sampled):
     graph = LaneGraph.from_json(json.loads((sampled["out"] / "sd_bos_s0.json").read_text()))
     assert {"source", "checkpoint", "seed", "cfg", "steps", "sampler"} <= set(graph.meta)
-    assert graph.meta["steps"] == STEPS and graph.meta["sampler"] == "ddim"
+    assert graph.meta["steps"] == STEPS and graph.meta["sampler"] == DEFAULT_SAMPLER == "ddpm"
 
 
 def test_streaming_to_a_viewer(sampling_ckpt, tmp_path, capsys):

@@ -99,6 +99,18 @@ def sample_poses(hd: HDMap, n: int, rng: np.random.Generator, min_spacing_m: flo
     return [Pose(float(points[k, 0]), float(points[k, 1]), float(yaws[k])) for k in taken]
 
 
+def near_junction(hd: HDMap, poses: list[Pose], within_m: float) -> list[Pose]:
+    """The poses within ``within_m`` metres of an intersection lane of ``hd`` (in their order)."""
+    junctions = [shapely.LineString(l.centerline) for l in drivable_lanes(hd)
+                 if l.is_intersection or l.intersection_id is not None]
+    if not junctions:
+        return []
+    tree = shapely.STRtree(junctions)
+    points = shapely.points([[p.x, p.y] for p in poses])
+    _, dist = tree.query_nearest(points, return_distance=True, all_matches=False)
+    return [p for p, d in zip(poses, dist) if d <= within_m]
+
+
 class SceneCropper:
     """Crops scenes out of one HD map (the map's lane geometry is indexed once)."""
 

@@ -28,6 +28,8 @@ from cmtool.eval.geometric import chamfer, driving_side, oncoming_side, sd_adher
 from cmtool.eval.metrics import drives_on
 from cmtool.eval.retrieval import batch_recall
 from cmtool.progress import Progress
+from cmtool.sample import DEFAULT_SAMPLER
+from cmtool.sample.diffusion import step_generator
 from cmtool.sample.generator import Generator
 from cmtool.viz.draw import BACKGROUND, TEXT, graph_panel, grid, sd_panel, title_strip
 from cmtool.viz.recording import log_lanes, log_sd, open_recording
@@ -37,21 +39,24 @@ PICTURE_SCENES = 4
 
 
 def generate(gen: Generator, sds: np.ndarray, labels: list[int], cfg: float, steps: int, seed: int,
-             batch: int = 64) -> list[LaneGraph]:
-    """One map per SD raster; the initial noise of scene i depends only on (seed, i)."""
+             sampler: str = DEFAULT_SAMPLER, batch: int = 64) -> list[LaneGraph]:
+    """One map per SD raster; the initial noise of scene i depends only on (seed, i), the noise of
+    the sampler's steps only on (seed, batch), so other weights and labels see the same noise."""
     maps = []
     for b0 in range(0, len(sds), batch):
         n = min(batch, len(sds) - b0)
         noise = torch.stack([torch.randn(gen.model.latent_shape, generator=torch.Generator().manual_seed(
             seed * 1_000_003 + b0 + k)) for k in range(n)])
-        z = gen.sample(sds[b0:b0 + n], labels[b0:b0 + n], cfg=cfg, steps=steps, noise=noise.to(gen.device))
-        maps += [gen.lane_graph(el, gen.city_name(y), {"cfg": cfg, "seed": seed})
+        z = gen.sample(sds[b0:b0 + n], labels[b0:b0 + n], cfg=cfg, steps=steps, sampler=sampler,
+                       noise=noise.to(gen.device),
+                       generator=step_generator(seed * 1_000_003 + b0, gen.device))
+        maps += [gen.lane_graph(el, gen.city_name(y), {"cfg": cfg, "seed": seed, "sampler": sampler})
                  for el, y in zip(gen.decode(z), labels[b0:b0 + n])]
     return maps
 
 
 def cfg_sweep(gen: Generator, scenes, weights: list[float], seeds: int, steps: int, extractor: FeatureExtractor | None,
-              out, progress: bool = True) -> list[dict]:
+              out, progress: bool = True, sampler: str = DEFAULT_SAMPLER) -> list[dict]:
     """The sweep's rows (one per w), written with its plot and recording to ``out``."""
     sds = np.stack([s.sd for s in scenes])
     truth = [s.to_lanegraph() for s in scenes]
@@ -62,7 +67,7 @@ def cfg_sweep(gen: Generator, scenes, weights: list[float], seeds: int, steps: i
         for w in weights:
             runs = []
             for seed in range(seeds):
-                runs.append(generate(gen, sds, labels, w, steps, seed))
+                runs.append(generate(gen, sds, labels, w, steps, seed, sampler))
                 bar.update()
             maps_by_w[w] = runs[0]
             adherence = [sd_adherence(m.lanes, sd) for m, sd in zip(runs[0], sds)]
@@ -75,7 +80,8 @@ def cfg_sweep(gen: Generator, scenes, weights: list[float], seeds: int, steps: i
                                         for a, b in itertools.combinations([r[i] for r in runs], 2)])
             rows.append(row)
     out.mkdir(parents=True, exist_ok=True)
-    write_json(out / "ablate_cfg.json", {"scenes": len(scenes), "seeds": seeds, "steps": steps, "rows": rows})
+    write_json(out / "ablate_cfg.json", {"scenes": len(scenes), "seeds": seeds, "steps": steps, "sampler": sampler,
+                                          "rows": rows})
     write_text_atomic(out / "ablate_cfg.md", _table(rows, ["w", "sd_coverage", "lane_on_sd", "gt_recall",
                                                            "diversity_m"]))
     write_png(out / "ablate_cfg.png", _plot(rows))
@@ -97,7 +103,7 @@ def cfg_sweep(gen: Generator, scenes, weights: list[float], seeds: int, steps: i
 
 
 def city_swap(gen: Generator, scenes, labels: list[str], steps: int, cfg: float, seed: int, out,
-              progress: bool = True) -> list[dict]:
+              progress: bool = True, sampler: str = DEFAULT_SAMPLER) -> list[dict]:
     """Driving side per city label on the same SD maps and noise (judged against the two-way SD roads
     and by the side of oncoming lanes), written to ``out``."""
     sds = np.stack([s.sd for s in scenes])
@@ -105,7 +111,7 @@ def city_swap(gen: Generator, scenes, labels: list[str], steps: int, cfg: float,
     with Progress(len(labels), "ablate city-swap", "labels", enabled=progress) as bar:
         for name in labels:
             y = gen.label(name)
-            maps[name] = generate(gen, sds, [y] * len(scenes), cfg, steps, seed)
+            maps[name] = generate(gen, sds, [y] * len(scenes), cfg, steps, seed, sampler)
             shares = [driving_side(m.lanes, sd, "left") for m, sd in zip(maps[name], sds)]
             oncoming = [oncoming_side(m.lanes, "left") for m in maps[name]]
             left = _weighted([s for s, n in shares], [n for s, n in shares])
@@ -116,7 +122,8 @@ def city_swap(gen: Generator, scenes, labels: list[str], steps: int, cfg: float,
                          "oncoming_points": int(sum(n for _, n in oncoming))})
             bar.update()
     out.mkdir(parents=True, exist_ok=True)
-    write_json(out / "ablate_city_swap.json", {"scenes": len(scenes), "cfg": cfg, "steps": steps, "rows": rows})
+    write_json(out / "ablate_city_swap.json", {"scenes": len(scenes), "cfg": cfg, "steps": steps, "sampler": sampler,
+                                                "rows": rows})
     write_text_atomic(out / "ablate_city_swap.md", _table(rows, ["label", "drives_on", "left_hand", "right_hand",
                                                                  "judged_points", "left_hand_oncoming",
                                                                  "oncoming_points"]))

@@ -33,6 +33,8 @@ from cmtool.eval.metrics import evaluate, reference_image_features, summary_tabl
 from cmtool.eval.validity import check
 from cmtool.progress import Progress
 from cmtool.release import BUNDLED
+from cmtool.sample import DEFAULT_SAMPLER
+from cmtool.sample.diffusion import step_generator
 from cmtool.sample.generator import Generator
 from cmtool.viz.recording import log_lanes, log_sd, open_recording
 
@@ -46,7 +48,7 @@ class EvalSettings:
     n: int = 3904
     cfg: float = 1.0
     steps: int = 50
-    sampler: str = "ddim"
+    sampler: str = DEFAULT_SAMPLER
     seed: int = 0
     batch: int = 64
     checkpoint: str = ""
@@ -113,7 +115,7 @@ def _generate(gen: Generator, scenes, settings: EvalSettings, cache: Path, progr
                     sd = np.stack([s.sd for s in batch])
                 z = gen.sample(sd, labels, cfg=settings.cfg if m == "controlmap" else 0.0, steps=settings.steps,
                                sampler=settings.sampler, noise=noise.to(gen.device),
-                               generator=torch.Generator(gen.device).manual_seed(settings.seed * 1_000_003 + b0))
+                               generator=step_generator(settings.seed * 1_000_003 + b0, gen.device))
                 graphs = [gen.lane_graph(el, gen.city_name(y), {"method": m, "scene": b0 + k, "seed": settings.seed})
                           for k, (el, y) in enumerate(zip(gen.decode(z), labels))]
                 done[m] += graphs

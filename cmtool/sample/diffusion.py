@@ -23,8 +23,8 @@ from torch import Tensor, nn
 from cmtool.errors import CmtoolError
 from cmtool.model.config import ScheduleConfig
 from cmtool.model.controlmap import ControlMap
+from cmtool.sample import DEFAULT_SAMPLER, SAMPLERS
 
-SAMPLERS = ("ddim", "ddpm")
 
 
 class SamplingError(CmtoolError, ValueError):
@@ -73,6 +73,14 @@ class NoiseSchedule:
         return [int(t) for t in np.linspace(self.train_steps - 1, 0, num_steps).round()]
 
 
+def step_generator(seed: int, device="cpu") -> torch.Generator:
+    """The generator of the stochastic samplers' per-step noise when the initial noise ``x_T`` was
+    drawn from ``torch.Generator().manual_seed(seed)``: a stream of its own, so that no step adds
+    ``x_T`` back in. (The CPU generator keeps only a seed's low 32 bits, so an offset like
+    ``seed + 2**40`` would not do; the seed is hashed instead.)"""
+    return torch.Generator(device).manual_seed(int(np.random.SeedSequence([seed, 1]).generate_state(1)[0]))
+
+
 @dataclass
 class StepInfo:
     """What one sampling step saw and predicted (handed to the callback after the step)."""
@@ -89,7 +97,7 @@ class StepInfo:
 
 @torch.no_grad()
 def sample(model: nn.Module, schedule: NoiseSchedule, y: Tensor, *, control: Tensor | None = None,
-           cfg: float = 1.0, steps: int = 50, sampler: str = "ddim", eta: float = 0.0,
+           cfg: float = 1.0, steps: int = 50, sampler: str = DEFAULT_SAMPLER, eta: float = 0.0,
            generator: torch.Generator | None = None, noise: Tensor | None = None,
            callback: Callable[[StepInfo], None] | None = None) -> Tensor:
     """Denoise from ``x_T`` to a clean latent ``(B, C, H, W)`` for labels ``y`` (B,).

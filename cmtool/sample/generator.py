@@ -20,6 +20,7 @@ from cmtool.model.config import ScheduleConfig
 from cmtool.model.controlmap import ControlMap, sd_tensor
 from cmtool.model.rvae import decoded_elements
 from cmtool.recipe import from_table
+from cmtool.sample import DEFAULT_SAMPLER
 from cmtool.sample.diffusion import NoiseSchedule, sample
 
 NONE = "none"  # the --city value for the null label
@@ -81,7 +82,7 @@ class Generator:
     def city_name(self, label: int) -> str | None:
         return self.cities[label] if label < len(self.cities) else None
 
-    def sample(self, sd: np.ndarray | None, labels, *, cfg: float, steps: int, sampler: str = "ddim",
+    def sample(self, sd: np.ndarray | None, labels, *, cfg: float, steps: int, sampler: str = DEFAULT_SAMPLER,
                eta: float = 0.0, generator: torch.Generator | None = None, noise: torch.Tensor | None = None,
                callback=None) -> torch.Tensor:
         """Clean latents (B, C, H, W) in the DiT's scaled space for SD rasters ``sd`` (B, 128, 128, 3)

@@ -29,7 +29,8 @@ from cmtool.errors import CmtoolError
 from cmtool.eval.validity import check
 from cmtool.geometry import polyline_length
 from cmtool.progress import Progress
-from cmtool.sample.diffusion import SAMPLERS, SamplingError
+from cmtool.sample import DEFAULT_SAMPLER, SAMPLERS
+from cmtool.sample.diffusion import SamplingError
 from cmtool.sample.generator import Generator
 from cmtool.sample.inputs import ControlInput
 from cmtool.viz.draw import graph_panel, legend, sd_panel, title_strip
@@ -46,7 +47,7 @@ class SampleSettings:
     num: int = 1
     seed: int = 0
     steps: int = 50
-    sampler: str = "ddim"
+    sampler: str = DEFAULT_SAMPLER
     eta: float = 0.0
     cfg: float = 1.0
     city: str = AUTO  # a label of the checkpoint, "none", or "auto"
