@@ -120,7 +120,7 @@ class TrainRecipe:
     keep: int = 2  # checkpoints kept in the run folder
     log_every: int = 10  # steps between scalar logs in the Rerun recording
     preview_every: int = 500  # steps between decoded previews (0: off)
-    preview_steps: int = 25  # DDIM steps of the previews (dit, controlnet)
+    preview_steps: int = 25  # sampler steps of the previews (dit, controlnet)
     workers: int = 0  # DataLoader worker processes
     seed: int = 0
 
