@@ -44,7 +44,7 @@ def test_poses_lie_on_drivable_lanes_heading_along_them_and_near_a_junction(run_
     assert run_cli("data", "synth", "--city", "PIT", "--extent", "300", "--out", tmp_path / "c.json").returncode == 0
     hd = HDMap.load(tmp_path / "c.json")
     lanes = [l for l in hd.lanes.values() if l.lane_type in ("vehicle", "bus")]
-    junctions = shapely.MultiLineString([l.centerline for l in lanes if l.is_intersection])
+    junctions = shapely.MultiLineString([l.centerline for l in lanes if l.in_intersection])
     for near in (None, 8.0):
         r = run_cli("data", "poses", tmp_path / "c.json", "--n", 5, "--seed", 2,
                     *(() if near is None else ("--near-junction", near)))

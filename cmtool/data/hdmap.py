@@ -50,6 +50,11 @@ class Lane:
     road_id: str | None = None
     intersection_id: str | None = None
 
+    @property
+    def in_intersection(self) -> bool:
+        """A connector through an intersection (flagged, or belonging to one)."""
+        return self.is_intersection or self.intersection_id is not None
+
 
 @dataclass
 class StopLine:

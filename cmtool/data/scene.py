@@ -102,7 +102,7 @@ def sample_poses(hd: HDMap, n: int, rng: np.random.Generator, min_spacing_m: flo
 def near_junction(hd: HDMap, poses: list[Pose], within_m: float) -> list[Pose]:
     """The poses within ``within_m`` metres of an intersection lane of ``hd`` (in their order)."""
     junctions = [shapely.LineString(l.centerline) for l in drivable_lanes(hd)
-                 if l.is_intersection or l.intersection_id is not None]
+                 if l.in_intersection]
     if not junctions:
         return []
     tree = shapely.STRtree(junctions)

@@ -156,8 +156,8 @@ def road_network(hd: HDMap) -> RoadNetwork:
     """Build carriageways, road pieces, intersections and road chains from ``hd``."""
     usable = {i: l for i, l in hd.lanes.items()
               if l.lane_type in ROAD_LANE_TYPES and polyline_length(l.centerline) > 0.1}
-    road = {i: l for i, l in usable.items() if not _is_connector(l)}
-    conn = {i: l for i, l in usable.items() if _is_connector(l)}
+    road = {i: l for i, l in usable.items() if not l.in_intersection}
+    conn = {i: l for i, l in usable.items() if l.in_intersection}
     intersections, lane_ix = _intersections(conn)
     carriageways = [_carriageway([road[i] for i in group]) for group in _carriageway_groups(road)]
     pieces = _pair(carriageways)
@@ -165,10 +165,6 @@ def road_network(hd: HDMap) -> RoadNetwork:
     _attach_ends(pieces, road, lane_ix)
     links = _through_links(pieces, road, conn, lane_piece)
     return RoadNetwork(pieces, intersections, _chains(len(pieces), links))
-
-
-def _is_connector(lane: Lane) -> bool:
-    return lane.is_intersection or lane.intersection_id is not None
 
 
 @dataclass
