@@ -7,6 +7,7 @@ import pytest
 import shapely
 
 from cmtool.data.hdmap import HDMap
+from cmtool.data.scene import drivable_lanes
 from cmtool.data.sd_raster import sd_raster_from_image
 from conftest import SHARED_DATA
 
@@ -43,7 +44,8 @@ def test_sd_derives_from_a_synth_map(run_cli, tmp_path):
 def test_poses_lie_on_drivable_lanes_heading_along_them_and_near_a_junction(run_cli, tmp_path):
     assert run_cli("data", "synth", "--city", "PIT", "--extent", "300", "--out", tmp_path / "c.json").returncode == 0
     hd = HDMap.load(tmp_path / "c.json")
-    lanes = [l for l in hd.lanes.values() if l.lane_type in ("vehicle", "bus")]
+    lanes = drivable_lanes(hd)
+    lines = [shapely.LineString(l.centerline) for l in lanes]
     junctions = shapely.MultiLineString([l.centerline for l in lanes if l.in_intersection])
     for near in (None, 8.0):
         r = run_cli("data", "poses", tmp_path / "c.json", "--n", 5, "--seed", 2,
@@ -53,8 +55,7 @@ def test_poses_lie_on_drivable_lanes_heading_along_them_and_near_a_junction(run_
         assert len(poses) == 5
         for p in poses:
             point = shapely.Point(p["x"], p["y"])
-            on = [shapely.LineString(l.centerline) for l in lanes]
-            on = [line for line in on if line.distance(point) < 0.01]
+            on = [line for line in lines if line.distance(point) < 0.01]
             assert on, p
             headings = []
             for line in on:
