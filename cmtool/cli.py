@@ -573,13 +573,13 @@ def ablate():
     """Ablations on fixed SD maps and seeds: the guidance weight, the city label."""
 
 
-def _ablation_setup(ckpt, data_dir, split, n, device):
+def _ablation_setup(ckpt, data_dir, split, n, device, dit_ok=False):
     from cmtool.data.cache import load_dataset
     from cmtool.sample.generator import Generator
 
     gen = Generator.load(_checkpoint(ckpt), _device(device))
-    if not gen.has_control:
-        raise CmtoolError(f"{gen.path}: ablations need a ControlMap checkpoint")
+    if not gen.has_control and not dit_ok:
+        raise CmtoolError(f"{gen.path}: the guidance sweep needs a ControlMap checkpoint")
     data = load_dataset(data_dir, split)
     return gen, [data.scene(i) for i in range(min(n, len(data)))]
 
@@ -645,11 +645,14 @@ def ablate_cfg(ckpt, data_dir, split, n, steps, sampler, out, device, quiet, wei
 @click.option("--cfg", default=1.0, show_default=True, help="Guidance weight.")
 @click.option("--seed", default=0, show_default=True, help="Random seed (the same noise for every label).")
 def ablate_city_swap(ckpt, data_dir, split, n, steps, sampler, out, device, quiet, labels, cfg, seed):
-    """Swap the city label on the same SD maps: the driving side per label (SGP drives on the left)."""
+    """Swap the city label on the same SD maps: the driving side per label (SGP drives on the left).
+
+    --ckpt may also name a DiT: its maps ignore the SD maps, whose two-way roads still judge them
+    where they happen to meet (the oncoming-lane columns judge every map)."""
     from cmtool.eval.ablations import city_swap
 
     names = [v.strip() for v in labels.split(",") if v.strip()]
-    gen, scenes = _ablation_setup(ckpt, data_dir, split, n, device)
+    gen, scenes = _ablation_setup(ckpt, data_dir, split, n, device, dit_ok=True)
     for name in names:
         gen.label(name)  # unknown labels fail before any work
     city_swap(gen, scenes, names, steps, cfg, seed, out, progress=not quiet, sampler=sampler)

@@ -114,8 +114,10 @@ class TrainRecipe:
     grad_clip: float = 1.0
     ema_decay: float = 0.999
     label_dropout: float = 0.2  # probability of replacing the city label by the null label (dit, controlnet)
-    mirror: float = 0.0  # controlnet: probability of a scene mirrored left-right, labelled with a city
+    mirror: float = 0.0  # dit, controlnet: probability of a scene mirrored left-right, labelled with a city
     #                      driving on the other side (teaches the label the driving side; never dropped)
+    sd_shift_m: float = 0.0  # controlnet: move each SD raster sideways by up to this many metres (uniform, whole
+    #                          pixels), so that where the road lies in the frame does not give the driving side away
     ckpt_every: int = 500
     keep: int = 2  # checkpoints kept in the run folder
     log_every: int = 10  # steps between scalar logs in the Rerun recording
@@ -128,13 +130,15 @@ class TrainRecipe:
         for key in ("steps", "batch_size", "lr", "ckpt_every", "keep", "log_every", "preview_steps"):
             if getattr(self, key) <= 0:
                 raise CmtoolError(f"{where}: train.{key}: must be positive, got {getattr(self, key)}")
-        for key in ("warmup_steps", "weight_decay", "grad_clip", "preview_every", "workers"):
+        for key in ("warmup_steps", "weight_decay", "grad_clip", "preview_every", "workers", "sd_shift_m"):
             if getattr(self, key) < 0:
                 raise CmtoolError(f"{where}: train.{key}: must not be negative, got {getattr(self, key)}")
         if self.stage not in ("", "rvae", "decoder", "dit", "controlnet"):
             raise CmtoolError(f"{where}: train.stage: expected rvae, decoder, dit or controlnet, got {self.stage!r}")
-        if self.mirror > 0 and self.stage not in ("", "controlnet"):
-            raise CmtoolError(f"{where}: train.mirror: mirrored scenes are a controlnet-stage option")
+        if self.mirror > 0 and self.stage not in ("", "dit", "controlnet"):
+            raise CmtoolError(f"{where}: train.mirror: mirrored scenes are a dit- and controlnet-stage option")
+        if self.sd_shift_m and self.stage not in ("", "controlnet"):
+            raise CmtoolError(f"{where}: train.sd_shift_m: SD rasters are a controlnet-stage input")
         if self.branch_from and self.stage not in ("", "controlnet"):
             raise CmtoolError(f"{where}: train.branch_from: a control branch is a controlnet-stage option")
         if self.init_from and self.stage not in ("", "dit"):

@@ -97,6 +97,21 @@ def test_ablations_write_tables_pictures_and_recording(sampling_ckpt, tiny_data,
     assert code == 1 and "unknown city 'XYZ'" in err
 
 
+def test_city_swap_of_a_dit_is_its_controlmap_at_w0(sampling_ckpt, tiny_data, tmp_path, capsys):
+    common = ("--data", tiny_data, "--n", 3, "--steps", 2, "--quiet", "--labels", "SGP,LAV")
+    code, _, err = in_process(capsys, "ablate", "city-swap", "--ckpt", sampling_ckpt["dit"], *common,
+                              "--out", tmp_path / "dit")
+    assert code == 0, err
+    code, _, err = in_process(capsys, "ablate", "city-swap", "--ckpt", sampling_ckpt["controlmap"], "--cfg", 0,
+                              *common, "--out", tmp_path / "w0")
+    assert code == 0, err
+    rows = [json.loads((tmp_path / d / "ablate_city_swap.json").read_text())["rows"] for d in ("dit", "w0")]
+    assert rows[0] == rows[1] and rows[0][0]["oncoming_points"] > 0
+    code, _, err = in_process(capsys, "ablate", "cfg", "--ckpt", sampling_ckpt["dit"], *common[:-2],
+                              "--out", tmp_path / "x")
+    assert code == 1 and "needs a ControlMap checkpoint" in err
+
+
 def test_eval_cache_tells_weights_apart_at_the_same_path(sampling_ckpt, tiny_data, tmp_path, capsys):
     import shutil
 

@@ -199,7 +199,8 @@ def test_mirrored_scenes_take_a_label_of_the_other_driving_side(runs, tmp_path):
     from cmtool.data.cache import load_dataset
     from cmtool.recipe import load_recipe
     from cmtool.train.data import SceneRasters
-    from cmtool.train.stages import ControlNetStage
+    from cmtool.eval.metrics import drives_on
+    from cmtool.train.stages import ControlNetStage, DiTStage
 
     # the mirrored HD raster is the plain one flipped left-right (to within the one pixel by which
     # OpenCV's thick lines lean), its heading sine negated
@@ -216,16 +217,30 @@ def test_mirrored_scenes_take_a_label_of_the_other_driving_side(runs, tmp_path):
     rvae = tmp_path / "rvae"
     shutil.copytree(root / "rvae", rvae)
     recipe = write_recipe(tmp_path / "c.toml", "controlnet", 2, data=str(runs["data"]), rvae=str(rvae),
-                          dit=str(root / "dit"), mirror=0.5, preview_every=0)
+                          dit=str(root / "dit"), mirror=0.5, sd_shift_m=3.0, preview_every=0)
     result = cli("train", "controlnet", "--recipe", recipe, "--out", tmp_path / "cn", "--quiet")
     assert result.returncode == 0, result.stderr
     with np.load(rvae / "latents" / "train.npz") as p, np.load(rvae / "latents" / "train_mirrored.npz") as m:
         assert p["mean"].shape == m["mean"].shape and not np.array_equal(p["mean"], m["mean"])
         assert np.array_equal(p["pose"], m["pose"])
     stage = ControlNetStage(load_recipe(recipe), torch.device("cpu"))
-    assert stage.cities == ["LAV", "PIT", "SGP"]
+    assert stage.cities == ["LAV", "PIT", "SGP"] and stage.shift_px == 6  # 3 m at 0.5 m per pixel
     # right-hand LAV and PIT become left-hand SGP; SGP cycles through LAV and PIT
     assert stage.mirror_labels(np.array(["LAV", "PIT", "SGP", "SGP"])).tolist() == [2, 2, 0, 1]
+
+    # the DiT stage mirrors the same way, drawing the scenes from the dataset its RVAE was trained on
+    # (no train.data), and reuses the cached mirrored latents
+    (rvae / "latents" / "train_mirrored.npz").rename(tmp_path / "first.npz")
+    dit = write_recipe(tmp_path / "d.toml", "dit", 2, rvae=str(rvae), mirror=0.5, preview_every=0)
+    result = cli("train", "dit", "--recipe", dit, "--out", tmp_path / "dit", "--quiet")
+    assert result.returncode == 0, result.stderr
+    with np.load(tmp_path / "first.npz") as a, np.load(rvae / "latents" / "train_mirrored.npz") as b:
+        assert np.array_equal(a["mean"], b["mean"])
+    dit_stage = DiTStage(load_recipe(dit), torch.device("cpu"))
+    items = dit_stage.dataset()
+    sides = [drives_on(c) for c in dit_stage.cities]
+    assert all(sides[a] != sides[b] for a, b in zip(items.label, items.mirrored[2]))
+    assert items[0]["mirror_mean"].shape == items[0]["mean"].shape
 
 
 def test_control_branch_starts_from_another_controlmap(runs, tmp_path):
@@ -336,8 +351,8 @@ def test_user_errors_are_one_line(runs, tmp_path):
         (["train", "dit", "--recipe", write_recipe(tmp_path / "d.toml", "dit", 2, rvae=str(tmp_path / "none")),
           "--out", tmp_path / "z"], "no such checkpoint"),
         (["info", tmp_path], "not a checkpoint"),
-        (["train", "dit", "--recipe", write_recipe(tmp_path / "m.toml", "dit", 2, rvae=str(root / "rvae"), mirror=0.5),
-          "--out", tmp_path / "m"], "controlnet-stage option"),
+        (["train", "rvae", "--recipe", write_recipe(tmp_path / "m.toml", "rvae", 2, data=str(runs["data"]), mirror=0.5),
+          "--out", tmp_path / "m"], "dit- and controlnet-stage option"),
         (["train", "dit", "--recipe", write_recipe(tmp_path / "b.toml", "dit", 2, rvae=str(root / "rvae"),
                                                     branch_from=str(runs["controlnet"])),
           "--out", tmp_path / "b"], "controlnet-stage option"),
@@ -369,3 +384,22 @@ def test_checkpoint_writes_are_atomic_and_validated(tmp_path):
     (target / ckpt.WEIGHTS).write_bytes(b"garbage")
     with pytest.raises(CmtoolError, match="unreadable"):
         ckpt.load_tensors(target / ckpt.WEIGHTS)
+
+
+def test_sd_shift_moves_each_raster_sideways_by_at_most_max_px():
+    from cmtool.train.data import shift_sideways
+
+    torch.manual_seed(0)
+    x = torch.rand(64, 3, 8, 16) + 0.1  # no empty pixel, so the uncovered columns show
+    y = shift_sideways(x, 3)
+
+    def moved(a, s):
+        out = torch.roll(a, s, dims=-1)
+        if s > 0:
+            out[..., :s] = 0
+        if s < 0:
+            out[..., s:] = 0
+        return out
+
+    shifts = [next((s for s in range(-3, 4) if torch.equal(b, moved(a, s))), None) for a, b in zip(x, y)]
+    assert None not in shifts and set(shifts) == set(range(-3, 4))

@@ -34,7 +34,7 @@ from cmtool.eval.validity import check
 from cmtool.progress import Progress
 from cmtool.release import BUNDLED
 from cmtool.sample import DEFAULT_SAMPLER
-from cmtool.sample.diffusion import step_generator
+from cmtool.sample.diffusion import scene_seed, step_generator
 from cmtool.sample.generator import Generator
 from cmtool.viz.recording import log_lanes, log_sd, open_recording
 
@@ -106,7 +106,7 @@ def _generate(gen: Generator, scenes, settings: EvalSettings, cache: Path, progr
         for b0 in range(start, len(scenes), settings.batch):
             batch = scenes[b0:b0 + settings.batch]
             noise = torch.randn((len(batch), *gen.model.latent_shape),
-                                generator=torch.Generator().manual_seed(settings.seed * 1_000_003 + b0))
+                                generator=torch.Generator().manual_seed(scene_seed(settings.seed, b0)))
             for m in METHODS:
                 if m == "unguided":
                     labels, sd = [null] * len(batch), None
@@ -115,7 +115,7 @@ def _generate(gen: Generator, scenes, settings: EvalSettings, cache: Path, progr
                     sd = np.stack([s.sd for s in batch])
                 z = gen.sample(sd, labels, cfg=settings.cfg if m == "controlmap" else 0.0, steps=settings.steps,
                                sampler=settings.sampler, noise=noise.to(gen.device),
-                               generator=step_generator(settings.seed * 1_000_003 + b0, gen.device))
+                               generator=step_generator(scene_seed(settings.seed, b0), gen.device))
                 graphs = [gen.lane_graph(el, gen.city_name(y), {"method": m, "scene": b0 + k, "seed": settings.seed})
                           for k, (el, y) in enumerate(zip(gen.decode(z), labels))]
                 done[m] += graphs

@@ -73,6 +73,12 @@ class NoiseSchedule:
         return [int(t) for t in np.linspace(self.train_steps - 1, 0, num_steps).round()]
 
 
+def scene_seed(seed: int, scene: int) -> int:
+    """The seed of the initial noise of scene (or batch starting at) ``scene`` of a run seeded ``seed``
+    (``eval``, ``ablate``): each scene its own noise, whatever else the run generates."""
+    return seed * 1_000_003 + scene
+
+
 def step_generator(seed: int, device="cpu") -> torch.Generator:
     """The generator of the stochastic samplers' per-step noise when the initial noise ``x_T`` was
     drawn from ``torch.Generator().manual_seed(seed)``: a stream of its own, so that no step adds

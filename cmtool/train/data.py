@@ -65,6 +65,16 @@ class CachedPosteriors(Dataset):
                 "logvar": torch.from_numpy(self.logvar[i].astype(np.float32)), **vector_targets(self.scenes.arrays, i)}
 
 
+def shift_sideways(control: torch.Tensor, max_px: int) -> torch.Tensor:
+    """Each raster of ``control`` (B, C, H, W) moved sideways (along W) by a random whole number of
+    pixels in [-max_px, max_px] (``torch``'s global generator), the columns it uncovers left empty."""
+    out = torch.zeros_like(control)
+    width = control.shape[-1]
+    for k, s in enumerate(torch.randint(-max_px, max_px + 1, (len(control),)).tolist()):
+        out[k, ..., max(s, 0):width + min(s, 0)] = control[k, ..., max(-s, 0):width - max(s, 0)]
+    return out
+
+
 class Latents(Dataset):
     """Stage 2/3 items: a latent posterior (mean, logvar), the city label and, for stage 3, the SD raster.
 

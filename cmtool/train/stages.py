@@ -21,7 +21,7 @@ from cmtool.model.dit import DiT, DiTConfig
 from cmtool.model.rvae import RVAE, decoded_elements, same_encoder
 from cmtool.model.rvae_loss import rvae_loss
 from cmtool.sample.diffusion import NoiseSchedule, sample
-from cmtool.train.data import CachedPosteriors, Latents, SceneRasters
+from cmtool.train.data import CachedPosteriors, Latents, SceneRasters, shift_sideways
 from cmtool.train.latents import latent_dir, mirrored_latents, read_latents, write_latents
 from cmtool.train.loop import Stage
 from cmtool.viz.recording import log_lanes, log_sd
@@ -189,6 +189,7 @@ class _DiffusionStage(Stage):
         self.scale = float(self.rvae_config["latent_scale"])
         self.latent_dir = latent_dir(self.rvae_run, self.rvae_config)
         self.schedule = NoiseSchedule(recipe.diffusion)
+        self.shift_px = 0  # train.sd_shift_m in SD raster pixels (controlnet stage)
         self._rvae = None
 
     def rvae(self) -> RVAE:
@@ -200,6 +201,24 @@ class _DiffusionStage(Stage):
         lookup = {c: i for i, c in enumerate(self.cities)}
         return np.array([lookup.get(str(c), len(self.cities)) for c in cities], np.int64)
 
+    def mirror_labels(self, cities: np.ndarray) -> np.ndarray:
+        """Per scene, the label of a city driving on the other side (cycling through them when several)."""
+        sides = {side: [i for i, c in enumerate(self.cities) if drives_on(c) == side] for side in ("left", "right")}
+        if not all(sides.values()):
+            raise CmtoolError(f"train.mirror needs train cities driving on each side; {', '.join(self.cities)} "
+                              f"all drive on the {'left' if sides['left'] else 'right'}")
+        out = np.empty(len(cities), np.int64)
+        for i, city in enumerate(cities):
+            other = sides["right" if drives_on(str(city)) == "left" else "left"]
+            out[i] = other[i % len(other)]
+        return out
+
+    def mirrored(self, data_dir, cities: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+        """``train.mirror``: the train scenes' posteriors mirrored left-right (encoded once into the latent
+        cache) and the labels they take."""
+        flipped = mirrored_latents(self.rvae, data_dir, self.latent_dir, self.device)
+        return flipped.mean, flipped.logvar, self.mirror_labels(cities)
+
     def diffusion_loss(self, model, batch, **extra):
         mean, logvar, y = batch["mean"], batch["logvar"], batch["label"]
         keep_label = torch.zeros_like(y, dtype=torch.bool)
@@ -210,6 +229,8 @@ class _DiffusionStage(Stage):
                 pick(y, batch["mirror_label"])
             if "control" in extra:
                 extra["control"] = pick(extra["control"], batch["mirror_sd"])
+        if self.shift_px:
+            extra["control"] = shift_sideways(extra["control"], self.shift_px)
         z = (mean + torch.exp(0.5 * logvar) * torch.randn_like(mean)) * self.scale
         t = torch.randint(0, self.schedule.cfg.train_steps, (len(z),), device=z.device)
         noise = torch.randn_like(z)
@@ -274,7 +295,12 @@ class DiTStage(_DiffusionStage):
 
     def dataset(self):
         lat = self.latents
-        return Latents(lat.mean, lat.logvar, self.labels(lat.city))
+        mirrored = None
+        if self.recipe.train.mirror > 0:  # the scenes, for drawing them mirrored: train.data or the RVAE's
+            data_dir = Path(self.recipe.train.data or self.rvae_config["data"])
+            _train_scenes(data_dir, lat, self.latent_dir)
+            mirrored = self.mirrored(data_dir, lat.city)
+        return Latents(lat.mean, lat.logvar, self.labels(lat.city), mirrored=mirrored)
 
     def loss(self, model, batch):
         return self.diffusion_loss(model, batch)
@@ -314,6 +340,7 @@ class ControlNetStage(_DiffusionStage):
             raise CmtoolError(f"{recipe.path}: the [diffusion] schedule differs from the DiT checkpoint's "
                               f"({dit_config['schedule']}); the control branch must train on the DiT's schedule")
         self.data_dir = _path(recipe.train.data, "data", recipe.path)
+        self.shift_px = round(recipe.train.sd_shift_m * recipe.control.image_px / load_manifest(self.data_dir)["frame_m"])
         self.latents = read_latents(self.latent_dir, "train")
         self.branch_from = ckpt.resolve(recipe.train.branch_from).resolve() if recipe.train.branch_from else None
         self._preview = None
@@ -343,23 +370,8 @@ class ControlNetStage(_DiffusionStage):
     def dataset(self):
         lat = self.latents
         scenes = _train_scenes(self.data_dir, lat, self.latent_dir)
-        mirrored = None
-        if self.recipe.train.mirror > 0:
-            flipped = mirrored_latents(self.rvae, self.data_dir, self.latent_dir, self.device)
-            mirrored = (flipped.mean, flipped.logvar, self.mirror_labels(lat.city))
+        mirrored = self.mirrored(self.data_dir, lat.city) if self.recipe.train.mirror > 0 else None
         return Latents(lat.mean, lat.logvar, self.labels(lat.city), scenes.arrays["sd"], mirrored)
-
-    def mirror_labels(self, cities: np.ndarray) -> np.ndarray:
-        """Per scene, the label of a city driving on the other side (cycling through them when several)."""
-        sides = {side: [i for i, c in enumerate(self.cities) if drives_on(c) == side] for side in ("left", "right")}
-        if not all(sides.values()):
-            raise CmtoolError(f"train.mirror needs train cities driving on each side; {', '.join(self.cities)} "
-                              f"all drive on the {'left' if sides['left'] else 'right'}")
-        out = np.empty(len(cities), np.int64)
-        for i, city in enumerate(cities):
-            other = sides["right" if drives_on(str(city)) == "left" else "left"]
-            out[i] = other[i % len(other)]
-        return out
 
     def loss(self, model, batch):
         return self.diffusion_loss(model, batch, control=batch["sd"])
