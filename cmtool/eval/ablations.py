@@ -40,15 +40,16 @@ PICTURE_SCENES = 4
 
 def generate(gen: Generator, sds: np.ndarray, labels: list[int], cfg: float, steps: int, seed: int,
              sampler: str = DEFAULT_SAMPLER, batch: int = 64) -> list[LaneGraph]:
-    """One map per SD raster (a DiT ignores them); the initial noise of scene i depends only on (seed, i), the noise of
-    the sampler's steps only on (seed, batch), so other weights and labels see the same noise."""
+    """One map per SD raster (a DiT ignores them); the initial noise of scene i depends only on
+    (seed, i), the noise of the sampler's steps only on (seed, batch), so other weights and labels see
+    the same noise."""
     maps = []
     for b0 in range(0, len(sds), batch):
         n = min(batch, len(sds) - b0)
         noise = torch.stack([torch.randn(gen.model.latent_shape, generator=torch.Generator().manual_seed(
             scene_seed(seed, b0 + k))) for k in range(n)])
-        z = gen.sample(sds[b0:b0 + n] if gen.has_control else None, labels[b0:b0 + n], cfg=cfg, steps=steps, sampler=sampler,
-                       noise=noise.to(gen.device),
+        sd = sds[b0:b0 + n] if gen.has_control else None
+        z = gen.sample(sd, labels[b0:b0 + n], cfg=cfg, steps=steps, sampler=sampler, noise=noise.to(gen.device),
                        generator=step_generator(scene_seed(seed, b0), gen.device))
         maps += [gen.lane_graph(el, gen.city_name(y), {"cfg": cfg, "seed": seed, "sampler": sampler})
                  for el, y in zip(gen.decode(z), labels[b0:b0 + n])]

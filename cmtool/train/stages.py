@@ -340,7 +340,8 @@ class ControlNetStage(_DiffusionStage):
             raise CmtoolError(f"{recipe.path}: the [diffusion] schedule differs from the DiT checkpoint's "
                               f"({dit_config['schedule']}); the control branch must train on the DiT's schedule")
         self.data_dir = _path(recipe.train.data, "data", recipe.path)
-        self.shift_px = round(recipe.train.sd_shift_m * recipe.control.image_px / load_manifest(self.data_dir)["frame_m"])
+        px_m = load_manifest(self.data_dir)["frame_m"] / recipe.control.image_px
+        self.shift_px = round(recipe.train.sd_shift_m / px_m)
         self.latents = read_latents(self.latent_dir, "train")
         self.branch_from = ckpt.resolve(recipe.train.branch_from).resolve() if recipe.train.branch_from else None
         self._preview = None
