@@ -17,6 +17,8 @@ from cmtool.errors import CmtoolError
 from cmtool.sample import DEFAULT_SAMPLER, SAMPLERS
 
 CITY_CHOICES = ("LAV", "PIT", "SGP", "BOS")
+CITY_CFG_HELP = ("Guidance weight on the city label (1: the label as trained; > 1 strengthens the city's style, "
+                 "such as its driving side, at one more model pass per step).")
 
 
 @click.group(context_settings={"help_option_names": ["-h", "--help"]})
@@ -337,6 +339,7 @@ SD input (at most one kind; none: maps from the city label alone):
 @click.option("--city", default="auto", show_default=True,
               help="City label of the checkpoint, or none; auto: the HD map's city, else none.")
 @click.option("--cfg", default=1.0, show_default=True, help="Guidance weight w >= 0 on the SD control (0: ignore it).")
+@click.option("--city-cfg", default=1.0, show_default=True, help=CITY_CFG_HELP)
 @click.option("--batch", default=16, show_default=True, type=click.IntRange(min=1), help="Maps per forward pass.")
 @click.option("--out", default=Path("samples"), show_default=True, type=click.Path(file_okay=False, path_type=Path),
               help="Folder for the lane graphs and pictures.")
@@ -348,8 +351,8 @@ SD input (at most one kind; none: maps from the city label alone):
 @click.option("--no-log", is_flag=True, help="No recording (fastest).")
 @click.option("--device", help="torch device [default: cuda when available, else cpu].")
 @click.option("--quiet", is_flag=True, help="No progress line.")
-def sample(ckpt, sd_paths, osm, center, heading, from_hd, pose, num, seed, steps, sampler, eta, city, cfg, batch, out,
-           rrd, grid, spawn, connect_url, no_log, device, quiet):
+def sample(ckpt, sd_paths, osm, center, heading, from_hd, pose, num, seed, steps, sampler, eta, city, cfg, city_cfg,
+           batch, out, rrd, grid, spawn, connect_url, no_log, device, quiet):
     import shlex
 
     from cmtool.sample import inputs as src
@@ -367,7 +370,8 @@ def sample(ckpt, sd_paths, osm, center, heading, from_hd, pose, num, seed, steps
         raise CmtoolError("--no-log cannot be combined with --rrd, --spawn or --connect")
     if spawn and connect_url:
         raise CmtoolError("give --spawn or --connect, not both")
-    settings = SampleSettings(num=num, seed=seed, steps=steps, sampler=sampler, eta=eta, cfg=cfg, city=city, batch=batch)
+    settings = SampleSettings(num=num, seed=seed, steps=steps, sampler=sampler, eta=eta, cfg=cfg, city=city,
+                              city_cfg=city_cfg, batch=batch)
     settings.check()
     if sd_paths:
         inputs = src.image_inputs(sd_paths)
@@ -570,7 +574,7 @@ def export(fmt, map_path, origin, heading, scene, lane_width, out):
 
 @cli.group()
 def ablate():
-    """Ablations on fixed SD maps and seeds: the guidance weight, the city label."""
+    """Ablations on fixed SD maps and seeds: the guidance weight, the city label; what the RVAE keeps."""
 
 
 def _ablation_setup(ckpt, data_dir, split, n, device, dit_ok=False):
@@ -643,8 +647,9 @@ def ablate_cfg(ckpt, data_dir, split, n, steps, sampler, out, device, quiet, wei
 @_ablate_options
 @click.option("--labels", default="SGP,LAV", show_default=True, help="City labels to compare (or none).")
 @click.option("--cfg", default=1.0, show_default=True, help="Guidance weight.")
+@click.option("--city-cfg", default=1.0, show_default=True, help=CITY_CFG_HELP)
 @click.option("--seed", default=0, show_default=True, help="Random seed (the same noise for every label).")
-def ablate_city_swap(ckpt, data_dir, split, n, steps, sampler, out, device, quiet, labels, cfg, seed):
+def ablate_city_swap(ckpt, data_dir, split, n, steps, sampler, out, device, quiet, labels, cfg, city_cfg, seed):
     """Swap the city label on the same SD maps: the driving side per label (SGP drives on the left).
 
     --ckpt may also name a DiT: its maps ignore the SD maps, whose two-way roads still judge them
@@ -655,9 +660,62 @@ def ablate_city_swap(ckpt, data_dir, split, n, steps, sampler, out, device, quie
     gen, scenes = _ablation_setup(ckpt, data_dir, split, n, device, dit_ok=True)
     for name in names:
         gen.label(name)  # unknown labels fail before any work
-    city_swap(gen, scenes, names, steps, cfg, seed, out, progress=not quiet, sampler=sampler)
+    city_swap(gen, scenes, names, steps, cfg, seed, out, progress=not quiet, sampler=sampler, city_cfg=city_cfg)
     click.echo((out / "ablate_city_swap.md").read_text().rstrip())
     click.echo(f"wrote {out / 'ablate_city_swap.md'}, {out / 'ablate_city_swap.png'}")
+
+
+@ablate.command("rvae")
+@click.option("--rvae", "rvae_path", type=click.Path(path_type=Path),
+              help="RVAE checkpoint or run folder [default: the decoder shipped with cmtool].")
+@click.option("--encoder", "encoder_path", type=click.Path(path_type=Path),
+              help="RVAE run whose encoder makes the latents [default: the RVAE's own]; needed for a decoder "
+                   "without one, such as the shipped decoder (its encoder does not ship; README: \"Training the "
+                   "shipped models further\" recreates it).")
+@click.option("--data", "data_dir", required=True, type=click.Path(file_okay=False, path_type=Path),
+              help="Dataset cache (every split is measured).")
+@click.option("--n", default=64, show_default=True, type=click.IntRange(min=1), help="Scenes per split and city.")
+@click.option("--out", required=True, type=click.Path(file_okay=False, path_type=Path), help="Output folder.")
+@click.option("--device", help="torch device [default: cuda when available, else cpu].")
+@click.option("--quiet", is_flag=True, help="No progress line.")
+def ablate_rvae(rvae_path, encoder_path, data_dir, n, out, device, quiet):
+    """What the RVAE keeps: lane F1 at 1 m of its reconstructions, and the driving side of the ground
+    truth and of the reconstructions, per split and city (the ceiling of the city swap)."""
+    from cmtool import checkpoint as ckpt
+    from cmtool.eval.reconstruction import reconstruction_report
+    from cmtool.release import BUNDLED
+
+    dev = _device(device)
+    decoder, path = _rvae(rvae_path or BUNDLED / "rvae", "--rvae", dev)
+    encoder = decoder
+    if encoder_path is not None:
+        encoder, enc_path = _rvae(encoder_path, "--encoder", dev)
+        if encoder.trunk is None:
+            raise CmtoolError(f"--encoder {enc_path}: holds no encoder (a packed decoder); give a `cmtool train "
+                              "rvae` run")
+        if (encoder.cfg.latent_channels, encoder.cfg.latent_size) != (decoder.cfg.latent_channels,
+                                                                       decoder.cfg.latent_size):
+            raise CmtoolError(f"--encoder {enc_path}: its latents do not fit the decoder {path}")
+        scales = [float(ckpt.load_config(p).get("latent_scale", "nan")) for p in (enc_path, path)]
+        if abs(scales[0] - scales[1]) > 1e-6:
+            click.echo(f"warning: the decoder was trained on other latents (latent scale {scales[1]:.4f}, the "
+                       f"encoder's {scales[0]:.4f}); the numbers measure this pair", err=True)
+    elif decoder.trunk is None:
+        raise CmtoolError(f"{path}: a decoder without its encoder (the shipped weights hold none); give --encoder "
+                          "RUN, the RVAE run it was trained on")
+    reconstruction_report(encoder, decoder, data_dir, dev, n, out, progress=not quiet)
+    click.echo((out / "ablate_rvae.md").read_text().rstrip())
+    click.echo(f"wrote {out / 'ablate_rvae.md'}, {out / 'ablate_rvae.json'}")
+
+
+def _rvae(path: Path, option: str, device):
+    from cmtool import checkpoint as ckpt
+
+    path = ckpt.resolve(path)
+    model, config = ckpt.load_model(path, device)
+    if config["kind"] != "rvae":
+        raise CmtoolError(f"{option} {path}: a {config['kind']} checkpoint, not an RVAE")
+    return model, path
 
 
 @cli.group()

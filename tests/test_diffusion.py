@@ -140,6 +140,28 @@ def test_invalid_cfg_raises(models, cfg):
         sample(cm, SCHEDULE, Y, control=CTRL, cfg=cfg, steps=2)
 
 
+def test_city_cfg_is_guidance_on_the_city_label(models):
+    dit, cm = models  # Y = [city 0, the null label 3]
+    kw = dict(steps=4, sampler="ddpm")
+    assert torch.equal(sample(cm, SCHEDULE, Y, control=CTRL, cfg=0.5, city_cfg=1.0, generator=gen(2), **kw),
+                       sample(cm, SCHEDULE, Y, control=CTRL, cfg=0.5, generator=gen(2), **kw))
+    infos: list[StepInfo] = []
+    out = sample(cm, SCHEDULE, Y, control=CTRL, cfg=0.5, city_cfg=3.0, generator=gen(2), callback=infos.append, **kw)
+    null = torch.full_like(Y, dit.null_label)
+    for info in infos:
+        t = torch.full((2,), info.t)
+        with torch.no_grad():
+            e_cond, e_city, e_null = cm(info.x_t, t, Y, CTRL), dit(info.x_t, t, Y), dit(info.x_t, t, null)
+        expected = e_null + 3.0 * (e_city - e_null) + 0.5 * (e_cond - e_city)
+        assert torch.allclose(info.eps, expected, rtol=1e-4, atol=1e-3)
+        assert torch.allclose(info.eps, info.eps_uncond + 0.5 * (info.eps_cond - info.eps_uncond), atol=1e-6)
+    plain = sample(cm, SCHEDULE, Y, control=CTRL, cfg=0.5, generator=gen(2), **kw)
+    assert not torch.allclose(out[0], plain[0], atol=1e-3)  # the city's map moves ...
+    assert torch.allclose(out[1], plain[1], rtol=1e-4, atol=1e-3)  # ... a map without a city does not
+    with pytest.raises(ValueError, match="city_cfg"):
+        sample(dit, SCHEDULE, Y, city_cfg=-1.0, steps=2)
+
+
 def test_invalid_arguments_raise(models):
     dit, _ = models
     with pytest.raises(CmtoolError, match="control"):
@@ -172,3 +194,24 @@ def test_exact_predictor_recovers_a_gaussian(sampler):
     per_channel = out.transpose(0, 1).reshape(64, -1)
     assert torch.allclose(per_channel.mean(1), mu, atol=0.08)
     assert torch.allclose(per_channel.std(1), s, rtol=0.06)
+
+
+class CityGaussianEps(GaussianEps):
+    """The exact predictor when label 0's data is N(mu, s^2) and, without a city (label 1), N(0, s^2)."""
+
+    null_label = 1
+
+    def forward(self, x, t, y):
+        ab = self.ab[t].float().view(-1, 1, 1, 1)
+        mu = self.mu * (y != self.null_label).float().view(-1, 1, 1, 1)
+        return (1 - ab).sqrt() * (x - ab.sqrt() * mu) / (ab * self.s**2 + 1 - ab)
+
+
+def test_city_guidance_of_gaussians_moves_the_mean_by_its_weight():
+    # guided score 2 score(N(mu)) - score(N(0)) is the score of N(2 mu) at every noise level
+    mu, s = torch.linspace(-0.5, 0.5, 64), torch.linspace(0.3, 1.0, 64)
+    y = torch.tensor([0] * 64 + [1] * 64)
+    out = sample(CityGaussianEps(SCHEDULE, mu, s), SCHEDULE, y, city_cfg=2.0, steps=1000, generator=gen(8))
+    city, none = (part.transpose(0, 1).reshape(64, -1) for part in (out[:64], out[64:]))
+    assert torch.allclose(city.mean(1), 2 * mu, atol=0.08) and torch.allclose(city.std(1), s, rtol=0.06)
+    assert torch.allclose(none.mean(1), torch.zeros(64), atol=0.08)

@@ -136,6 +136,12 @@ def test_same_seed_same_json_and_cfg_zero_is_the_unguided_model(sampling_ckpt, t
     w0, unguided = graph_core(tmp_path / "w0" / "sd_bos.json"), graph_core(tmp_path / "dit" / "uncond.json")
     assert w0 == unguided
     assert w0 != graph_core(tmp_path / "a" / "sd_bos.json")  # and guidance changes the map
+    # guidance on the city label changes the map too, and is recorded
+    assert in_process(capsys, "sample", "--ckpt", cm, "--sd", SD_PNG, "--cfg", 1.0, "--city-cfg", 4, "--out",
+                      tmp_path / "city", *common)[0] == 0
+    graph = read_jsonl(tmp_path / "city" / "sd_bos.json")[0]
+    assert graph.meta["city_cfg"] == 4.0 and graph_core(tmp_path / "city" / "sd_bos.json") != graph_core(
+        tmp_path / "a" / "sd_bos.json")
 
 
 def test_drawings_and_other_sizes_are_converted_with_a_note(sampling_ckpt, tmp_path, capsys):
@@ -209,6 +215,7 @@ def make_bad_inputs(tmp_path, ckpt, case) -> dict:
         "city": ((*sd, "--city", "XYZ"), "unknown city 'XYZ'"),
         "negative cfg": ((*sd, "--cfg", "-0.5"), "--cfg"),
         "nan cfg": ((*sd, "--cfg", "nan"), "--cfg"),
+        "negative city cfg": ((*sd, "--city-cfg", "-1"), "--city-cfg"),
         "missing ckpt": ((*sd, "--ckpt", tmp_path / "nowhere"), "no such checkpoint"),
         "corrupt ckpt": ((*sd, "--ckpt", corrupt), "unreadable weights"),
         "rvae ckpt": ((*sd, "--ckpt", ckpt["rvae"]), "an RVAE checkpoint"),
@@ -223,7 +230,7 @@ def make_bad_inputs(tmp_path, ckpt, case) -> dict:
 
 
 @pytest.mark.parametrize("case", ["garbage", "empty", "blank", "channels", "city", "negative cfg", "nan cfg",
-                                  "missing ckpt", "corrupt ckpt", "rvae ckpt", "dit with sd", "osm far", "osm centre",
+                                  "negative city cfg", "missing ckpt", "corrupt ckpt", "rvae ckpt", "dit with sd", "osm far", "osm centre",
                                   "two kinds", "missing map", "off the roads"])
 def test_bad_inputs_are_one_line_errors_with_no_output(case, sampling_ckpt, tmp_path, capsys):
     args, fragment = make_bad_inputs(tmp_path, sampling_ckpt, case)[case]
@@ -277,7 +284,8 @@ def test_bench_sample_prints_both_times_and_the_ratio(sampling_ckpt, capsys):
 
 def test_lane_graph_meta_records_how_it_was_made(sampled):
     graph = LaneGraph.from_json(json.loads((sampled["out"] / "sd_bos_s0.json").read_text()))
-    assert {"source", "checkpoint", "seed", "cfg", "steps", "sampler"} <= set(graph.meta)
+    assert {"source", "checkpoint", "seed", "cfg", "city_cfg", "steps", "sampler"} <= set(graph.meta)
+    assert graph.meta["city_cfg"] == 1.0
     assert graph.meta["steps"] == STEPS and graph.meta["sampler"] == DEFAULT_SAMPLER == "ddpm"
 
 

@@ -5,7 +5,8 @@
   SD), Ground-Truth Recall (batches of up to 64, top 3) and diversity (mean pairwise lane Chamfer
   distance between the seeds' maps of a scene).
 - :func:`city_swap`: the same SD maps and noise under each city label; the driving side per label
-  (share of lane length along two-way roads on the left / right).
+  (share of lane length along two-way roads on the left / right), optionally with guidance on the
+  city label (``city_cfg``).
 
 Each writes a markdown table and a JSON file, and a PNG (plot or picture grid) to its output
 folder; the sweep also an ``.rrd`` whose ``cfg`` timeline counts w in thousandths (700 = 0.7).
@@ -39,7 +40,7 @@ PICTURE_SCENES = 4
 
 
 def generate(gen: Generator, sds: np.ndarray, labels: list[int], cfg: float, steps: int, seed: int,
-             sampler: str = DEFAULT_SAMPLER, batch: int = 64) -> list[LaneGraph]:
+             sampler: str = DEFAULT_SAMPLER, batch: int = 64, city_cfg: float = 1.0) -> list[LaneGraph]:
     """One map per SD raster (a DiT ignores them); the initial noise of scene i depends only on
     (seed, i), the noise of the sampler's steps only on (seed, batch), so other weights and labels see
     the same noise."""
@@ -49,8 +50,8 @@ def generate(gen: Generator, sds: np.ndarray, labels: list[int], cfg: float, ste
         noise = torch.stack([torch.randn(gen.model.latent_shape, generator=torch.Generator().manual_seed(
             scene_seed(seed, b0 + k))) for k in range(n)])
         sd = sds[b0:b0 + n] if gen.has_control else None
-        z = gen.sample(sd, labels[b0:b0 + n], cfg=cfg, steps=steps, sampler=sampler, noise=noise.to(gen.device),
-                       generator=step_generator(scene_seed(seed, b0), gen.device))
+        z = gen.sample(sd, labels[b0:b0 + n], cfg=cfg, city_cfg=city_cfg, steps=steps, sampler=sampler,
+                       noise=noise.to(gen.device), generator=step_generator(scene_seed(seed, b0), gen.device))
         maps += [gen.lane_graph(el, gen.city_name(y), {"cfg": cfg, "seed": seed, "sampler": sampler})
                  for el, y in zip(gen.decode(z), labels[b0:b0 + n])]
     return maps
@@ -104,15 +105,15 @@ def cfg_sweep(gen: Generator, scenes, weights: list[float], seeds: int, steps: i
 
 
 def city_swap(gen: Generator, scenes, labels: list[str], steps: int, cfg: float, seed: int, out,
-              progress: bool = True, sampler: str = DEFAULT_SAMPLER) -> list[dict]:
+              progress: bool = True, sampler: str = DEFAULT_SAMPLER, city_cfg: float = 1.0) -> list[dict]:
     """Driving side per city label on the same SD maps and noise (judged against the two-way SD roads
-    and by the side of oncoming lanes), written to ``out``."""
+    and by the side of oncoming lanes), at city-label guidance ``city_cfg``, written to ``out``."""
     sds = np.stack([s.sd for s in scenes])
     rows, maps = [], {}
     with Progress(len(labels), "ablate city-swap", "labels", enabled=progress) as bar:
         for name in labels:
             y = gen.label(name)
-            maps[name] = generate(gen, sds, [y] * len(scenes), cfg, steps, seed, sampler)
+            maps[name] = generate(gen, sds, [y] * len(scenes), cfg, steps, seed, sampler, city_cfg=city_cfg)
             shares = [driving_side(m.lanes, sd, "left") for m, sd in zip(maps[name], sds)]
             oncoming = [oncoming_side(m.lanes, "left") for m in maps[name]]
             left = _weighted([s for s, n in shares], [n for s, n in shares])
@@ -123,8 +124,8 @@ def city_swap(gen: Generator, scenes, labels: list[str], steps: int, cfg: float,
                          "oncoming_points": int(sum(n for _, n in oncoming))})
             bar.update()
     out.mkdir(parents=True, exist_ok=True)
-    write_json(out / "ablate_city_swap.json", {"scenes": len(scenes), "cfg": cfg, "steps": steps, "sampler": sampler,
-                                                "rows": rows})
+    write_json(out / "ablate_city_swap.json", {"scenes": len(scenes), "cfg": cfg, "city_cfg": city_cfg, "steps": steps,
+                                                "sampler": sampler, "rows": rows})
     write_text_atomic(out / "ablate_city_swap.md", _table(rows, ["label", "drives_on", "left_hand", "right_hand",
                                                                  "judged_points", "left_hand_oncoming",
                                                                  "oncoming_points"]))

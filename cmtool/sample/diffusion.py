@@ -1,4 +1,5 @@
-"""Noise schedules and the DDIM / DDPM samplers with classifier-free guidance on the SD-map control.
+"""Noise schedules and the DDIM / DDPM samplers with classifier-free guidance on the SD-map control
+and, optionally, on the city label.
 
 Training uses the DDPM forward process ``x_t = sqrt(abar_t) x0 + sqrt(1 - abar_t) eps`` over
 ``train_steps`` steps (SLEDGE: linear betas 1e-4 .. 0.02). Sampling runs on ``steps`` evenly spaced
@@ -8,6 +9,11 @@ plain DDPM), DDIM interpolates between deterministic (``eta = 0``) and ancestral
 Guidance (ControlMap paper, eq. 1): ``eps = eps_uncond + w (eps_cond - eps_uncond)``, where the
 conditioned prediction uses the SD map and the unconditioned one is the frozen base DiT; ``w = 0``
 runs the base DiT alone and reproduces its samples exactly.
+
+City-label guidance (DiT-style, optional): with ``city_cfg = s != 1`` one more base pass with the null
+label gives ``eps_null``, and both predictions move by ``(s - 1) (eps_uncond - eps_null)``, so that
+``eps = eps_null + s (eps_uncond - eps_null) + w (eps_cond - eps_uncond)``; ``s = 1`` is the plain
+label conditioning the models were trained with, ``s > 1`` strengthens the city's style.
 """
 
 from __future__ import annotations
@@ -103,18 +109,21 @@ class StepInfo:
 
 @torch.no_grad()
 def sample(model: nn.Module, schedule: NoiseSchedule, y: Tensor, *, control: Tensor | None = None,
-           cfg: float = 1.0, steps: int = 50, sampler: str = DEFAULT_SAMPLER, eta: float = 0.0,
+           cfg: float = 1.0, city_cfg: float = 1.0, steps: int = 50, sampler: str = DEFAULT_SAMPLER, eta: float = 0.0,
            generator: torch.Generator | None = None, noise: Tensor | None = None,
            callback: Callable[[StepInfo], None] | None = None) -> Tensor:
     """Denoise from ``x_T`` to a clean latent ``(B, C, H, W)`` for labels ``y`` (B,).
 
     ``model`` is a DiT (or any ``eps = model(x, t, y)`` with ``latent_shape``) or a ControlMap. With
     a ControlMap, a ``control`` image (B, 3, px, px) and ``cfg > 0``, each step makes one batched
-    guided pass; ``cfg == 0`` or no control runs the base DiT only. All randomness comes from
-    ``generator`` (which must live on ``y``'s device), including ``x_T`` unless ``noise`` is given.
+    guided pass; ``cfg == 0`` or no control runs the base DiT only. ``city_cfg != 1`` adds a pass
+    with the null label (module doc). All randomness comes from ``generator`` (which must live on
+    ``y``'s device), including ``x_T`` unless ``noise`` is given.
     """
     if not (math.isfinite(cfg) and cfg >= 0):
         raise SamplingError(f"cfg: guidance scale must be finite and >= 0, got {cfg}")
+    if not (math.isfinite(city_cfg) and city_cfg >= 0):
+        raise SamplingError(f"city_cfg: city-label guidance scale must be finite and >= 0, got {city_cfg}")
     if sampler not in SAMPLERS:
         raise SamplingError(f"sampler: unknown sampler {sampler!r} (choose {' or '.join(SAMPLERS)})")
     if not (math.isfinite(eta) and eta >= 0):
@@ -127,6 +136,8 @@ def sample(model: nn.Module, schedule: NoiseSchedule, y: Tensor, *, control: Ten
     ts = schedule.timesteps(steps)
     guided = control is not None and cfg > 0
     tokens = model.encode_control(control) if guided else None
+    if city_cfg != 1:
+        null = torch.full_like(y, (model.base if isinstance(model, ControlMap) else model).null_label)
     x = noise.clone() if noise is not None else torch.randn(shape, generator=generator, device=y.device)
     for i, t in enumerate(ts):
         tt = torch.full((shape[0],), t, dtype=torch.long, device=x.device)
@@ -136,6 +147,10 @@ def sample(model: nn.Module, schedule: NoiseSchedule, y: Tensor, *, control: Ten
         else:
             eps_cond, residuals = None, None
             eps = eps_uncond = model(x, tt, y)
+        if city_cfg != 1:
+            push = (city_cfg - 1) * (eps_uncond - model(x, tt, null))
+            eps, eps_uncond = eps + push, eps_uncond + push
+            eps_cond = None if eps_cond is None else eps_cond + push
         x0 = schedule.predict_x0(x, tt, eps)
         x_t = x
         ab_t = float(schedule.alphas_cumprod[t])

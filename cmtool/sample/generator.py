@@ -83,10 +83,11 @@ class Generator:
         return self.cities[label] if label < len(self.cities) else None
 
     def sample(self, sd: np.ndarray | None, labels, *, cfg: float, steps: int, sampler: str = DEFAULT_SAMPLER,
-               eta: float = 0.0, generator: torch.Generator | None = None, noise: torch.Tensor | None = None,
-               callback=None) -> torch.Tensor:
+               city_cfg: float = 1.0, eta: float = 0.0, generator: torch.Generator | None = None,
+               noise: torch.Tensor | None = None, callback=None) -> torch.Tensor:
         """Clean latents (B, C, H, W) in the DiT's scaled space for SD rasters ``sd`` (B, 128, 128, 3)
-        uint8 (None: no control) and label indices ``labels`` (B,); ``noise``: the initial latent."""
+        uint8 (None: no control) and label indices ``labels`` (B,); ``noise``: the initial latent;
+        ``city_cfg``: guidance on the city label (1: none)."""
         y = torch.as_tensor(np.asarray(labels, np.int64), device=self.device)
         control = None
         if sd is not None:
@@ -94,8 +95,8 @@ class Generator:
                 raise CmtoolError(f"{self.path}: a DiT checkpoint has no control branch; give a ControlMap "
                                   "checkpoint or leave out the SD input")
             control = torch.stack([sd_tensor(s) for s in sd]).to(self.device)
-        return sample(self.model, self.schedule, y, control=control, cfg=cfg, steps=steps, sampler=sampler, eta=eta,
-                      generator=generator, noise=noise, callback=callback)
+        return sample(self.model, self.schedule, y, control=control, cfg=cfg, city_cfg=city_cfg, steps=steps,
+                      sampler=sampler, eta=eta, generator=generator, noise=noise, callback=callback)
 
     @torch.no_grad()
     def decode(self, latents: torch.Tensor, threshold: float = 0.5) -> list[dict[str, np.ndarray]]:

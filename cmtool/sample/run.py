@@ -51,11 +51,14 @@ class SampleSettings:
     eta: float = 0.0
     cfg: float = 1.0
     city: str = AUTO  # a label of the checkpoint, "none", or "auto"
+    city_cfg: float = 1.0  # guidance on the city label (1: the label as trained)
     batch: int = 16
 
     def check(self) -> None:
         if not (math.isfinite(self.cfg) and self.cfg >= 0):
             raise SamplingError(f"--cfg: guidance weight must be a finite number >= 0, got {self.cfg}")
+        if not (math.isfinite(self.city_cfg) and self.city_cfg >= 0):
+            raise SamplingError(f"--city-cfg: guidance weight must be a finite number >= 0, got {self.city_cfg}")
         if self.sampler not in SAMPLERS:
             raise SamplingError(f"--sampler: choose {' or '.join(SAMPLERS)}, got {self.sampler!r}")
         for name in ("num", "steps", "batch"):
@@ -152,8 +155,9 @@ def generate_maps(gen: Generator, jobs: list[Job], settings: SampleSettings, rec
             sds = [j.source.sd for j in batch]
             sd = None if all(s is None for s in sds) else np.stack(sds)
             began = time.perf_counter()
-            z = gen.sample(sd, [j.label for j in batch], cfg=settings.cfg, steps=settings.steps,
-                           sampler=settings.sampler, eta=settings.eta, generator=generator, callback=logger)
+            z = gen.sample(sd, [j.label for j in batch], cfg=settings.cfg, city_cfg=settings.city_cfg,
+                           steps=settings.steps, sampler=settings.sampler, eta=settings.eta, generator=generator,
+                           callback=logger)
             decoded = gen.decode(z)
             graphs = [gen.lane_graph(el, gen.city_name(j.label), _meta(gen, j, settings)) for j, el in zip(batch, decoded)]
             for graph in graphs:
@@ -171,7 +175,8 @@ def generate_maps(gen: Generator, jobs: list[Job], settings: SampleSettings, rec
 
 def _meta(gen: Generator, job: Job, settings: SampleSettings) -> dict:
     return {"source": job.source.source, "checkpoint": str(gen.path), "seed": settings.seed, "index": job.index,
-            "cfg": settings.cfg, "steps": settings.steps, "sampler": settings.sampler, "eta": settings.eta}
+            "cfg": settings.cfg, "city_cfg": settings.city_cfg, "steps": settings.steps, "sampler": settings.sampler,
+            "eta": settings.eta}
 
 
 def _partial(rrd: Path) -> Path:
@@ -222,7 +227,8 @@ def log_run_header(rec, gen: Generator, jobs: list[Job], settings: SampleSetting
                                           any(j.source.truth is not None for j in jobs)))
     lines = [f"# cmtool sample\n\n`{command}`\n" if command else "# cmtool sample\n",
              f"- checkpoint: `{gen.path}` ({gen.config['kind']})",
-             f"- seed {settings.seed}, cfg w = {settings.cfg}, {settings.steps} {settings.sampler} steps"
+             f"- seed {settings.seed}, cfg w = {settings.cfg}, city cfg {settings.city_cfg}, "
+             f"{settings.steps} {settings.sampler} steps"
              + (f", eta {settings.eta}" if settings.sampler == "ddim" else ""), "", "| map | city | input |",
              "|---|---|---|"]
     lines += [f"| {j.prefix or '/'} {j.name} | {gen.city_name(j.label) or 'none'} | {j.source.source} |" for j in jobs]

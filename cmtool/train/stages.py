@@ -14,8 +14,8 @@ import torch.nn.functional as F
 from cmtool import checkpoint as ckpt
 from cmtool.data.cache import load_dataset, load_manifest
 from cmtool.errors import CmtoolError
-from cmtool.eval.lanes import lane_scores
 from cmtool.eval.metrics import drives_on
+from cmtool.eval.reconstruction import reconstruction_scores
 from cmtool.model.controlmap import ControlMap, sd_tensor
 from cmtool.model.dit import DiT, DiTConfig
 from cmtool.model.rvae import RVAE, decoded_elements, same_encoder
@@ -97,7 +97,7 @@ class RVAEStage(Stage):
 
     def finish(self, model, run_dir):
         scale = write_latents(model, self.data_dir, run_dir / "latents", self.device)
-        recon = reconstruction_scores(model, self.data_dir, _preview_split(self.data_dir), self.device)
+        recon = reconstruction_scores(model, self.data_dir, _preview_split(self.data_dir), self.device, RECON_EVAL)
         print(f"rvae: latent scale {scale:.4f}; held-out reconstruction at 1 m: precision {recon['precision']:.3f} "
               f"recall {recon['recall']:.3f} F1 {recon['f1']:.3f} ({recon['scenes']} scenes)")
         return {"latent_scale": scale, "latents": "latents", "reconstruction": recon}
@@ -150,30 +150,13 @@ class DecoderStage(RVAEStage):
     def finish(self, model, run_dir):
         if not same_encoder(model.state_dict(), ckpt.load_tensors(ckpt.resolve(self.parent_run) / ckpt.WEIGHTS)):
             raise CmtoolError(f"{run_dir}: the encoder changed during decoder training (it must stay frozen)")
-        recon = reconstruction_scores(model, self.data_dir, _preview_split(self.data_dir), self.device)
+        recon = reconstruction_scores(model, self.data_dir, _preview_split(self.data_dir), self.device, RECON_EVAL)
         before = self.parent_config.get("reconstruction", {}).get("f1", float("nan"))
         print(f"decoder: held-out reconstruction at 1 m: precision {recon['precision']:.3f} recall "
               f"{recon['recall']:.3f} F1 {recon['f1']:.3f} ({recon['scenes']} scenes; "
               f"the parent RVAE: F1 {before:.3f})")
         return {"latent_scale": self.parent_config["latent_scale"], "latents": str(self.latents),
                 "reconstruction": recon}
-
-
-@torch.no_grad()
-def reconstruction_scores(rvae, data_dir, split: str, device, n: int = RECON_EVAL, tol: float = 1.0) -> dict:
-    """Mean lane precision / recall / F1 at ``tol`` metres of RVAE reconstructions (posterior mean)."""
-    scenes = load_dataset(data_dir, split)
-    items = SceneRasters(scenes)
-    idx = np.linspace(0, len(scenes) - 1, min(n, len(scenes))).round().astype(int)
-    scores = []
-    for chunk in np.array_split(idx, max(1, len(idx) // 64)):
-        raster = torch.stack([items[int(i)]["raster"] for i in chunk]).to(device)
-        mean, _ = rvae.encode(raster)
-        for i, el in zip(chunk, decoded_elements(rvae.decode(mean))):
-            truth = scenes.arrays["lines"][i][scenes.arrays["line_mask"][i]]
-            scores.append(lane_scores(list(el["lines"]), list(truth), tol=tol))
-    out = {k: float(np.mean([s[k] for s in scores])) for k in ("precision", "recall", "f1")}
-    return {**out, "tol_m": tol, "split": split, "scenes": len(scores)}
 
 
 class _DiffusionStage(Stage):
