@@ -23,6 +23,7 @@ from cmtool.progress import Progress
 from cmtool.train.data import SceneRasters
 
 BATCH = 64
+TOL_M = 1.0  # lane F1 tolerance
 
 
 @torch.no_grad()
@@ -43,7 +44,7 @@ def spread(count: int, n: int) -> np.ndarray:
     return np.linspace(0, count - 1, min(n, count)).round().astype(int)
 
 
-def reconstruction_scores(rvae: RVAE, data_dir, split: str, device, n: int, tol: float = 1.0) -> dict:
+def reconstruction_scores(rvae: RVAE, data_dir, split: str, device, n: int, tol: float = TOL_M) -> dict:
     """Mean lane precision / recall / F1 at ``tol`` metres of ``rvae``'s reconstructions of ``n``
     scenes spread over ``split``."""
     scenes = load_dataset(data_dir, split)
@@ -72,13 +73,14 @@ def reconstruction_report(encoder: RVAE, decoder: RVAE, data_dir, device, n: int
             recon = [el["lines"] for el in reconstruct(encoder, decoder, scenes, idx, device)]
             truth = [_truth(scenes, i) for i in idx]
             sds = [scenes.arrays["sd"][i] for i in idx]
+            f1 = [lane_scores(list(r), list(t), tol=TOL_M)["f1"] for r, t in zip(recon, truth)]
             rows.append({"split": split, "city": city, "drives_on": drives_on(city), "scenes": len(idx),
-                         "f1": float(np.mean([lane_scores(list(r), list(t))["f1"] for r, t in zip(recon, truth)])),
+                         "f1": float(np.mean(f1)),
                          "left_hand_truth": _left(truth, sds), "left_hand_recon": _left(recon, sds),
                          "left_hand_oncoming_truth": _left(truth), "left_hand_oncoming_recon": _left(recon)})
             bar.update()
     out.mkdir(parents=True, exist_ok=True)
-    write_json(out / "ablate_rvae.json", {"scenes_per_city": n, "tol_m": 1.0, "rows": rows})
+    write_json(out / "ablate_rvae.json", {"scenes_per_city": n, "tol_m": TOL_M, "rows": rows})
     keys = list(rows[0]) if rows else []
     lines = ["| " + " | ".join(keys) + " |", "|" + "---|" * len(keys)]
     lines += ["| " + " | ".join(_cell(r[k]) for k in keys) + " |" for r in rows]

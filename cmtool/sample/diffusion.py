@@ -109,8 +109,8 @@ class StepInfo:
 
 @torch.no_grad()
 def sample(model: nn.Module, schedule: NoiseSchedule, y: Tensor, *, control: Tensor | None = None,
-           cfg: float = 1.0, city_cfg: float = 1.0, steps: int = 50, sampler: str = DEFAULT_SAMPLER, eta: float = 0.0,
-           generator: torch.Generator | None = None, noise: Tensor | None = None,
+           cfg: float = 1.0, city_cfg: float = 1.0, steps: int = 50, sampler: str = DEFAULT_SAMPLER,
+           eta: float = 0.0, generator: torch.Generator | None = None, noise: Tensor | None = None,
            callback: Callable[[StepInfo], None] | None = None) -> Tensor:
     """Denoise from ``x_T`` to a clean latent ``(B, C, H, W)`` for labels ``y`` (B,).
 
@@ -136,8 +136,8 @@ def sample(model: nn.Module, schedule: NoiseSchedule, y: Tensor, *, control: Ten
     ts = schedule.timesteps(steps)
     guided = control is not None and cfg > 0
     tokens = model.encode_control(control) if guided else None
-    if city_cfg != 1:
-        null = torch.full_like(y, (model.base if isinstance(model, ControlMap) else model).null_label)
+    base = model.base if isinstance(model, ControlMap) else model
+    null = torch.full_like(y, base.null_label) if city_cfg != 1 else None
     x = noise.clone() if noise is not None else torch.randn(shape, generator=generator, device=y.device)
     for i, t in enumerate(ts):
         tt = torch.full((shape[0],), t, dtype=torch.long, device=x.device)
