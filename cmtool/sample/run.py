@@ -255,7 +255,8 @@ def _write_map(out: Path, m: SampledMap, settings: SampleSettings, written: list
     panels = []
     if m.job.source.sd is not None:
         panels.append((f"SD input: {m.job.source.name}", sd_panel(m.job.source.sd, PANEL)))
-    panels.append((f"generated: {city}, w = {settings.cfg:g}", graph_panel(m.graph, PANEL)))
+    strength = f", city cfg {settings.city_cfg:g}" if settings.city_cfg != 1 else ""
+    panels.append((f"generated: {city}, w = {settings.cfg:g}{strength}", graph_panel(m.graph, PANEL)))
     if truth is not None:
         panels.append(("ground truth", graph_panel(truth, PANEL)))
     tiles = [np.concatenate([title_strip(t, PANEL), img], axis=0) for t, img in panels]
