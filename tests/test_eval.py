@@ -93,7 +93,8 @@ def test_ablations_write_tables_pictures_and_recording(sampling_ckpt, tiny_data,
     code, _, err = in_process(capsys, "ablate", "city-swap", *common[:-3], "--out", tmp_path / "city", "--quiet",
                               "--labels", "SGP,LAV", "--city-cfg", 3)
     assert code == 0, err
-    assert swap["city_cfg"] == 1.0 and json.loads((tmp_path / "city" / "ablate_city_swap.json").read_text())["city_cfg"] == 3
+    guided = json.loads((tmp_path / "city" / "ablate_city_swap.json").read_text())
+    assert swap["city_cfg"] == 1.0 and guided["city_cfg"] == 3
     assert all(r["left_hand"] is None or 0.0 <= r["left_hand"] <= 1.0 for r in rows)
     assert all(r["left_hand_oncoming"] is None or 0.0 <= r["left_hand_oncoming"] <= 1.0 for r in rows)
     assert "left_hand_oncoming" in (tmp_path / "ablate_city_swap.md").read_text()
@@ -143,7 +144,8 @@ def test_eval_cache_tells_weights_apart_at_the_same_path(sampling_ckpt, tiny_dat
 
 def test_ablate_rvae_scores_reconstructions_and_the_driving_side(sampling_ckpt, tiny_data, tmp_path, capsys):
     args = ("--data", tiny_data, "--n", 4, "--quiet")
-    code, out, err = in_process(capsys, "ablate", "rvae", "--rvae", sampling_ckpt["rvae"], *args, "--out", tmp_path / "a")
+    rvae = ("ablate", "rvae", "--rvae", sampling_ckpt["rvae"])
+    code, out, err = in_process(capsys, *rvae, *args, "--out", tmp_path / "a")
     assert code == 0, err
     rows = json.loads((tmp_path / "a" / "ablate_rvae.json").read_text())["rows"]
     assert [(r["split"], r["city"]) for r in rows] == [("train", "LAV"), ("train", "PIT"), ("train", "SGP"),
@@ -152,15 +154,15 @@ def test_ablate_rvae_scores_reconstructions_and_the_driving_side(sampling_ckpt, 
     truth = {r["city"]: r["left_hand_oncoming_truth"] for r in rows}
     assert truth["SGP"] > 0.8 and truth["LAV"] < 0.2 and truth["BOS"] < 0.2  # each city's own side
     # the RVAE's own encoder is the default
-    code, _, err = in_process(capsys, "ablate", "rvae", "--rvae", sampling_ckpt["rvae"], "--encoder",
-                              sampling_ckpt["rvae"], *args, "--out", tmp_path / "b")
+    code, _, err = in_process(capsys, *rvae, "--encoder", sampling_ckpt["rvae"], *args, "--out", tmp_path / "b")
     assert code == 0, err
     assert (tmp_path / "b" / "ablate_rvae.json").read_text() == (tmp_path / "a" / "ablate_rvae.json").read_text()
     # a packed decoder holds no encoder: it needs --encoder, and cannot be one
     assert in_process(capsys, "pack", "--ckpt", sampling_ckpt["controlmap"], "--out", tmp_path / "w")[0] == 0
-    code, _, err = in_process(capsys, "ablate", "rvae", "--rvae", tmp_path / "w" / "rvae", *args, "--out", tmp_path / "c")
+    packed = tmp_path / "w" / "rvae"
+    code, _, err = in_process(capsys, "ablate", "rvae", "--rvae", packed, *args, "--out", tmp_path / "c")
     assert code == 1 and "give --encoder RUN" in err
-    code, _, err = in_process(capsys, "ablate", "rvae", "--encoder", tmp_path / "w" / "rvae", *args, "--out", tmp_path / "c")
+    code, _, err = in_process(capsys, "ablate", "rvae", "--encoder", packed, *args, "--out", tmp_path / "c")
     assert code == 1 and "holds no encoder" in err
     code, _, err = in_process(capsys, "ablate", "rvae", "--rvae", sampling_ckpt["dit"], *args, "--out", tmp_path / "c")
     assert code == 1 and "not an RVAE" in err
