@@ -26,7 +26,7 @@ from cmtool.data.jsonio import write_json, write_text_atomic
 from cmtool.data.lanegraph import LaneGraph
 from cmtool.eval.features import FeatureExtractor, lanes_image
 from cmtool.eval.geometric import chamfer, driving_side, oncoming_side, sd_adherence
-from cmtool.eval.metrics import drives_on
+from cmtool.eval.metrics import drives_on, markdown_table, weighted_mean
 from cmtool.eval.retrieval import batch_recall
 from cmtool.progress import Progress
 from cmtool.sample import DEFAULT_SAMPLER
@@ -84,7 +84,7 @@ def cfg_sweep(gen: Generator, scenes, weights: list[float], seeds: int, steps: i
     out.mkdir(parents=True, exist_ok=True)
     write_json(out / "ablate_cfg.json", {"scenes": len(scenes), "seeds": seeds, "steps": steps, "sampler": sampler,
                                           "rows": rows})
-    write_text_atomic(out / "ablate_cfg.md", _table(rows, ["w", "sd_coverage", "lane_on_sd", "gt_recall",
+    write_text_atomic(out / "ablate_cfg.md", markdown_table(rows, ["w", "sd_coverage", "lane_on_sd", "gt_recall",
                                                            "diversity_m"]))
     write_png(out / "ablate_cfg.png", _plot(rows))
     rec = open_recording(out / "ablate_cfg.rrd")
@@ -116,19 +116,18 @@ def city_swap(gen: Generator, scenes, labels: list[str], steps: int, cfg: float,
             maps[name] = generate(gen, sds, [y] * len(scenes), cfg, steps, seed, sampler, city_cfg=city_cfg)
             shares = [driving_side(m.lanes, sd, "left") for m, sd in zip(maps[name], sds)]
             oncoming = [oncoming_side(m.lanes, "left") for m in maps[name]]
-            left = _weighted([s for s, n in shares], [n for s, n in shares])
+            left = weighted_mean([s for s, n in shares], [n for s, n in shares])
             rows.append({"label": name, "drives_on": drives_on(name), "left_hand": left,
                          "right_hand": None if left is None else 1.0 - left,
                          "judged_points": int(sum(n for _, n in shares)),
-                         "left_hand_oncoming": _weighted([s for s, n in oncoming], [n for s, n in oncoming]),
+                         "left_hand_oncoming": weighted_mean([s for s, n in oncoming], [n for s, n in oncoming]),
                          "oncoming_points": int(sum(n for _, n in oncoming))})
             bar.update()
     out.mkdir(parents=True, exist_ok=True)
     write_json(out / "ablate_city_swap.json", {"scenes": len(scenes), "cfg": cfg, "city_cfg": city_cfg, "steps": steps,
                                                 "sampler": sampler, "rows": rows})
-    write_text_atomic(out / "ablate_city_swap.md", _table(rows, ["label", "drives_on", "left_hand", "right_hand",
-                                                                 "judged_points", "left_hand_oncoming",
-                                                                 "oncoming_points"]))
+    write_text_atomic(out / "ablate_city_swap.md", markdown_table(rows, [
+        "label", "drives_on", "left_hand", "right_hand", "judged_points", "left_hand_oncoming", "oncoming_points"]))
     tiles = []
     for k, scene in enumerate(scenes[:PICTURE_SCENES]):
         tiles.append(_titled("SD", sd_panel(scene.sd)))
@@ -144,20 +143,6 @@ def _titled(title: str, panel: np.ndarray) -> np.ndarray:
 def _mean(values) -> float | None:
     v = np.asarray([x for x in values if x is not None and math.isfinite(x)], float)
     return float(v.mean()) if len(v) else None
-
-
-def _weighted(values, weights) -> float | None:
-    pairs = [(v, w) for v, w in zip(values, weights) if w and math.isfinite(v)]
-    return float(sum(v * w for v, w in pairs) / sum(w for _, w in pairs)) if pairs else None
-
-
-def _table(rows: list[dict], keys: list[str]) -> str:
-    def cell(v):
-        return "–" if v is None else f"{v:.3f}" if isinstance(v, float) else str(v)
-
-    lines = ["| " + " | ".join(keys) + " |", "|" + "---|" * len(keys)]
-    lines += ["| " + " | ".join(cell(r.get(k)) for k in keys) + " |" for r in rows]
-    return "\n".join(lines) + "\n"
 
 
 def _plot(rows: list[dict], width: int = 640, height: int = 360) -> np.ndarray:

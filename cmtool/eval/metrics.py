@@ -156,3 +156,19 @@ def _recall(r) -> str:
         return "–"
     p = r["p_value"]
     return f"{r['recall']:.3f} ({'< 1e-300' if p == 0 else f'{p:.2g}'})"
+
+
+def weighted_mean(values, weights) -> float | None:
+    """Mean of the finite ``values`` weighted by ``weights`` (None when no weight is left)."""
+    pairs = [(v, w) for v, w in zip(values, weights) if w and math.isfinite(v)]
+    return float(sum(v * w for v, w in pairs) / sum(w for _, w in pairs)) if pairs else None
+
+
+def markdown_table(rows: list[dict], keys: list[str]) -> str:
+    """``rows`` as a markdown table of the columns ``keys`` (floats to 3 places, None as a dash)."""
+    def cell(v):
+        return "–" if v is None else f"{v:.3f}" if isinstance(v, float) else str(v)
+
+    lines = ["| " + " | ".join(keys) + " |", "|" + "---|" * len(keys)]
+    lines += ["| " + " | ".join(cell(r.get(k)) for k in keys) + " |" for r in rows]
+    return "\n".join(lines) + "\n"

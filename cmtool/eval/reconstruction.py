@@ -17,7 +17,7 @@ from cmtool.data.cache import SceneDataset, load_dataset, load_manifest
 from cmtool.data.jsonio import write_json, write_text_atomic
 from cmtool.eval.geometric import driving_side, oncoming_side
 from cmtool.eval.lanes import lane_scores
-from cmtool.eval.metrics import drives_on
+from cmtool.eval.metrics import drives_on, markdown_table, weighted_mean
 from cmtool.model.rvae import RVAE, decoded_elements
 from cmtool.progress import Progress
 from cmtool.train.data import SceneRasters
@@ -81,10 +81,7 @@ def reconstruction_report(encoder: RVAE, decoder: RVAE, data_dir, device, n: int
             bar.update()
     out.mkdir(parents=True, exist_ok=True)
     write_json(out / "ablate_rvae.json", {"scenes_per_city": n, "tol_m": TOL_M, "rows": rows})
-    keys = list(rows[0]) if rows else []
-    lines = ["| " + " | ".join(keys) + " |", "|" + "---|" * len(keys)]
-    lines += ["| " + " | ".join(_cell(r[k]) for k in keys) + " |" for r in rows]
-    write_text_atomic(out / "ablate_rvae.md", "\n".join(lines) + "\n")
+    write_text_atomic(out / "ablate_rvae.md", markdown_table(rows, list(rows[0]) if rows else []))
     return rows
 
 
@@ -97,11 +94,4 @@ def _left(lanes: list, sds: list | None = None) -> float | None:
     or by the side of oncoming lanes; None when nothing could be judged."""
     judged = [driving_side(l, sd, "left") for l, sd in zip(lanes, sds)] if sds is not None \
         else [oncoming_side(l, "left") for l in lanes]
-    total = sum(n for _, n in judged)
-    return None if total == 0 else float(sum(s * n for s, n in judged if n) / total)
-
-
-def _cell(value) -> str:
-    if value is None:
-        return "-"
-    return f"{value:.3f}" if isinstance(value, float) else str(value)
+    return weighted_mean([s for s, _ in judged], [n for _, n in judged])
