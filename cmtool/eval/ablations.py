@@ -85,7 +85,7 @@ def cfg_sweep(gen: Generator, scenes, weights: list[float], seeds: int, steps: i
     write_json(out / "ablate_cfg.json", {"scenes": len(scenes), "seeds": seeds, "steps": steps, "sampler": sampler,
                                           "rows": rows})
     write_text_atomic(out / "ablate_cfg.md", markdown_table(rows, ["w", "sd_coverage", "lane_on_sd", "gt_recall",
-                                                           "diversity_m"]))
+                                                                    "diversity_m"]))
     write_png(out / "ablate_cfg.png", _plot(rows))
     rec = open_recording(out / "ablate_cfg.rrd")
     for k, scene in enumerate(scenes[:PICTURE_SCENES]):
