@@ -45,6 +45,11 @@ def test_eval_writes_reports_and_resumes(sampling_ckpt, tiny_data, tmp_path, cap
     # the cache refuses to mix settings
     code, _, err = in_process(capsys, *args, "--n", 8, "--cfg", 0.5)
     assert code == 1 and "made with other settings (cfg)" in err
+    # ... and a cache from before the step noise had its own stream (no "noise" entry)
+    meta = json.loads((out / "cache" / "settings.json").read_text())
+    (out / "cache" / "settings.json").write_text(json.dumps({k: v for k, v in meta.items() if k != "noise"}))
+    code, _, err = in_process(capsys, *args, "--n", 8)
+    assert code == 1 and "made with other settings (noise)" in err
 
 
 def test_unguided_and_guided_differ_only_by_the_control(sampling_ckpt, tiny_data, tmp_path, capsys):

@@ -39,6 +39,9 @@ from cmtool.sample.generator import Generator
 from cmtool.viz.recording import log_lanes, log_sd, open_recording
 
 METHODS = ("unguided", "controlmap")
+# How each batch's noise is drawn (x_T from the scene seed, step noise from ``step_generator``). Caches
+# written before the step noise had a stream of its own lack it, so they are refused, not extended.
+NOISE = "x_T per batch, steps on their own stream"
 
 
 @dataclass
@@ -53,6 +56,7 @@ class EvalSettings:
     batch: int = 64
     checkpoint: str = ""
     weights: str = ""  # digest of the ControlMap's and its RVAE's weights (a re-pack keeps the path)
+    noise: str = NOISE
 
 
 def run_eval(gen: Generator, settings: EvalSettings, out: Path, extractor: FeatureExtractor | None,
