@@ -1,4 +1,4 @@
-"""The lane graph JSON format (DESIGN.md §4): one 64 m scene in the ego frame per JSON object.
+"""The lane graph JSON format: one 64 m scene in the ego frame per JSON object.
 
 This is the interchange format: what the model emits as a map and what the metrics read. A set of
 scenes is JSON Lines (``.jsonl``), one object per line::
@@ -104,7 +104,7 @@ def write_jsonl(path: str | os.PathLike, graphs) -> None:
 
 
 def infer_successors(lanes, max_gap_m: float = 1.5, max_angle_deg: float = 60.0) -> list[tuple[int, int]]:
-    """Successor edges by endpoint proximity (DESIGN.md §4): the end of lane i lies within
+    """Successor edges by endpoint proximity: the end of lane i lies within
     ``max_gap_m`` of the start of lane j and their headings there differ by at most
     ``max_angle_deg``."""
     if len(lanes) == 0:

@@ -52,7 +52,7 @@ class Scene:
     sd: np.ndarray | None = None  # (128, 128, 3) uint8 SD raster of the same frame, when paired
 
     def to_lanegraph(self) -> LaneGraph:
-        """The scene in the lane graph interchange format (DESIGN.md §4)."""
+        """The scene in the lane graph interchange format (cmtool.data.lanegraph)."""
         return LaneGraph(
             lanes=[l.astype(np.float64) for l in self.lines[self.line_mask]],
             successors=[(int(i), int(j)) for i, j in self.edges],

@@ -1,5 +1,6 @@
 """Geometric metrics of a generated lane set against its ground truth and its SD control (ours,
-beyond the paper). Lanes are ego-frame polylines in metres; SD rasters follow DESIGN.md §3.
+beyond the paper). Lanes are ego-frame polylines in metres; SD rasters follow the raster convention
+(README: "Frames and rasters").
 
 - :func:`chamfer`: symmetric mean distance between the lane sets (metres);
 - :func:`sd_adherence`: share of SD road within 3 m of a generated lane, and share of generated lane
@@ -35,7 +36,7 @@ def chamfer(pred: Sequence[np.ndarray], gt: Sequence[np.ndarray], step: float = 
 
 
 def pixel_centres(mask: np.ndarray, frame_m: float = 64.0) -> np.ndarray:
-    """Ego-frame metres (N, 2) of the centres of the True pixels of a raster mask (DESIGN.md §3)."""
+    """Ego-frame metres (N, 2) of the centres of the True pixels of a raster mask (row 0 in front)."""
     px = frame_m / mask.shape[0]
     rows, cols = np.nonzero(mask)
     half = frame_m / 2.0

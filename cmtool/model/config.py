@@ -44,7 +44,7 @@ class RVAELossConfig:
     frame_m: float = 64.0
 
 
-# DiT sizes (depth, hidden, heads), DESIGN.md §5. XL uses hidden 1024 (about 532M parameters, the
+# DiT sizes (depth, hidden, heads). XL uses hidden 1024 (about 532M parameters, the
 # paper reports about 487M); B lands at about 130M (SLEDGE reports about 138M).
 SIZES = {"tiny": (8, 192, 4), "S": (12, 384, 6), "B": (12, 768, 12), "L": (24, 1024, 16), "XL": (28, 1024, 16)}
 

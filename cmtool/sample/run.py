@@ -3,7 +3,7 @@
 Maps are generated in batches; every input gets ``num`` maps. All randomness comes from one
 generator seeded with ``seed`` and consumed in order, so the same command (inputs, options,
 checkpoint, device) gives the same maps. Outputs per map in ``out``: ``<name>.json`` (the lane
-graph, DESIGN.md §4, successors inferred), ``<name>.png`` (SD | generated | ground truth when
+graph, successors inferred), ``<name>.png`` (SD | generated | ground truth when
 known) and ``<name>.gt.json`` (the ground truth, when known); plus one ``.rrd`` with every
 denoising step of every map (:mod:`cmtool.viz.trajectory`). Files are written atomically, and
 when the run fails, the files it already wrote are removed again.

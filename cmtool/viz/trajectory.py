@@ -1,4 +1,4 @@
-"""Rerun recording of a sampling run: every denoising step of every map (DESIGN.md §6).
+"""Rerun recording of a sampling run: every denoising step of every map.
 
 :class:`TrajectoryLogger` is the sampler's per-step callback. It keeps each step's tensors and
 sends them in columns (one ``send_columns`` per entity for many steps), which costs a fraction
