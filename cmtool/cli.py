@@ -255,10 +255,15 @@ def show(data_dir, n, png, rrd, split, seed):
 @click.option("--recipe", required=True, type=click.Path(path_type=Path), help="Recipe TOML (see recipes/).")
 @click.option("--out", type=click.Path(file_okay=False, path_type=Path), help="Run folder [default: the recipe's train.out].")
 @click.option("--resume", is_flag=True, help="Continue from the run folder's newest checkpoint.")
+@click.option("--data", "data_dir", type=click.Path(file_okay=False, path_type=Path),
+              help="Override train.data (the dataset cache).")
 @click.option("--steps", type=click.IntRange(min=1), help="Override train.steps (e.g. for a quick try).")
+@click.option("--precision", type=click.Choice(["auto", "bf16", "fp32"]),
+              help="Override train.precision: bf16 autocast pays on CUDA and on CPUs with native bf16 "
+                   "(AVX512-BF16, AMX); fp32 elsewhere on CPU.")
 @click.option("--device", help="torch device [default: cuda when available, else cpu].")
 @click.option("--quiet", is_flag=True, help="No progress line.")
-def train_cmd(stage, recipe, out, resume, steps, device, quiet):
+def train_cmd(stage, recipe, out, resume, data_dir, steps, precision, device, quiet):
     """Train one stage: rvae (stage 1), dit (stage 2) or controlnet (stage 3); decoder trains a
     finished RVAE's decoder further on its frozen encoder's latents (DiTs trained on them stay valid).
 
@@ -272,6 +277,10 @@ def train_cmd(stage, recipe, out, resume, steps, device, quiet):
         raise CmtoolError(f"{recipe}: a recipe for the {rec.train.stage} stage, not {stage}")
     if steps is not None:
         rec.train.steps = steps
+    if precision is not None:
+        rec.train.precision = precision
+    if data_dir is not None:
+        rec.train.data = str(data_dir)
     run_dir = out or (Path(rec.train.out) if rec.train.out else None)
     if run_dir is None:
         raise CmtoolError(f"{recipe}: no run folder: give --out or set train.out")
@@ -675,11 +684,13 @@ def ablate_city_swap(ckpt, data_dir, split, n, steps, sampler, out, device, quie
 @click.option("--data", "data_dir", required=True, type=click.Path(file_okay=False, path_type=Path),
               help="Dataset cache (every split is measured).")
 @click.option("--n", default=64, show_default=True, type=click.IntRange(min=1), help="Scenes per split and city.")
+@click.option("--tol", default=1.0, show_default=True, type=click.FloatRange(min=0, min_open=True),
+              help="Lane F1 tolerance (m).")
 @click.option("--out", required=True, type=click.Path(file_okay=False, path_type=Path), help="Output folder.")
 @click.option("--device", help="torch device [default: cuda when available, else cpu].")
 @click.option("--quiet", is_flag=True, help="No progress line.")
-def ablate_rvae(rvae_path, encoder_path, data_dir, n, out, device, quiet):
-    """What the RVAE keeps: lane F1 at 1 m of its reconstructions, and the driving side of the ground
+def ablate_rvae(rvae_path, encoder_path, data_dir, n, tol, out, device, quiet):
+    """What the RVAE keeps: lane F1 (at --tol m) of its reconstructions, and the driving side of the ground
     truth and of the reconstructions, per split and city (the ceiling of the city swap)."""
     from cmtool import checkpoint as ckpt
     from cmtool.eval.reconstruction import reconstruction_report
@@ -703,7 +714,7 @@ def ablate_rvae(rvae_path, encoder_path, data_dir, n, out, device, quiet):
     elif decoder.trunk is None:
         raise CmtoolError(f"{path}: a decoder without its encoder (the shipped weights hold none); give --encoder "
                           "RUN, the RVAE run it was trained on")
-    reconstruction_report(encoder, decoder, data_dir, dev, n, out, progress=not quiet)
+    reconstruction_report(encoder, decoder, data_dir, dev, n, out, progress=not quiet, tol=tol)
     click.echo((out / "ablate_rvae.md").read_text().rstrip())
     click.echo(f"wrote {out / 'ablate_rvae.md'}, {out / 'ablate_rvae.json'}")
 

@@ -90,6 +90,9 @@ class DataRecipe:
                 raise CmtoolError(f"{where}: data.real_maps[{i}].format: expected one of {IMPORT_FORMATS}, got {rm.format!r}")
 
 
+PRECISIONS = ("auto", "bf16", "fp32")
+
+
 @dataclass
 class TrainRecipe:
     """How a stage trains: inputs, output, optimiser, schedule, checkpoints (``[train]``)."""
@@ -124,6 +127,8 @@ class TrainRecipe:
     preview_every: int = 500  # steps between decoded previews (0: off)
     preview_steps: int = 25  # sampler steps of the previews (dit, controlnet)
     workers: int = 0  # DataLoader worker processes
+    precision: str = "auto"  # auto: bf16 autocast on CUDA, fp32 on CPU | bf16: bf16 autocast on any device (on a
+    #                          CPU with native bf16, AVX512-BF16 or AMX, about 1.7x faster) | fp32: none
     seed: int = 0
 
     def check(self, where: str) -> None:
@@ -143,6 +148,9 @@ class TrainRecipe:
             raise CmtoolError(f"{where}: train.branch_from: a control branch is a controlnet-stage option")
         if self.init_from and self.stage not in ("", "dit"):
             raise CmtoolError(f"{where}: train.init_from: a dit-stage option (the controlnet stage has branch_from)")
+        if self.precision not in PRECISIONS:
+            raise CmtoolError(f"{where}: train.precision: expected one of {', '.join(PRECISIONS)}, "
+                              f"got {self.precision!r}")
         if self.lr_schedule not in ("cosine", "constant"):
             raise CmtoolError(f"{where}: train.lr_schedule: expected cosine or constant, got {self.lr_schedule!r}")
         for key in ("ema_decay", "label_dropout", "mirror", "min_lr_ratio"):

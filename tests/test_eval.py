@@ -162,6 +162,11 @@ def test_ablate_rvae_scores_reconstructions_and_the_driving_side(sampling_ckpt, 
     code, _, err = in_process(capsys, *rvae, "--encoder", sampling_ckpt["rvae"], *args, "--out", tmp_path / "b")
     assert code == 0, err
     assert (tmp_path / "b" / "ablate_rvae.json").read_text() == (tmp_path / "a" / "ablate_rvae.json").read_text()
+    # a looser tolerance can only cover more of each polyline
+    assert in_process(capsys, *rvae, *args, "--tol", 4, "--out", tmp_path / "t")[0] == 0
+    loose = json.loads((tmp_path / "t" / "ablate_rvae.json").read_text())
+    assert loose["tol_m"] == 4.0 and all(l["f1"] >= r["f1"] for l, r in zip(loose["rows"], rows))
+    assert any(l["f1"] > r["f1"] for l, r in zip(loose["rows"], rows))
     # a packed decoder holds no encoder: it needs --encoder, and cannot be one
     assert in_process(capsys, "pack", "--ckpt", sampling_ckpt["controlmap"], "--out", tmp_path / "w")[0] == 0
     packed = tmp_path / "w" / "rvae"

@@ -308,6 +308,22 @@ def test_dit_starts_from_a_dit_or_a_controlmaps_frozen_base(runs, tmp_path, caps
     assert stage.config()["init_from"]["latent_scale"] == config["latent_scale"] * 1.01
 
 
+def test_bf16_precision_trains_under_autocast_on_cpu(runs, tmp_path):
+    assert ckpt.load_config(runs["dit"])["training"]["precision"] == "fp32"  # auto on CPU
+    recipe = write_recipe(tmp_path / "dit.toml", "dit", 2, rvae=str(runs["root"] / "rvae"), preview_every=0)
+    weights = {}
+    for precision in ("fp32", "bf16"):
+        result = cli("train", "dit", "--recipe", recipe, "--out", tmp_path / precision, "--precision", precision,
+                     "--quiet")
+        assert result.returncode == 0, result.stderr
+        config = ckpt.load_config(tmp_path / precision)
+        assert config["training"]["precision"] == precision and config["recipe"]["train"]["precision"] == precision
+        weights[precision] = load_file(str(ckpt.resolve(tmp_path / precision) / ckpt.WEIGHTS))
+    differ = [k for k, v in weights["fp32"].items() if not torch.equal(v, weights["bf16"][k])]
+    assert differ  # the same seed and data: only the autocast tells the two runs apart
+    assert all(torch.allclose(v, weights["bf16"][k], atol=0.05) for k, v in weights["fp32"].items())
+
+
 def test_ddp_two_cpu_processes_keep_replicas_identical(runs, tmp_path):
     root = runs["root"]
     recipe = write_recipe(tmp_path / "dit.toml", "dit", 4, rvae=str(root / "rvae"), preview_every=0)
@@ -360,6 +376,11 @@ def test_user_errors_are_one_line(runs, tmp_path):
                                                            rvae=str(root / "rvae"), dit=str(root / "dit"),
                                                            init_from=str(root / "dit")),
           "--out", tmp_path / "i"], "dit-stage option"),
+        (["train", "dit", "--recipe", write_recipe(tmp_path / "p.toml", "dit", 2, rvae=str(root / "rvae"),
+                                                    precision="fp16"),
+          "--out", tmp_path / "p"], "train.precision: expected one of auto, bf16, fp32"),
+        (["train", "rvae", "--recipe", runs["rvae_recipe"], "--data", tmp_path / "elsewhere", "--out", tmp_path / "e"],
+         "elsewhere"),  # --data replaces the recipe's (existing) dataset
     ]
     for args, fragment in bad:
         result = cli(*args)

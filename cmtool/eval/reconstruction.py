@@ -56,10 +56,10 @@ def reconstruction_scores(rvae: RVAE, data_dir, split: str, device, n: int, tol:
 
 
 def reconstruction_report(encoder: RVAE, decoder: RVAE, data_dir, device, n: int, out: Path,
-                          progress: bool = True) -> list[dict]:
-    """Per split and city, ``n`` scenes spread over the city's: lane F1 at 1 m of the reconstructions,
-    and the left-hand share (along two-way SD roads; by oncoming lanes) of the ground truth and of the
-    reconstructions. Writes ``ablate_rvae.json`` and ``ablate_rvae.md`` to ``out``."""
+                          progress: bool = True, tol: float = TOL_M) -> list[dict]:
+    """Per split and city, ``n`` scenes spread over the city's: lane F1 at ``tol`` metres of the
+    reconstructions, and the left-hand share (along two-way SD roads; by oncoming lanes) of the
+    ground truth and of the reconstructions. Writes ``ablate_rvae.json`` and ``ablate_rvae.md`` to ``out``."""
     rows = []
     parts = []
     for split in load_manifest(data_dir)["splits"]:
@@ -73,14 +73,14 @@ def reconstruction_report(encoder: RVAE, decoder: RVAE, data_dir, device, n: int
             recon = [el["lines"] for el in reconstruct(encoder, decoder, scenes, idx, device)]
             truth = [_truth(scenes, i) for i in idx]
             sds = [scenes.arrays["sd"][i] for i in idx]
-            f1 = [lane_scores(list(r), list(t), tol=TOL_M)["f1"] for r, t in zip(recon, truth)]
+            f1 = [lane_scores(list(r), list(t), tol=tol)["f1"] for r, t in zip(recon, truth)]
             rows.append({"split": split, "city": city, "drives_on": drives_on(city), "scenes": len(idx),
                          "f1": float(np.mean(f1)),
                          "left_hand_truth": _left(truth, sds), "left_hand_recon": _left(recon, sds),
                          "left_hand_oncoming_truth": _left(truth), "left_hand_oncoming_recon": _left(recon)})
             bar.update()
     out.mkdir(parents=True, exist_ok=True)
-    write_json(out / "ablate_rvae.json", {"scenes_per_city": n, "tol_m": TOL_M, "rows": rows})
+    write_json(out / "ablate_rvae.json", {"scenes_per_city": n, "tol_m": tol, "rows": rows})
     write_text_atomic(out / "ablate_rvae.md", markdown_table(rows, list(rows[0]) if rows else []))
     return rows
 

@@ -2,9 +2,10 @@
 
 A :class:`Stage` says what is trained (model, data, loss, previews, what happens at the end);
 :func:`train` does the rest: AdamW with warm-up and cosine decay, gradient clipping, EMA
-weights, bf16 autocast on CUDA (fp32 on CPU), DistributedDataParallel under ``torchrun``,
-atomic checkpoints every ``ckpt_every`` steps with exact ``--resume``, a progress line and a
-Rerun recording of the run (``train/loss``, ``train/lr``, ``train/grad_norm``, previews).
+weights, bf16 autocast on CUDA (on CPU fp32, or bf16 with ``train.precision``),
+DistributedDataParallel under ``torchrun``, atomic checkpoints every ``ckpt_every`` steps with
+exact ``--resume``, a progress line and a Rerun recording of the run (``train/loss``,
+``train/lr``, ``train/grad_norm``, previews).
 """
 
 from __future__ import annotations
@@ -176,8 +177,8 @@ def train(stage: Stage, run_dir: Path, resume: bool = False, progress: bool = Tr
                         pin_memory=info.device.type == "cuda", persistent_workers=t.workers > 0)
     net = DistributedDataParallel(model, device_ids=[info.device.index] if info.device.type == "cuda" else None) \
         if info.world > 1 else model
-    autocast = torch.autocast("cuda", dtype=torch.bfloat16) if info.device.type == "cuda" \
-        else torch.autocast("cpu", enabled=False)
+    bf16 = t.precision == "bf16" or (t.precision == "auto" and info.device.type == "cuda")
+    autocast = torch.autocast(info.device.type, dtype=torch.bfloat16, enabled=bf16)
 
     rec = None
     if info.main:
@@ -193,6 +194,7 @@ def train(stage: Stage, run_dir: Path, resume: bool = False, progress: bool = Tr
             config = {**base_config, **(extra or {}), "step": step, "steps": t.steps, "complete": complete,
                       "recipe": stage.recipe.to_dict(), "recipe_path": str(stage.recipe.path or ""),
                       "training": {**record, "hardware": D.hardware(info), "world_size": info.world,
+                                   "precision": "bf16" if bf16 else "fp32",
                                    "torch": torch.__version__, "replica_fingerprints": fingerprints}}
             ckpt.save_checkpoint(target, config, ema.module.state_dict(), tensors, meta)
             ckpt.prune(run_dir, t.keep)
