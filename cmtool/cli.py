@@ -15,6 +15,7 @@ import click
 from cmtool import __version__
 from cmtool.errors import CmtoolError
 from cmtool.sample import DEFAULT_SAMPLER, SAMPLERS
+from cmtool.train import PRECISIONS
 
 CITY_CHOICES = ("LAV", "PIT", "SGP", "BOS")
 CITY_CFG_HELP = ("Guidance weight on the city label (1: the label as trained; > 1 strengthens the city's style, "
@@ -258,7 +259,7 @@ def show(data_dir, n, png, rrd, split, seed):
 @click.option("--data", "data_dir", type=click.Path(file_okay=False, path_type=Path),
               help="Override train.data (the dataset cache).")
 @click.option("--steps", type=click.IntRange(min=1), help="Override train.steps (e.g. for a quick try).")
-@click.option("--precision", type=click.Choice(["auto", "bf16", "fp32"]),
+@click.option("--precision", type=click.Choice(PRECISIONS),
               help="Override train.precision: bf16 autocast pays on CUDA and on CPUs with native bf16 "
                    "(AVX512-BF16, AMX); fp32 elsewhere on CPU.")
 @click.option("--device", help="torch device [default: cuda when available, else cpu].")

@@ -29,6 +29,7 @@ from cmtool.data.importers import FORMATS as IMPORT_FORMATS
 from cmtool.data.sd_derive import SDJitter
 from cmtool.errors import CmtoolError
 from cmtool.model.config import ControlConfig, DiTConfig, RVAEConfig, RVAELossConfig, ScheduleConfig
+from cmtool.train import PRECISIONS
 
 if sys.version_info >= (3, 11):
     import tomllib
@@ -88,9 +89,6 @@ class DataRecipe:
         for i, rm in enumerate(self.real_maps):
             if rm.format not in IMPORT_FORMATS:
                 raise CmtoolError(f"{where}: data.real_maps[{i}].format: expected one of {IMPORT_FORMATS}, got {rm.format!r}")
-
-
-PRECISIONS = ("auto", "bf16", "fp32")
 
 
 @dataclass
