@@ -25,10 +25,13 @@ def random_batch(b: int, rng: np.random.Generator) -> dict[str, torch.Tensor]:
     return out
 
 
-@pytest.mark.parametrize("backbone, px, b", [("resnet18", 128, 2), ("resnet50", 256, 1)])
-def test_shapes(backbone, px, b):
+@pytest.mark.parametrize("backbone, px, b, stages", [("resnet18", 128, 2, 4), ("resnet50", 256, 1, 4),
+                                                     ("resnet18", 128, 2, 3), ("resnet18", 64, 1, 3),
+                                                     ("resnet50", 128, 1, 3)])
+def test_shapes(backbone, px, b, stages):
     torch.manual_seed(0)
-    model = RVAE(RVAEConfig(backbone=backbone, raster_px=px, **SMALL)).eval()
+    model = RVAE(RVAEConfig(backbone=backbone, raster_px=px, encoder_stages=stages, **SMALL)).eval()
+    assert len(model.trunk) == 4 + stages  # stem (conv, norm, relu, pool) and the stages kept
     with torch.no_grad():
         decoded, mean, logvar = model(torch.rand(b, 6, px, px))
     assert mean.shape == logvar.shape == (b, 64, 8, 8)
@@ -48,6 +51,10 @@ def test_sample_flag_and_bad_sizes():
     assert torch.equal(a["lines"], b["lines"]) and not torch.equal(a["lines"], c["lines"])
     with pytest.raises(CmtoolError, match="raster_px"):
         RVAE(RVAEConfig(raster_px=100))
+    with pytest.raises(CmtoolError, match="by 3 encoder stages: raster_px / latent_size must be 4, 8, 16$"):
+        RVAE(RVAEConfig(raster_px=256, encoder_stages=3))  # 32: needs layer4's stride
+    with pytest.raises(CmtoolError, match="encoder_stages: must be 2, 3 or 4"):
+        RVAE(RVAEConfig(encoder_stages=5))
     with pytest.raises(ValueError, match="shape"):
         model.encode(torch.rand(1, 6, 64, 64))
 

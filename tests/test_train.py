@@ -18,6 +18,7 @@ from safetensors.torch import load_file, save_file
 
 from cmtool import checkpoint as ckpt
 from cmtool.errors import CmtoolError
+from cmtool.train.loop import cpu_has_native_bf16
 from tests.conftest import REPO
 
 TINY_MODELS = {
@@ -316,6 +317,8 @@ def test_bf16_precision_trains_under_autocast_on_cpu(runs, tmp_path):
         result = cli("train", "dit", "--recipe", recipe, "--out", tmp_path / precision, "--precision", precision,
                      "--quiet")
         assert result.returncode == 0, result.stderr
+        # bf16 emulated on this CPU is many times slower than fp32: the run says so
+        assert ("without native bf16" in result.stderr) == (precision == "bf16" and not cpu_has_native_bf16())
         config = ckpt.load_config(tmp_path / precision)
         assert config["training"]["precision"] == precision and config["recipe"]["train"]["precision"] == precision
         weights[precision] = load_file(str(ckpt.resolve(tmp_path / precision) / ckpt.WEIGHTS))

@@ -13,6 +13,7 @@ class RVAEConfig:
     """RVAE hyper-parameters (plain fields: built from a TOML table)."""
 
     backbone: str = "resnet18"
+    encoder_stages: int = 4  # ResNet stages the encoder keeps: 3 drops layer4 (about half the compute)
     in_channels: int = 6
     raster_px: int = 128
     latent_channels: int = 64

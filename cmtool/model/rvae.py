@@ -25,30 +25,36 @@ from cmtool.model.config import RVAEConfig
 ELEMENTS = ("lines", "green", "red")
 BACKBONES = ("resnet18", "resnet34", "resnet50")
 ENCODER_PREFIXES = ("trunk.", "to_latent.")  # state-dict keys of the encoder (raster -> posterior)
-_RESNET_STRIDE = 32
-_STRIDED_LAYERS = ("layer4", "layer3", "layer2")  # whose stride 2 can be dropped, last first
+_STAGES = ("layer1", "layer2", "layer3", "layer4")  # the trunk through layer k has stride 2 ** (k + 1)
 
 
-def encoder_trunk(backbone: str, in_channels: int, raster_px: int, latent_size: int) -> tuple[nn.Sequential, int]:
-    """A ResNet trunk reducing ``raster_px`` to ``latent_size``; returns it and its output channels.
+def encoder_trunk(backbone: str, in_channels: int, raster_px: int, latent_size: int,
+                  stages: int = 4) -> tuple[nn.Sequential, int]:
+    """A ResNet trunk of its first ``stages`` stages reducing ``raster_px`` to ``latent_size``; returns it and
+    its output channels.
 
-    Strides of the last stages are set to 1 until the total stride is ``raster_px / latent_size``.
+    Strides of the last stages kept are set to 1 until the total stride is ``raster_px / latent_size``.
     """
     if backbone not in BACKBONES:
         raise CmtoolError(f"rvae.backbone: must be one of {', '.join(BACKBONES)}, got {backbone!r}")
+    if stages not in (2, 3, 4):
+        raise CmtoolError(f"rvae.encoder_stages: must be 2, 3 or 4, got {stages}")
+    full = 2 ** (stages + 1)  # the stride of the trunk with every stride kept
     stride = raster_px / latent_size
-    drop = math.log2(_RESNET_STRIDE / stride) if stride > 0 else -1.0
-    if raster_px % latent_size or drop != int(drop) or not 0 <= drop <= len(_STRIDED_LAYERS):
-        raise CmtoolError(f"rvae.raster_px: {raster_px} cannot be reduced to latent_size {latent_size}: "
-                         "raster_px / latent_size must be 4, 8, 16 or 32")
+    drop = math.log2(full / stride) if stride > 0 else -1.0
+    if raster_px % latent_size or drop != int(drop) or not 0 <= drop <= stages - 1:
+        strides = ", ".join(str(full >> k) for k in range(stages - 1, -1, -1))
+        raise CmtoolError(f"rvae.raster_px: {raster_px} cannot be reduced to latent_size {latent_size} by "
+                          f"{stages} encoder stages: raster_px / latent_size must be {strides}")
     net = getattr(torchvision.models, backbone)(weights=None, norm_layer=partial(nn.GroupNorm, 32))
     net.conv1 = nn.Conv2d(in_channels, 64, kernel_size=7, stride=2, padding=3, bias=False)
-    for name in _STRIDED_LAYERS[:int(drop)]:
+    kept = _STAGES[:stages]
+    for name in kept[::-1][:int(drop)]:
         for m in getattr(net, name)[0].modules():
             if isinstance(m, nn.Conv2d) and m.stride == (2, 2):
                 m.stride = (1, 1)
-    trunk = nn.Sequential(net.conv1, net.bn1, net.relu, net.maxpool, net.layer1, net.layer2, net.layer3, net.layer4)
-    return trunk, net.fc.in_features
+    trunk = nn.Sequential(net.conv1, net.bn1, net.relu, net.maxpool, *(getattr(net, name) for name in kept))
+    return trunk, net.fc.in_features >> (4 - stages)
 
 
 def sine_position_encoding(size: int, dim: int, temperature: float = 10000.0) -> Tensor:
@@ -88,7 +94,8 @@ class RVAE(nn.Module):
         self.cfg = cfg
         self.trunk = self.to_latent = None  # without an encoder (the released decoder-only weights)
         if encoder:
-            self.trunk, trunk_channels = encoder_trunk(cfg.backbone, cfg.in_channels, cfg.raster_px, cfg.latent_size)
+            self.trunk, trunk_channels = encoder_trunk(cfg.backbone, cfg.in_channels, cfg.raster_px, cfg.latent_size,
+                                                       cfg.encoder_stages)
             self.to_latent = nn.Conv2d(trunk_channels, 2 * cfg.latent_channels, kernel_size=3, padding=1)
 
         self.token_proj = nn.Linear(cfg.latent_channels, cfg.d_model)

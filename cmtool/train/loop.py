@@ -85,6 +85,12 @@ def _optimizer(params: list[torch.nn.Parameter], t: TrainRecipe) -> torch.optim.
     return torch.optim.AdamW(groups, lr=t.lr, betas=tuple(t.betas))
 
 
+def cpu_has_native_bf16() -> bool:
+    """Whether this CPU computes bf16 natively (AVX512-BF16 or AMX), where bf16 autocast speeds training up."""
+    checks = (getattr(torch.cpu, name, None) for name in ("_is_avx512_bf16_supported", "_is_amx_tile_supported"))
+    return any(check() for check in checks if check is not None)
+
+
 def _fingerprint(model: torch.nn.Module) -> torch.Tensor:
     """Float64 sums of every parameter: replicas that agree here agree bit for bit in practice."""
     sums = [torch.stack([p.detach().double().sum(), p.detach().double().square().sum()]) for p in model.parameters()]
@@ -178,6 +184,9 @@ def train(stage: Stage, run_dir: Path, resume: bool = False, progress: bool = Tr
     net = DistributedDataParallel(model, device_ids=[info.device.index] if info.device.type == "cuda" else None) \
         if info.world > 1 else model
     bf16 = t.precision == "bf16" or (t.precision == "auto" and info.device.type == "cuda")
+    if bf16 and info.main and info.device.type == "cpu" and not cpu_has_native_bf16():
+        print("warning: train.precision bf16 on a CPU without native bf16 (AVX512-BF16 or AMX): autocast "
+              "emulates it, many times slower than fp32; give --precision fp32", file=sys.stderr)
     autocast = torch.autocast(info.device.type, dtype=torch.bfloat16, enabled=bf16)
 
     rec = None
