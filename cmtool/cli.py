@@ -14,12 +14,17 @@ import click
 
 from cmtool import __version__
 from cmtool.errors import CmtoolError
-from cmtool.sample import DEFAULT_SAMPLER, SAMPLERS
+from cmtool.sample import DEFAULT_SAMPLER, DEFAULT_SMOOTH, SAMPLERS
 from cmtool.train import PRECISIONS
 
 CITY_CHOICES = ("LAV", "PIT", "SGP", "BOS")
 CITY_CFG_HELP = ("Guidance weight on the city label (1: the label as trained; > 1 strengthens the city's style, "
                  "such as its driving side, at one more model pass per step).")
+
+SMOOTH_OPTION = click.option(
+    "--smooth", default=DEFAULT_SMOOTH, show_default=True, type=click.IntRange(min=0),
+    help="Replace each decoded lane and light line by its least-squares Bezier curve with this many control points "
+         "(0: the decoder's raw points).")
 
 
 @click.group(context_settings={"help_option_names": ["-h", "--help"]})
@@ -350,6 +355,7 @@ SD input (at most one kind; none: maps from the city label alone):
               help="City label of the checkpoint, or none; auto: the HD map's city, else none.")
 @click.option("--cfg", default=1.0, show_default=True, help="Guidance weight w >= 0 on the SD control (0: ignore it).")
 @click.option("--city-cfg", default=1.0, show_default=True, help=CITY_CFG_HELP)
+@SMOOTH_OPTION
 @click.option("--batch", default=16, show_default=True, type=click.IntRange(min=1), help="Maps per forward pass.")
 @click.option("--out", default=Path("samples"), show_default=True, type=click.Path(file_okay=False, path_type=Path),
               help="Folder for the lane graphs and pictures.")
@@ -362,7 +368,7 @@ SD input (at most one kind; none: maps from the city label alone):
 @click.option("--device", help="torch device [default: cuda when available, else cpu].")
 @click.option("--quiet", is_flag=True, help="No progress line.")
 def sample(ckpt, sd_paths, osm, center, heading, from_hd, pose, num, seed, steps, sampler, eta, city, cfg, city_cfg,
-           batch, out, rrd, grid, spawn, connect_url, no_log, device, quiet):
+           smooth, batch, out, rrd, grid, spawn, connect_url, no_log, device, quiet):
     import shlex
 
     from cmtool.sample import inputs as src
@@ -395,7 +401,7 @@ def sample(ckpt, sd_paths, osm, center, heading, from_hd, pose, num, seed, steps
         inputs = src.hd_inputs(from_hd, poses, seed)
     else:
         inputs = [src.ControlInput("uncond", None, "no SD input")]
-    gen = Generator.load(_checkpoint(ckpt), _device(device))
+    gen = Generator.load(_checkpoint(ckpt), _device(device), smooth)
     jobs = plan(gen, inputs, settings)
     for item in inputs:
         if item.note:
@@ -457,6 +463,7 @@ def metrics(generated, reference, control, json_out, backbone, weights, no_featu
 @click.option("--steps", default=50, show_default=True, type=click.IntRange(min=1), help="Denoising steps.")
 @click.option("--sampler", default=DEFAULT_SAMPLER, show_default=True, type=click.Choice(SAMPLERS))
 @click.option("--seed", default=0, show_default=True, help="Random seed (the same noise for both methods).")
+@SMOOTH_OPTION
 @click.option("--batch", default=64, show_default=True, type=click.IntRange(min=1), help="Maps per forward pass.")
 @click.option("--out", required=True, type=click.Path(file_okay=False, path_type=Path),
               help="Folder for metrics.json, summary.md, eval.rrd and the generation cache.")
@@ -468,7 +475,7 @@ def metrics(generated, reference, control, json_out, backbone, weights, no_featu
               help="Scenes whose maps go into eval.rrd (scores go in for all).")
 @click.option("--device", help="torch device [default: cuda when available, else cpu].")
 @click.option("--quiet", is_flag=True, help="No progress line.")
-def eval_cmd(ckpt, data_dir, split, n, cfg, steps, sampler, seed, batch, out, backbone, weights, no_features,
+def eval_cmd(ckpt, data_dir, split, n, cfg, steps, sampler, seed, smooth, batch, out, backbone, weights, no_features,
              rrd_samples, device, quiet):
     """Evaluate a ControlMap checkpoint on a test split against its unguided DiT (paper Tables 1-2)."""
     import math
@@ -480,7 +487,7 @@ def eval_cmd(ckpt, data_dir, split, n, cfg, steps, sampler, seed, batch, out, ba
     if not (math.isfinite(cfg) and cfg >= 0):
         raise CmtoolError(f"--cfg: guidance weight must be a finite number >= 0, got {cfg}")
     dev = _device(device)
-    gen = Generator.load(_checkpoint(ckpt), dev)
+    gen = Generator.load(_checkpoint(ckpt), dev, smooth)
     gen.schedule.timesteps(steps)
     extractor = None if no_features else FeatureExtractor(backbone, weights, dev)
     settings = EvalSettings(data=str(data_dir.resolve()), split=split, n=n, cfg=cfg, steps=steps, sampler=sampler,
@@ -587,11 +594,11 @@ def ablate():
     """Ablations on fixed SD maps and seeds: the guidance weight, the city label; what the RVAE keeps."""
 
 
-def _ablation_setup(ckpt, data_dir, split, n, device, dit_ok=False):
+def _ablation_setup(ckpt, data_dir, split, n, device, smooth, dit_ok=False):
     from cmtool.data.cache import load_dataset
     from cmtool.sample.generator import Generator
 
-    gen = Generator.load(_checkpoint(ckpt), _device(device))
+    gen = Generator.load(_checkpoint(ckpt), _device(device), smooth)
     if not gen.has_control and not dit_ok:
         raise CmtoolError(f"{gen.path}: the guidance sweep needs a ControlMap checkpoint")
     data = load_dataset(data_dir, split)
@@ -619,6 +626,7 @@ _ABLATE_COMMON = [
     click.option("--n", default=64, show_default=True, type=click.IntRange(min=1), help="Scenes (the first N)."),
     click.option("--steps", default=50, show_default=True, type=click.IntRange(min=1), help="Denoising steps."),
     click.option("--sampler", default=DEFAULT_SAMPLER, show_default=True, type=click.Choice(SAMPLERS)),
+    SMOOTH_OPTION,
     click.option("--out", required=True, type=click.Path(file_okay=False, path_type=Path), help="Output folder."),
     click.option("--device", help="torch device [default: cuda when available, else cpu]."),
     click.option("--quiet", is_flag=True, help="No progress line."),
@@ -639,14 +647,14 @@ def _ablate_options(fn):
               type=click.Choice(["resnet50-seeded", "resnet50-imagenet"]), help="Feature network of GT Recall.")
 @click.option("--weights-file", type=click.Path(dir_okay=False, path_type=Path), help="ImageNet ResNet-50 weights.")
 @click.option("--no-features", is_flag=True, help="Skip GT Recall.")
-def ablate_cfg(ckpt, data_dir, split, n, steps, sampler, out, device, quiet, weights, seeds, backbone, weights_file,
+def ablate_cfg(ckpt, data_dir, split, n, steps, sampler, smooth, out, device, quiet, weights, seeds, backbone, weights_file,
                no_features):
     """Sweep the guidance weight w: SD adherence, GT Recall and diversity against w."""
     from cmtool.eval.ablations import cfg_sweep
     from cmtool.eval.features import FeatureExtractor
 
     ws = _floats(weights, "--w")
-    gen, scenes = _ablation_setup(ckpt, data_dir, split, n, device)
+    gen, scenes = _ablation_setup(ckpt, data_dir, split, n, device, smooth)
     extractor = None if no_features else FeatureExtractor(backbone, weights_file, gen.device)
     cfg_sweep(gen, scenes, ws, seeds, steps, extractor, out, progress=not quiet, sampler=sampler)
     click.echo((out / "ablate_cfg.md").read_text().rstrip())
@@ -659,7 +667,7 @@ def ablate_cfg(ckpt, data_dir, split, n, steps, sampler, out, device, quiet, wei
 @click.option("--cfg", default=1.0, show_default=True, help="Guidance weight.")
 @click.option("--city-cfg", default=1.0, show_default=True, help=CITY_CFG_HELP)
 @click.option("--seed", default=0, show_default=True, help="Random seed (the same noise for every label).")
-def ablate_city_swap(ckpt, data_dir, split, n, steps, sampler, out, device, quiet, labels, cfg, city_cfg, seed):
+def ablate_city_swap(ckpt, data_dir, split, n, steps, sampler, smooth, out, device, quiet, labels, cfg, city_cfg, seed):
     """Swap the city label on the same SD maps: the driving side per label (SGP drives on the left).
 
     --ckpt may also name a DiT: its maps ignore the SD maps, whose two-way roads still judge them
@@ -667,7 +675,7 @@ def ablate_city_swap(ckpt, data_dir, split, n, steps, sampler, out, device, quie
     from cmtool.eval.ablations import city_swap
 
     names = [v.strip() for v in labels.split(",") if v.strip()]
-    gen, scenes = _ablation_setup(ckpt, data_dir, split, n, device, dit_ok=True)
+    gen, scenes = _ablation_setup(ckpt, data_dir, split, n, device, smooth, dit_ok=True)
     for name in names:
         gen.label(name)  # unknown labels fail before any work
     city_swap(gen, scenes, names, steps, cfg, seed, out, progress=not quiet, sampler=sampler, city_cfg=city_cfg)

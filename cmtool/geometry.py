@@ -2,6 +2,8 @@
 
 from __future__ import annotations
 
+import math
+
 import numpy as np
 
 
@@ -47,6 +49,28 @@ def resample_step(line: np.ndarray, step: float) -> np.ndarray:
     """Resample a polyline at (about) ``step`` metre spacing, keeping both end points."""
     n = max(2, int(np.ceil(polyline_length(line) / step)) + 1)
     return resample(line, n)
+
+
+def bernstein_basis(num_points: int, control_points: int) -> np.ndarray:
+    """(P, K): row i holds the weights of the K control points of a Bézier curve at the i-th of
+    ``P = num_points`` evenly spaced curve parameters in [0, 1] (Bernstein polynomials of degree K - 1)."""
+    if num_points < 2 or control_points < 2:
+        raise ValueError(f"need at least 2 points and 2 control points, got {num_points} and {control_points}")
+    t = np.linspace(0.0, 1.0, num_points)[:, None]
+    degree = control_points - 1
+    k = np.arange(control_points)
+    binomial = np.array([math.comb(degree, i) for i in k], dtype=np.float64)
+    return binomial * t**k * (1.0 - t) ** (degree - k)
+
+
+def bezier_fit_matrix(num_points: int, control_points: int) -> np.ndarray:
+    """The (P, P) matrix ``M`` such that ``M @ line`` replaces the ``P = num_points`` points of a polyline,
+    taken at evenly spaced curve parameters, by the least-squares Bézier curve with ``control_points``
+    control points, sampled at the same parameters. It is a projection (applying it twice changes
+    nothing); curves of degree below ``control_points`` pass through unchanged, and with
+    ``control_points >= num_points`` it is the identity."""
+    basis = bernstein_basis(num_points, control_points)
+    return basis @ np.linalg.pinv(basis)
 
 
 def headings(line: np.ndarray) -> np.ndarray:

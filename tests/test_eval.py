@@ -29,6 +29,7 @@ def test_eval_writes_reports_and_resumes(sampling_ckpt, tiny_data, tmp_path, cap
     assert "| metric | unguided | ControlMap |" in summary and "split test, 4 scenes" in summary
     assert "| validity score ↑ |" in summary and "validity score of the ground truth itself" in summary
     assert "| lane F1 @1 m ↑ |" in stdout
+    assert "- lanes: least-squares Bézier curves with 6 control points" in summary
     first = (out / "cache" / "controlmap.jsonl").read_text().splitlines()
     # more scenes later: the first batch comes from the cache, unchanged
     code, _, err = in_process(capsys, *args, "--n", 8)
@@ -45,6 +46,8 @@ def test_eval_writes_reports_and_resumes(sampling_ckpt, tiny_data, tmp_path, cap
     # the cache refuses to mix settings
     code, _, err = in_process(capsys, *args, "--n", 8, "--cfg", 0.5)
     assert code == 1 and "made with other settings (cfg)" in err
+    code, _, err = in_process(capsys, *args, "--n", 8, "--smooth", 0)
+    assert code == 1 and "made with other settings (smooth)" in err
     # ... and a cache from before the step noise had its own stream (no "noise" entry)
     meta = json.loads((out / "cache" / "settings.json").read_text())
     (out / "cache" / "settings.json").write_text(json.dumps({k: v for k, v in meta.items() if k != "noise"}))

@@ -18,7 +18,7 @@ from cmtool.cli import main
 from cmtool.data.hdmap import HDMap
 from cmtool.data.lanegraph import LaneGraph, infer_successors, read_jsonl
 from cmtool.eval.validity import check
-from cmtool.sample import DEFAULT_SAMPLER
+from cmtool.sample import DEFAULT_SAMPLER, DEFAULT_SMOOTH
 from cmtool.viz.trajectory import strips_column, tensor_column
 from tests.conftest import REPO, in_process
 
@@ -216,6 +216,7 @@ def make_bad_inputs(tmp_path, ckpt, case) -> dict:
         "negative cfg": ((*sd, "--cfg", "-0.5"), "--cfg"),
         "nan cfg": ((*sd, "--cfg", "nan"), "--cfg"),
         "negative city cfg": ((*sd, "--city-cfg", "-1"), "--city-cfg"),
+        "smooth": ((*sd, "--smooth", "1"), "--smooth: 0 (the decoder's raw points) or 2..20 control points"),
         "missing ckpt": ((*sd, "--ckpt", tmp_path / "nowhere"), "no such checkpoint"),
         "corrupt ckpt": ((*sd, "--ckpt", corrupt), "unreadable weights"),
         "rvae ckpt": ((*sd, "--ckpt", ckpt["rvae"]), "an RVAE checkpoint"),
@@ -230,7 +231,7 @@ def make_bad_inputs(tmp_path, ckpt, case) -> dict:
 
 
 @pytest.mark.parametrize("case", ["garbage", "empty", "blank", "channels", "city", "negative cfg", "nan cfg",
-                                  "negative city cfg", "missing ckpt", "corrupt ckpt", "rvae ckpt", "dit with sd",
+                                  "negative city cfg", "smooth", "missing ckpt", "corrupt ckpt", "rvae ckpt", "dit with sd",
                                   "osm far", "osm centre", "two kinds", "missing map", "off the roads"])
 def test_bad_inputs_are_one_line_errors_with_no_output(case, sampling_ckpt, tmp_path, capsys):
     args, fragment = make_bad_inputs(tmp_path, sampling_ckpt, case)[case]
@@ -284,8 +285,8 @@ def test_bench_sample_prints_both_times_and_the_ratio(sampling_ckpt, capsys):
 
 def test_lane_graph_meta_records_how_it_was_made(sampled):
     graph = LaneGraph.from_json(json.loads((sampled["out"] / "sd_bos_s0.json").read_text()))
-    assert {"source", "checkpoint", "seed", "cfg", "city_cfg", "steps", "sampler"} <= set(graph.meta)
-    assert graph.meta["city_cfg"] == 1.0
+    assert {"source", "checkpoint", "seed", "cfg", "city_cfg", "steps", "sampler", "smooth"} <= set(graph.meta)
+    assert graph.meta["city_cfg"] == 1.0 and graph.meta["smooth"] == DEFAULT_SMOOTH
     assert graph.meta["steps"] == STEPS and graph.meta["sampler"] == DEFAULT_SAMPLER == "ddpm"
 
 

@@ -52,7 +52,8 @@ def generate(gen: Generator, sds: np.ndarray, labels: list[int], cfg: float, ste
         sd = sds[b0:b0 + n] if gen.has_control else None
         z = gen.sample(sd, labels[b0:b0 + n], cfg=cfg, city_cfg=city_cfg, steps=steps, sampler=sampler,
                        noise=noise.to(gen.device), generator=step_generator(scene_seed(seed, b0), gen.device))
-        maps += [gen.lane_graph(el, gen.city_name(y), {"cfg": cfg, "seed": seed, "sampler": sampler})
+        maps += [gen.lane_graph(el, gen.city_name(y), {"cfg": cfg, "seed": seed, "sampler": sampler,
+                                                           "smooth": gen.smooth})
                  for el, y in zip(gen.decode(z), labels[b0:b0 + n])]
     return maps
 
@@ -83,7 +84,7 @@ def cfg_sweep(gen: Generator, scenes, weights: list[float], seeds: int, steps: i
             rows.append(row)
     out.mkdir(parents=True, exist_ok=True)
     write_json(out / "ablate_cfg.json", {"scenes": len(scenes), "seeds": seeds, "steps": steps, "sampler": sampler,
-                                          "rows": rows})
+                                          "smooth": gen.smooth, "rows": rows})
     write_text_atomic(out / "ablate_cfg.md", markdown_table(rows, ["w", "sd_coverage", "lane_on_sd", "gt_recall",
                                                                     "diversity_m"]))
     write_png(out / "ablate_cfg.png", _plot(rows))
@@ -125,7 +126,7 @@ def city_swap(gen: Generator, scenes, labels: list[str], steps: int, cfg: float,
             bar.update()
     out.mkdir(parents=True, exist_ok=True)
     write_json(out / "ablate_city_swap.json", {"scenes": len(scenes), "cfg": cfg, "city_cfg": city_cfg, "steps": steps,
-                                                "sampler": sampler, "rows": rows})
+                                                "sampler": sampler, "smooth": gen.smooth, "rows": rows})
     write_text_atomic(out / "ablate_city_swap.md", markdown_table(rows, [
         "label", "drives_on", "left_hand", "right_hand", "judged_points", "left_hand_oncoming", "oncoming_points"]))
     tiles = []

@@ -33,7 +33,7 @@ from cmtool.eval.metrics import evaluate, reference_image_features, summary_tabl
 from cmtool.eval.validity import check
 from cmtool.progress import Progress
 from cmtool.release import BUNDLED
-from cmtool.sample import DEFAULT_SAMPLER
+from cmtool.sample import DEFAULT_SAMPLER, DEFAULT_SMOOTH
 from cmtool.sample.diffusion import scene_seed, step_generator
 from cmtool.sample.generator import Generator
 from cmtool.viz.recording import log_lanes, log_sd, open_recording
@@ -52,6 +52,7 @@ class EvalSettings:
     cfg: float = 1.0
     steps: int = 50
     sampler: str = DEFAULT_SAMPLER
+    smooth: int = DEFAULT_SMOOTH  # Bézier control points of the decoded lanes (the generator's)
     seed: int = 0
     batch: int = 64
     checkpoint: str = ""
@@ -66,7 +67,7 @@ def run_eval(gen: Generator, settings: EvalSettings, out: Path, extractor: Featu
         raise CmtoolError(f"{gen.path}: eval compares ControlMap with its unguided DiT; give a ControlMap checkpoint")
     data = load_dataset(settings.data, settings.split)
     n = min(settings.n, len(data))
-    settings.n, settings.checkpoint = n, str(gen.path)
+    settings.n, settings.checkpoint, settings.smooth = n, str(gen.path), gen.smooth
     settings.weights = ckpt.weights_digest(gen.path, ckpt.resolve(ckpt.linked(gen.path, gen.config["rvae"])))
     scenes = [data.scene(i) for i in range(n)]
     reference = [s.to_lanegraph() for s in scenes]
@@ -156,11 +157,18 @@ def summary_markdown(report: dict) -> str:
             f"- checkpoint `{s['checkpoint']}`", f"- data `{s['data']}`, split {s['split']}, {s['n']} scenes",
             f"- ControlMap: guidance w = {s['cfg']}; both: {s['steps']} {s['sampler']} steps, seed {s['seed']}, "
             "the same initial noise per scene",
+            f"- lanes: {_smoothing(s['smooth'])}",
             "- unguided: the frozen DiT without SD control or city label (the paper's SLEDGE rows)",
             f"- features: {backbone}; recall metrics in batches of 64, top 3, p = P(chance >= observed)",
             f"- validity score of the ground truth itself: {report['ground_truth_validity']:.3f}", "", ""]
     return "\n".join(head) + summary_table({("unguided" if k == "unguided" else "ControlMap"): v
                                             for k, v in methods.items()}) + "\n"
+
+
+def _smoothing(control_points: int) -> str:
+    if control_points:
+        return f"least-squares Bézier curves with {control_points} control points through the decoded points"
+    return "the decoder's raw points (--smooth 0)"
 
 
 def _write_recording(path: Path, scenes, reference, generated, results: dict, rrd_samples: int) -> None:

@@ -3,7 +3,8 @@
 ``Generator.load(ckpt)`` reads a ControlMap or DiT checkpoint (a run folder or one checkpoint
 folder), finds the RVAE it was trained on (the path its config records, absolute or relative to
 the checkpoint) and checks that the pieces fit. ``sample`` denoises latents for a batch of SD
-rasters and city labels; ``lane_graph`` turns a decoded latent into the lane graph format.
+rasters and city labels; ``decode`` turns them into polylines (smoothed into Bézier curves unless
+``smooth`` is 0) and ``lane_graph`` into the lane graph format.
 """
 
 from __future__ import annotations
@@ -16,11 +17,12 @@ import torch
 from cmtool import checkpoint as ckpt
 from cmtool.data.lanegraph import LaneGraph, infer_successors
 from cmtool.errors import CmtoolError
+from cmtool.geometry import bezier_fit_matrix
 from cmtool.model.config import ScheduleConfig
 from cmtool.model.controlmap import ControlMap, sd_tensor
 from cmtool.model.rvae import decoded_elements
 from cmtool.recipe import from_table
-from cmtool.sample import DEFAULT_SAMPLER
+from cmtool.sample import DEFAULT_SAMPLER, DEFAULT_SMOOTH
 from cmtool.sample.diffusion import NoiseSchedule, sample
 
 NONE = "none"  # the --city value for the null label
@@ -29,14 +31,21 @@ NONE = "none"  # the --city value for the null label
 class Generator:
     """Sampling with a loaded checkpoint: labels, control rasters in, latents and lane graphs out."""
 
-    def __init__(self, model, rvae, config: dict, path: Path, device: torch.device):
+    def __init__(self, model, rvae, config: dict, path: Path, device: torch.device, smooth: int = DEFAULT_SMOOTH):
         self.model, self.rvae, self.config, self.path, self.device = model, rvae, config, path, device
+        points = rvae.cfg.num_points
+        if smooth != 0 and not 2 <= smooth <= points:
+            raise CmtoolError(f"--smooth: 0 (the decoder's raw points) or 2..{points} control points, got {smooth}")
+        self.smooth = smooth
+        self._fit = bezier_fit_matrix(points, smooth) if smooth else None
         self.cities: list[str] = list(config["cities"])
         self.scale = float(config["latent_scale"])
         self.schedule = NoiseSchedule(from_table(ScheduleConfig, config["schedule"], f"{path}: ", "schedule."))
 
     @classmethod
-    def load(cls, path, device="cpu") -> "Generator":
+    def load(cls, path, device="cpu", smooth: int = DEFAULT_SMOOTH) -> "Generator":
+        """The checkpoint at ``path`` and its RVAE; ``smooth``: Bézier control points of decoded polylines
+        (0: raw)."""
         path = ckpt.resolve(path)
         config = ckpt.load_config(path)
         if config["kind"] == "rvae":
@@ -54,7 +63,7 @@ class Generator:
         if have != tuple(model.latent_shape):
             raise CmtoolError(f"{path}: the model's latent {tuple(model.latent_shape)} does not match its RVAE "
                               f"{rvae_path} ({have})")
-        return cls(model, rvae, config, path, device)
+        return cls(model, rvae, config, path, device, smooth)
 
     @property
     def has_control(self) -> bool:
@@ -100,8 +109,12 @@ class Generator:
 
     @torch.no_grad()
     def decode(self, latents: torch.Tensor, threshold: float = 0.5) -> list[dict[str, np.ndarray]]:
-        """Scaled latents (N, C, H, W) -> per latent ``{"lines", "green", "red"}`` polylines (metres)."""
-        return decoded_elements(self.rvae.decode(latents.to(self.device).float() / self.scale), threshold)
+        """Scaled latents (N, C, H, W) -> per latent ``{"lines", "green", "red"}`` polylines (metres), each
+        replaced by its least-squares Bézier curve unless ``smooth`` is 0."""
+        elements = decoded_elements(self.rvae.decode(latents.to(self.device).float() / self.scale), threshold)
+        if self._fit is None:
+            return elements
+        return [{name: (self._fit @ lines).astype(lines.dtype) for name, lines in el.items()} for el in elements]
 
     def lane_graph(self, elements: dict[str, np.ndarray], city: str | None, meta: dict) -> LaneGraph:
         """A decoded latent as a lane graph, successors inferred from endpoint proximity."""

@@ -176,7 +176,7 @@ def generate_maps(gen: Generator, jobs: list[Job], settings: SampleSettings, rec
 def _meta(gen: Generator, job: Job, settings: SampleSettings) -> dict:
     return {"source": job.source.source, "checkpoint": str(gen.path), "seed": settings.seed, "index": job.index,
             "cfg": settings.cfg, "city_cfg": settings.city_cfg, "steps": settings.steps, "sampler": settings.sampler,
-            "eta": settings.eta}
+            "eta": settings.eta, "smooth": gen.smooth}
 
 
 def _partial(rrd: Path) -> Path:
