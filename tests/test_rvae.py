@@ -8,6 +8,7 @@ from cmtool.data.hd_raster import rasterize_scene
 from cmtool.data.scene import SceneCropper, sample_poses
 from cmtool.data.synth import generate_city
 from cmtool.errors import CmtoolError
+from cmtool.geometry import bezier_fit_matrix
 from cmtool.eval.lanes import lane_scores
 from cmtool.model.config import RVAEConfig, RVAELossConfig
 from cmtool.model.rvae import ELEMENTS, RVAE, decoded_elements
@@ -57,6 +58,25 @@ def test_sample_flag_and_bad_sizes():
         RVAE(RVAEConfig(encoder_stages=5))
     with pytest.raises(ValueError, match="shape"):
         model.encode(torch.rand(1, 6, 64, 64))
+
+
+def bezier_fit_matrix_torch(points: int, control_points: int) -> torch.Tensor:
+    return torch.from_numpy(bezier_fit_matrix(points, control_points)).float()
+
+
+def test_bezier_heads_decode_curves_of_their_control_points():
+    torch.manual_seed(0)
+    model = RVAE(RVAEConfig(control_points=5, **SMALL)).eval()
+    with torch.no_grad():
+        decoded, _, _ = model(torch.rand(2, 6, 128, 128), sample=False)
+    fit = bezier_fit_matrix_torch(20, 5)
+    for name in ELEMENTS:
+        lines = decoded[name]
+        assert lines.shape[-2:] == (20, 2) and lines.abs().max() <= 32.0
+        assert torch.allclose(fit @ lines, lines, atol=1e-4)
+        assert not torch.allclose(bezier_fit_matrix_torch(20, 4) @ lines, lines, atol=1e-2)  # not of lower degree
+    with pytest.raises(CmtoolError, match="rvae.control_points: 0 or 2..20, got 1"):
+        RVAE(RVAEConfig(control_points=1, **SMALL))
 
 
 def test_decoded_elements_thresholds_logits():

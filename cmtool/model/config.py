@@ -26,6 +26,7 @@ class RVAEConfig:
     num_lines: int = 30
     num_lights: int = 10
     num_points: int = 20
+    control_points: int = 0  # 0: the heads regress every point; K >= 2: K Bézier control points per line
     frame_m: float = 64.0
 
     @property

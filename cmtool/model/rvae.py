@@ -20,6 +20,7 @@ import torchvision
 from torch import Tensor, nn
 
 from cmtool.errors import CmtoolError
+from cmtool.geometry import bernstein_basis
 from cmtool.model.config import RVAEConfig
 
 ELEMENTS = ("lines", "green", "red")
@@ -71,18 +72,32 @@ def sine_position_encoding(size: int, dim: int, temperature: float = 10000.0) ->
 
 
 class LineHead(nn.Module):
-    """Queries -> polylines (B, Q, P, 2) in metres (tanh * frame / 2) and existence logits (B, Q)."""
+    """Queries -> polylines (B, Q, P, 2) in metres and existence logits (B, Q).
 
-    def __init__(self, d_model: int, num_points: int, frame_m: float):
+    With ``control_points = 0`` the MLP regresses every point (tanh * frame / 2); with K >= 2 it
+    regresses K Bézier control points the same way and the P points are sampled from that curve, so
+    lines are smooth by construction (and stay in the frame, inside their control points' hull)."""
+
+    def __init__(self, d_model: int, num_points: int, frame_m: float, control_points: int = 0):
         super().__init__()
-        self.points = nn.Sequential(nn.Linear(d_model, d_model), nn.ReLU(), nn.Linear(d_model, num_points * 2))
+        if control_points:
+            if not 2 <= control_points <= num_points:
+                raise CmtoolError(f"rvae.control_points: 0 or 2..{num_points}, got {control_points}")
+            self.register_buffer("basis", torch.from_numpy(bernstein_basis(num_points, control_points)).float(),
+                                 persistent=False)
+        else:
+            self.basis = None
+        outputs = control_points or num_points
+        self.points = nn.Sequential(nn.Linear(d_model, d_model), nn.ReLU(), nn.Linear(d_model, outputs * 2))
         self.logit = nn.Linear(d_model, 1)
-        self.num_points = num_points
+        self.outputs = outputs
         self.half_frame = frame_m / 2.0
 
     def forward(self, h: Tensor) -> tuple[Tensor, Tensor]:
         b, q = h.shape[:2]
-        points = self.points(h).tanh().reshape(b, q, self.num_points, 2) * self.half_frame
+        points = self.points(h).tanh().reshape(b, q, self.outputs, 2) * self.half_frame
+        if self.basis is not None:
+            points = torch.einsum("pk,bqkd->bqpd", self.basis.to(points.dtype), points)
         return points, self.logit(h).squeeze(-1)
 
 
@@ -104,7 +119,8 @@ class RVAE(nn.Module):
         layer = nn.TransformerDecoderLayer(cfg.d_model, cfg.heads, cfg.ffn, cfg.dropout, batch_first=True,
                                            norm_first=True)
         self.decoder = nn.TransformerDecoder(layer, cfg.decoder_layers, norm=nn.LayerNorm(cfg.d_model))
-        self.heads = nn.ModuleDict({name: LineHead(cfg.d_model, cfg.num_points, cfg.frame_m) for name in ELEMENTS})
+        self.heads = nn.ModuleDict({name: LineHead(cfg.d_model, cfg.num_points, cfg.frame_m, cfg.control_points)
+                                    for name in ELEMENTS})
 
     def encode(self, raster: Tensor) -> tuple[Tensor, Tensor]:
         """Raster (B, C, H, W) -> posterior mean and log-variance, each (B, latent_channels, S, S)."""
