@@ -647,8 +647,8 @@ def _ablate_options(fn):
               type=click.Choice(["resnet50-seeded", "resnet50-imagenet"]), help="Feature network of GT Recall.")
 @click.option("--weights-file", type=click.Path(dir_okay=False, path_type=Path), help="ImageNet ResNet-50 weights.")
 @click.option("--no-features", is_flag=True, help="Skip GT Recall.")
-def ablate_cfg(ckpt, data_dir, split, n, steps, sampler, smooth, out, device, quiet, weights, seeds, backbone, weights_file,
-               no_features):
+def ablate_cfg(ckpt, data_dir, split, n, steps, sampler, smooth, out, device, quiet, weights, seeds, backbone,
+               weights_file, no_features):
     """Sweep the guidance weight w: SD adherence, GT Recall and diversity against w."""
     from cmtool.eval.ablations import cfg_sweep
     from cmtool.eval.features import FeatureExtractor

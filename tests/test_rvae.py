@@ -8,8 +8,8 @@ from cmtool.data.hd_raster import rasterize_scene
 from cmtool.data.scene import SceneCropper, sample_poses
 from cmtool.data.synth import generate_city
 from cmtool.errors import CmtoolError
-from cmtool.geometry import bezier_fit_matrix
 from cmtool.eval.lanes import lane_scores
+from cmtool.geometry import bezier_fit_matrix
 from cmtool.model.config import RVAEConfig, RVAELossConfig
 from cmtool.model.rvae import ELEMENTS, RVAE, decoded_elements
 from cmtool.model.rvae_loss import kl_divergence, match, rvae_loss

@@ -231,8 +231,8 @@ def make_bad_inputs(tmp_path, ckpt, case) -> dict:
 
 
 @pytest.mark.parametrize("case", ["garbage", "empty", "blank", "channels", "city", "negative cfg", "nan cfg",
-                                  "negative city cfg", "smooth", "missing ckpt", "corrupt ckpt", "rvae ckpt", "dit with sd",
-                                  "osm far", "osm centre", "two kinds", "missing map", "off the roads"])
+                                  "negative city cfg", "smooth", "missing ckpt", "corrupt ckpt", "rvae ckpt",
+                                  "dit with sd", "osm far", "osm centre", "two kinds", "missing map", "off the roads"])
 def test_bad_inputs_are_one_line_errors_with_no_output(case, sampling_ckpt, tmp_path, capsys):
     args, fragment = make_bad_inputs(tmp_path, sampling_ckpt, case)[case]
     if "--ckpt" not in args:

@@ -31,10 +31,8 @@ def test_fit_removes_point_jitter_and_the_kinks_it_makes():
     truth = np.stack([x, 0.01 * x**2], axis=-1)
     jagged = truth + rng.normal(0.0, 0.4, truth.shape)
     smooth = bezier_fit_matrix(20, 6) @ jagged
-    def rms(line):
-        return np.sqrt(np.mean((line - truth) ** 2))
-
-    assert rms(smooth) < 0.7 * rms(jagged)  # noise keeps a share of 6 / 20 of its variance
+    rms_smooth, rms_jagged = (np.sqrt(np.mean((line - truth) ** 2)) for line in (smooth, jagged))
+    assert rms_smooth < 0.7 * rms_jagged  # noise keeps a share of 6 / 20 of its variance
     counts = [check(LaneGraph(lanes=[lane], successors=infer_successors([lane]))).counts() for lane in (jagged, smooth)]
     assert counts[0].get("kink", 0) > 0 and counts[1].get("kink", 0) == 0
 

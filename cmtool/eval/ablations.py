@@ -52,8 +52,8 @@ def generate(gen: Generator, sds: np.ndarray, labels: list[int], cfg: float, ste
         sd = sds[b0:b0 + n] if gen.has_control else None
         z = gen.sample(sd, labels[b0:b0 + n], cfg=cfg, city_cfg=city_cfg, steps=steps, sampler=sampler,
                        noise=noise.to(gen.device), generator=step_generator(scene_seed(seed, b0), gen.device))
-        maps += [gen.lane_graph(el, gen.city_name(y), {"cfg": cfg, "seed": seed, "sampler": sampler,
-                                                           "smooth": gen.smooth})
+        maps += [gen.lane_graph(el, gen.city_name(y),
+                                {"cfg": cfg, "seed": seed, "sampler": sampler, "smooth": gen.smooth})
                  for el, y in zip(gen.decode(z), labels[b0:b0 + n])]
     return maps
 
