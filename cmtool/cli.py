@@ -151,37 +151,112 @@ def raster(sd_map, x, y, yaw, png):
 
 
 @data.command()
-@click.argument("hd_map", type=click.Path(path_type=Path))
+@click.argument("map_file", type=click.Path(path_type=Path))
 @click.option("--n", default=1, show_default=True, type=click.IntRange(min=1), help="Poses to print.")
 @click.option("--seed", default=0, show_default=True, help="Random seed.")
-@click.option("--near-junction", type=click.FloatRange(min=0), help="Only poses within this many metres of an "
-              "intersection lane.")
-def poses(hd_map, n, seed, near_junction):
-    """Ego poses as the dataset crops its scenes: on a drivable lane, heading along it.
+@click.option("--kind", help="Only these kinds of frame, comma-separated: junction, approach, exit, end, curve, "
+              "straight [default: all, in the dataset's mix].")
+@click.option("--near-junction", type=click.FloatRange(min=0), help="Only poses within this many metres of a junction.")
+@click.option("--latlon", is_flag=True, help="Print {lat, lon, heading} (compass degrees) for `sample --osm --center`; "
+              "needs a map with a geographic origin (an OpenStreetMap file or its import).")
+@click.option("--out", type=click.Path(dir_okay=False, path_type=Path), help="Write the lines to this .jsonl file.")
+def poses(map_file, n, seed, kind, near_junction, latlon, out):
+    """Ego poses as the dataset frames its scenes: on a road, facing its travel direction, spread over
+    straight roads, curves, junctions, approaches and exits. MAP_FILE: an OpenStreetMap .osm/.osm.pbf
+    file, an SD map or an HD map JSON (framed on its derived SD map).
 
-    One JSON line {x, y, yaw} (metres, degrees) per pose, for `data raster --x --y --yaw` and
-    `sample --from-hd --pose`. An SD raster centred anywhere else (between roads, north up) is
-    unlike every training scene, and the models answer it with tangles.
+    One JSON line per pose: {x, y, yaw, kind} (metres, degrees) for `data raster --x --y --yaw` and
+    `sample --from-hd --pose`, or with --latlon {lat, lon, heading, kind} for `sample --osm --center`.
+    An SD raster centred anywhere else (between roads, north up) is unlike every training scene.
     """
     import json
     import math
 
     import numpy as np
 
-    from cmtool.data.hdmap import HDMap
-    from cmtool.data.scene import near_junction as near, sample_poses
+    from cmtool.data.frames import DEFAULT_MIX, KINDS, FrameSampler, read_sd_source
 
-    hd = HDMap.load(hd_map)
-    rng = np.random.default_rng(seed)
-    if near_junction is None:
-        picked = sample_poses(hd, n, rng)
-    else:
-        picked = near(hd, sample_poses(hd, 50 * n, rng), near_junction)[:n]
-    if len(picked) < n:
-        raise CmtoolError(f"{hd_map}: found {len(picked)} of {n} drivable poses"
-                          + ("" if near_junction is None else f" within {near_junction:g} m of a junction"))
-    for p in picked:
-        click.echo(json.dumps({"x": round(p.x, 2), "y": round(p.y, 2), "yaw": round(math.degrees(p.yaw), 1)}))
+    mix = DEFAULT_MIX
+    if kind is not None:
+        wanted = [k.strip() for k in kind.split(",") if k.strip()]
+        unknown = [k for k in wanted if k not in KINDS]
+        if unknown or not wanted:
+            raise CmtoolError(f"--kind {kind!r}: expected some of {', '.join(KINDS)}")
+        mix = {k: DEFAULT_MIX[k] for k in wanted}
+    sd_map = read_sd_source(map_file)
+    if not sd_map.roads:
+        raise CmtoolError(f"{map_file}: no drivable roads in the map")
+    if latlon and not {"lat0", "lon0"} <= set(sd_map.meta):
+        raise CmtoolError(f"{map_file}: --latlon needs a map with a geographic origin (an OpenStreetMap file or "
+                          "its `cmtool data import --format osm`)")
+    frames = FrameSampler(sd_map).sample(n, np.random.default_rng(seed), mix, near_junction_m=near_junction)
+    if len(frames) < n:
+        what = " of kind " + kind if kind else ""
+        what += "" if near_junction is None else f" within {near_junction:g} m of a junction"
+        raise CmtoolError(f"{map_file}: found {len(frames)} of {n} poses{what}")
+    rows = [{"x": round(f.pose.x, 2), "y": round(f.pose.y, 2), "yaw": round(math.degrees(f.pose.yaw), 1),
+             "kind": f.label} for f in frames]
+    if latlon:
+        from cmtool.data.geo import LocalProjection
+
+        proj = LocalProjection(sd_map.meta["lat0"], sd_map.meta["lon0"])
+        latlons = proj.to_latlon(np.array([[r["x"], r["y"]] for r in rows]))
+        rows = [{"lat": round(float(lat), 7), "lon": round(float(lon), 7),
+                 "heading": round((90.0 - r["yaw"]) % 360.0, 1), "kind": r["kind"]}
+                for (lat, lon), r in zip(latlons, rows)]
+    text = "".join(json.dumps(r) + "\n" for r in rows)
+    if out is None:
+        click.echo(text, nl=False)
+        return
+    from cmtool.data.jsonio import write_text_atomic
+
+    write_text_atomic(out, text)
+    click.echo(f"{out}: {len(rows)} poses")
+
+
+@data.command()
+@click.argument("sources", nargs=-1, type=click.Path(path_type=Path))
+@click.option("--recipe", type=click.Path(dir_okay=False, path_type=Path),
+              help="Also the SD maps of this data recipe's procedural cities, framed and jittered as its build does.")
+@click.option("--maps", default=4, show_default=True, type=click.IntRange(min=1),
+              help="With --recipe: maps per city, each with the recipe's scenes_per_map frames.")
+@click.option("--n", default=500, show_default=True, type=click.IntRange(min=1), help="Frames per map file.")
+@click.option("--seed", default=0, show_default=True, help="Seed of the frames.")
+@click.option("--png", type=click.Path(dir_okay=False, path_type=Path),
+              help="Also write the SD rasters of some frames of each source, a row each.")
+@click.option("--json", "json_out", type=click.Path(dir_okay=False, path_type=Path), help="Write the numbers here.")
+def frames(sources, recipe, maps, n, seed, png, json_out):
+    """Per-frame statistics of SD maps side by side: roads, road length, one-way, divided-road and
+    lane-count shares, junctions. SOURCES: OpenStreetMap .osm/.osm.pbf files, SD or HD map JSON
+    (framed as `data poses` frames them); --recipe adds the maps a dataset would be built from."""
+    import numpy as np
+
+    from cmtool.data.realism import file_column, recipe_columns, stats_table
+
+    if not sources and recipe is None:
+        raise CmtoolError("nothing to measure: give map files and/or --recipe")
+    columns = [file_column(path, n, seed) for path in sources]
+    if recipe is not None:
+        columns += recipe_columns(recipe, maps, seed)
+    names = [c.name for c in columns]
+    if len(set(names)) < len(names):
+        raise CmtoolError(f"two sources share a name ({', '.join(names)}); rename a file")
+    stats = {c.name: c.stats() for c in columns}
+    click.echo(stats_table(stats))
+    if png is not None:
+        from cmtool.viz.draw import grid, sd_panel, title_strip
+        from cmtool.viz.show import write_png
+
+        tiles = [np.concatenate([title_strip(f"{c.name}: {label}", 192), sd_panel(raster, 192)])
+                 for c in columns if c.name != "derived" for raster, label in c.rasters(6)]
+        write_png(png, grid(tiles, columns=6))
+        click.echo(f"wrote {png}")
+    if json_out is not None:
+        from cmtool.data.jsonio import write_json
+
+        write_json(json_out, {"n": n, "maps": maps, "seed": seed, "sources": [str(s) for s in sources],
+                              "recipe": str(recipe) if recipe else None, "columns": stats})
+        click.echo(f"wrote {json_out}")
 
 
 @data.command()
@@ -233,8 +308,32 @@ def build(recipe, out, workers):
     summary = build_dataset(recipe, out, workers=workers)
     for split, info in summary["splits"].items():
         cities = ", ".join(f"{c} {n}" for c, n in info["cities"].items())
-        click.echo(f"{split}: {info['scenes']} scenes ({cities})")
+        click.echo(f"{split}: {info['scenes']} scenes ({cities}); {_line_cap(info, summary['num_lines'])}")
+        sources = info["line_cap"]["sources"]
+        for source, row in sources.items() if len(sources) > 1 else ():
+            if row["scenes_cut"]:
+                click.echo(f"  {source}: {_lost(row['scenes_cut'], row['pieces_cut'], row['scenes'])}")
+        click.echo(f"  frames: {_shares(info['frames']['kinds'], info['scenes'])}")
+        if info["frames"]["tags"]:
+            click.echo(f"  tags: {_shares(info['frames']['tags'], info['scenes'])}")
     click.echo(f"{out}: built in {summary['seconds']:.1f} s")
+
+
+def _line_cap(info: dict, num_lines: int) -> str:
+    """What the line cap cut from a split, in words."""
+    cap = info["line_cap"]
+    if not cap["scenes_cut"]:
+        return f"no scene hit the line cap ({num_lines} lines)"
+    return f"line cap {num_lines}: {_lost(cap['scenes_cut'], cap['pieces_cut'], info['scenes'])}"
+
+
+def _shares(counts: dict[str, int], total: int) -> str:
+    return ", ".join(f"{k} {n} ({100.0 * n / total:.0f}%)" for k, n in counts.items())
+
+
+def _lost(scenes: int, pieces: int, total: int) -> str:
+    return (f"{scenes} scene{'s' * (scenes != 1)} ({100.0 * scenes / total:.1f}%) lost {pieces} lane "
+            f"piece{'s' * (pieces != 1)}")
 
 
 @data.command()

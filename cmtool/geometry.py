@@ -121,3 +121,19 @@ def offset(line: np.ndarray, distance: float) -> np.ndarray:
     d /= np.maximum(np.linalg.norm(d, axis=1, keepdims=True), 1e-12)
     normal = np.stack([-d[:, 1], d[:, 0]], axis=1)
     return line + distance * normal
+
+
+def insert_vertex(line: np.ndarray, point: np.ndarray, snap: float = 1e-6) -> tuple[np.ndarray, np.ndarray]:
+    """``line`` with the point of it nearest ``point`` as a vertex (an existing vertex within ``snap``
+    is used instead, and ``point`` itself when it lies within ``snap`` of the line, so that two lines
+    given the same point share it exactly); returns (new line, that vertex)."""
+    a, b = line[:-1], line[1:]
+    ab = b - a
+    t = np.clip(np.sum((point - a) * ab, axis=1) / np.maximum(np.sum(ab * ab, axis=1), 1e-18), 0.0, 1.0)
+    foot = a + t[:, None] * ab
+    k = int(np.argmin(np.linalg.norm(foot - point, axis=1)))
+    p = point.astype(np.float64) if np.linalg.norm(foot[k] - point) <= snap else foot[k]
+    for v in (k, k + 1):
+        if np.linalg.norm(line[v] - p) <= snap:
+            return line, line[v].copy()
+    return np.concatenate([line[:k + 1], p[None], line[k + 1:]]), p

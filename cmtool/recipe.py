@@ -19,14 +19,16 @@ from __future__ import annotations
 
 import dataclasses
 import glob
+import math
 import sys
 import types
 import typing
 from dataclasses import dataclass, field
 from pathlib import Path
 
+from cmtool.data.frames import KINDS, FrameMix
 from cmtool.data.importers import FORMATS as IMPORT_FORMATS
-from cmtool.data.sd_derive import SDJitter
+from cmtool.data.sd_jitter import SDJitter
 from cmtool.errors import CmtoolError
 from cmtool.model.config import ControlConfig, DiTConfig, RVAEConfig, RVAELossConfig, ScheduleConfig
 from cmtool.train import PRECISIONS
@@ -61,13 +63,14 @@ class DataRecipe:
     extent: float = 800.0  # side of each procedural city (m)
     px_m: float = 0.5  # HD raster pixel size (m): 0.5 -> 128 px, 0.25 -> 256 px
     frame_m: float = 64.0  # scene square side (m)
-    num_lines: int = 30
+    num_lines: int = 50  # lane pieces kept per scene, nearest first (SLEDGE: 50); the build counts those cut
     num_points: int = 20
     num_lights: int = 10  # per light state (green, red)
     min_piece_m: float = 2.0  # clipped lane pieces shorter than this are dropped
     min_pose_spacing_m: float = 16.0  # ego poses of one map are kept this far apart when possible
     shard_size: int = 250  # scenes per shard file
-    sd_jitter: SDJitter = field(default_factory=SDJitter)  # perturbs the derived SD maps (all 0: off)
+    frame_mix: FrameMix = field(default_factory=FrameMix)  # shares of the frame kinds (cmtool.data.frames)
+    sd_jitter: SDJitter = field(default_factory=SDJitter)  # OSM-like imperfections of the SD maps (default: off)
     real_maps: list[RealMapsRecipe] = field(default_factory=list)
 
     def check(self, where: str) -> None:
@@ -84,8 +87,13 @@ class DataRecipe:
         both = sorted(set(self.train_cities) & set(self.test_cities))
         if both:
             raise CmtoolError(f"{where}: data.test_cities: {both} also in train_cities (splits are by city)")
-        if not 0.0 <= self.sd_jitter.drop_minor <= 1.0:
-            raise CmtoolError(f"{where}: data.sd_jitter.drop_minor: must be a probability in [0, 1]")
+        for problem in self.sd_jitter.problems():
+            raise CmtoolError(f"{where}: data.sd_jitter.{problem}")
+        shares = self.frame_mix.as_dict()
+        bad = [k for k, v in shares.items() if not (math.isfinite(v) and v >= 0)]
+        if bad or sum(shares.values()) <= 0:
+            raise CmtoolError(f"{where}: data.frame_mix: shares of {', '.join(KINDS)} must be finite, >= 0 and not "
+                              "all 0" + (f" ({bad[0]} = {shares[bad[0]]})" if bad else ""))
         for i, rm in enumerate(self.real_maps):
             if rm.format not in IMPORT_FORMATS:
                 raise CmtoolError(f"{where}: data.real_maps[{i}].format: expected one of {IMPORT_FORMATS}, got {rm.format!r}")

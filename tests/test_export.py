@@ -129,14 +129,15 @@ def lanelet2_successors(path, lat0, lon0):
 
 def test_procedural_scenes_route_the_same_in_the_lanelet2_package(tmp_path):
     pytest.importorskip("lanelet2")
+    from cmtool.data.frames import hd_poses
     from cmtool.data.lanelet2_export import write_lanelet2
-    from cmtool.data.scene import SceneCropper, sample_poses
+    from cmtool.data.scene import SceneCropper
     from cmtool.data.synth import generate_city
 
     for city in ("LAV", "SGP", "BOS"):
         hd = generate_city(city, seed=2, extent=300.0)
         cropper = SceneCropper(hd)
-        for pose in sample_poses(hd, 2, np.random.default_rng(1)):
+        for pose in hd_poses(hd, 2, np.random.default_rng(1)):
             graph = cropper.extract(pose, num_lines=300, num_lights=50).to_lanegraph()
             write_lanelet2(graph, tmp_path / "rt.osm", 1.3, 103.8)
             count, following = lanelet2_successors(tmp_path / "rt.osm", 1.3, 103.8)
@@ -145,15 +146,16 @@ def test_procedural_scenes_route_the_same_in_the_lanelet2_package(tmp_path):
 
 
 def test_procedural_scenes_keep_every_lane_and_successor_through_lanelet2(tmp_path):
+    from cmtool.data.frames import hd_poses
     from cmtool.data.importers import import_hd_map
     from cmtool.data.lanelet2_export import write_lanelet2
-    from cmtool.data.scene import SceneCropper, sample_poses
+    from cmtool.data.scene import SceneCropper
     from cmtool.data.synth import generate_city
 
     for city in ("SGP", "BOS"):  # SGP and BOS have forks and merges at their junctions
         hd = generate_city(city, seed=1, extent=300.0)
         cropper = SceneCropper(hd)
-        for pose in sample_poses(hd, 2, np.random.default_rng(0)):
+        for pose in hd_poses(hd, 2, np.random.default_rng(0)):
             graph = cropper.extract(pose, num_lines=300, num_lights=50).to_lanegraph()
             write_lanelet2(graph, tmp_path / "rt.osm", 1.3, 103.8)
             back = import_hd_map("lanelet2", tmp_path / "rt.osm")

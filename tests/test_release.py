@@ -9,7 +9,7 @@ from cmtool import checkpoint as ckpt
 from cmtool.data.lanegraph import read_jsonl
 from cmtool.data.sd_raster import read_sd_image
 from cmtool.errors import CmtoolError
-from cmtool.release import BUNDLED, MANIFEST, bundled_checkpoint, pack, verify
+from cmtool.release import BUNDLED, MANIFEST, bundled_checkpoint, verify
 from cmtool.sample.generator import Generator
 from tests.conftest import REPO, in_process
 

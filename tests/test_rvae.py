@@ -4,8 +4,9 @@ import numpy as np
 import pytest
 import torch
 
+from cmtool.data.frames import hd_poses
 from cmtool.data.hd_raster import rasterize_scene
-from cmtool.data.scene import SceneCropper, sample_poses
+from cmtool.data.scene import SceneCropper
 from cmtool.data.synth import generate_city
 from cmtool.errors import CmtoolError
 from cmtool.eval.lanes import lane_scores
@@ -36,7 +37,7 @@ def test_shapes(backbone, px, b, stages):
     with torch.no_grad():
         decoded, mean, logvar = model(torch.rand(b, 6, px, px))
     assert mean.shape == logvar.shape == (b, 64, 8, 8)
-    assert decoded["lines"].shape == (b, 30, 20, 2) and decoded["lines_logit"].shape == (b, 30)
+    assert decoded["lines"].shape == (b, 50, 20, 2) and decoded["lines_logit"].shape == (b, 50)
     for name in ("green", "red"):
         assert decoded[name].shape == (b, 10, 20, 2) and decoded[f"{name}_logit"].shape == (b, 10)
     assert all(decoded[name].abs().max() <= 32.0 for name in ELEMENTS)
@@ -168,7 +169,7 @@ def test_kl_and_gradients():
 def overfit_scenes(n: int = 8):
     hd = generate_city("PIT", seed=0, extent=200.0)
     cropper = SceneCropper(hd)
-    scenes = [cropper.extract(pose) for pose in sample_poses(hd, n, np.random.default_rng(0))]
+    scenes = [cropper.extract(pose) for pose in hd_poses(hd, n, np.random.default_rng(0))]
     rasters = np.stack([rasterize_scene(s.lines, s.line_mask, s.green, s.green_mask, s.red, s.red_mask, px_m=0.5)
                         for s in scenes])
     batch = {key: torch.from_numpy(np.stack([getattr(s, key) for s in scenes]))
@@ -186,7 +187,7 @@ def test_overfits_eight_scenes():
     scenes, rasters, batch = overfit_scenes()
     model = RVAE(RVAEConfig(d_model=128, decoder_layers=2, heads=4, ffn=256, dropout=0.0))
     cfg = RVAELossConfig(kl_weight=0.0)
-    steps = 300  # 200 sufficed on one CPU; on another, seed 0's start stopped at F1 0.85
+    steps = 400  # 300 reached F1 0.92 on the scenes framed on roads (200 sufficed for the old lane-framed ones)
     opt = torch.optim.AdamW(model.parameters(), lr=3e-3, weight_decay=0.01)
     sched = torch.optim.lr_scheduler.OneCycleLR(opt, max_lr=3e-3, total_steps=steps, pct_start=0.1)
     for _ in range(steps):

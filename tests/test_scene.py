@@ -4,7 +4,7 @@ import numpy as np
 import pytest
 
 from cmtool.data.hdmap import HDMap, Lane, StopLine
-from cmtool.data.scene import Pose, Scene, extract_scene, sample_poses
+from cmtool.data.scene import Pose, Scene, extract_scene
 
 
 def straight(x0, y0, x1, y1, n=30):
@@ -54,6 +54,7 @@ def test_lane_leaving_and_reentering_is_split_without_edge():
     assert len(scene.edges) == 0
     ends = {tuple(np.round(scene.lines[i][-1], 3)) for i in range(2)}
     assert (32.0, 5.0) in ends and (-20.0, -5.0) in ends
+    assert scene.cut == 0 and extract_scene(hd, Pose(0.0, 0.0, 0.0), num_lines=1).cut == 1  # pieces, not lanes
 
 
 def test_successor_edges_survive_clipping():
@@ -86,6 +87,8 @@ def test_nearest_lines_kept_in_order_and_short_pieces_dropped():
     hd = make_map(lanes)
     scene = extract_scene(hd, Pose(0.0, 0.2, 0.0), num_lines=30)
     assert scene.lines.shape == (30, 20, 2) and scene.line_mask.all()
+    assert scene.cut == 11  # 41 drivable pieces of at least 2 m, 30 kept
+    assert extract_scene(hd, Pose(0.0, 0.2, 0.0), num_lines=41).cut == 0
     offsets = scene.lines[:, 0, 1] + 0.2  # lateral offset of each kept line in world y
     dist = np.abs(scene.lines[:, 0, 1])
     assert np.all(np.diff(dist) >= -1e-6)  # nearest first
@@ -106,22 +109,6 @@ def test_light_lines_follow_stop_line_states():
     np.testing.assert_allclose(scene.green[0][[0, -1]], [[-30, 0], [30, 0]], atol=1e-4)
     assert scene.red_mask.tolist() == [True]  # b (distance 0) before c, one kept
     np.testing.assert_allclose(scene.red[0][:, 0], 0.0, atol=1e-4)
-
-
-def test_sample_poses_on_drivable_lanes_with_lane_heading():
-    hd = make_map([("e", straight(0, 0, 300, 0)), ("n", straight(400, 0, 400, 300)),
-                   ("bike", straight(0, 50, 300, 50), "bike")])
-    poses = sample_poses(hd, 20, np.random.default_rng(0))
-    assert len(poses) == 20
-    for p in poses:
-        on_e = abs(p.y) < 1e-9 and 0 <= p.x <= 300 and abs(p.yaw) < 1e-9
-        on_n = abs(p.x - 400) < 1e-9 and 0 <= p.y <= 300 and abs(p.yaw - np.pi / 2) < 1e-9
-        assert on_e or on_n
-    pts = np.array([[p.x, p.y] for p in poses])
-    gaps = np.linalg.norm(pts[:, None] - pts[None], axis=-1) + np.eye(20) * 1e9
-    assert gaps.min() >= 16.0  # spread out (600 m of lanes leave room)
-    again = sample_poses(hd, 20, np.random.default_rng(0))
-    assert [p.as_array().tolist() for p in again] == [p.as_array().tolist() for p in poses]
 
 
 def test_scene_round_trips_through_lanegraph_fields():

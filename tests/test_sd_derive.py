@@ -5,15 +5,26 @@ import pytest
 import shapely
 from fixtures.hdmaps import add_road, connect_intersection, crossroads
 
-from cmtool.data.hdmap import HDMap
+from cmtool.data.frames import hd_poses
+from cmtool.data.hdmap import HDMap, Lane
+from cmtool.data.scene import SceneCropper
 from cmtool.data.sd_derive import SDJitter, derive_sd, road_class, road_network
+from cmtool.data.sd_raster import rasterize_sd
 from cmtool.data.sdmap import SDMap
+from cmtool.geometry import from_frame
 
 AV2 = Path(__file__).resolve().parents[1] / ".." / "shared" / "data" / "av2"
+BEYOND_M = 4.0  # a lane point is covered when at most this far outside an SD road taken as lanes x 3.5 m wide
 
 
 def by_lanes(sd):
     return {r.lanes: r for r in sd.roads}
+
+
+def beyond_roads(sd, points) -> np.ndarray:
+    """Per point: its distance from the nearest SD road's edge, taking each road as ``lanes`` x 3.5 m wide."""
+    pts = shapely.points(np.asarray(points, dtype=np.float64))
+    return np.min([shapely.distance(pts, shapely.LineString(r.polyline)) - 1.75 * r.lanes for r in sd.roads], axis=0)
 
 
 @pytest.mark.parametrize("kwargs", [
@@ -53,14 +64,27 @@ def test_oneway_street_runs_in_travel_direction():
     assert np.abs(west.polyline[:, 1] - 3.5).max() < 0.3  # middle of its two lanes (right of travel = north)
 
 
-def test_median_road_uses_the_midline():
+def test_narrow_median_road_uses_the_midline():
     hd = HDMap(city="SGP")
-    add_road(hd, "M", (0, 0), (200, 0), forward=2, backward=2, median=4.0, width=3.2)
+    add_road(hd, "M", (0, 0), (200, 0), forward=2, backward=2, median=1.0, width=3.2)
     sd = derive_sd(hd)
     assert len(sd.roads) == 1
     r = sd.roads[0]
     assert (r.lanes, r.oneway, r.road_class) == (4, 0, "secondary")
     assert np.abs(r.polyline[:, 1]).max() < 0.3
+
+
+def test_divided_road_is_two_one_way_ways():
+    hd = HDMap(city="SGP")
+    add_road(hd, "M", (0, 0), (200, 0), forward=2, backward=2, median=4.0, width=3.2)
+    sd = derive_sd(hd)
+    assert len(sd.roads) == 2 and all((r.lanes, r.oneway, r.road_class) == (2, 1, "secondary") for r in sd.roads)
+    east, west = sorted(sd.roads, key=lambda r: r.travel_polyline()[-1, 0], reverse=True)
+    assert east.travel_polyline()[0, 0] < 1 and east.travel_polyline()[-1, 0] > 199  # travels east
+    # right-hand traffic: the eastbound carriageway lies south, each line in the middle of its two lanes
+    assert np.abs(east.polyline[:, 1] + 5.2).max() < 0.3 and np.abs(west.polyline[:, 1] - 5.2).max() < 0.3
+    whole = road_network(hd, split_divided=False)
+    assert len(whole.pieces) == 1 and (whole.pieces[0].lanes, whole.pieces[0].oneway) == (4, False)
 
 
 def test_turns_do_not_continue_a_road():
@@ -117,13 +141,17 @@ def test_empty_map():
     assert derive_sd(HDMap(city="X")).roads == []
 
 
-def test_argoverse2_maps():
+def av2_maps() -> list:
+    """The shared Argoverse 2 sample maps, imported, with their paths (the test is skipped without them)."""
     files = sorted(AV2.glob("*.json"))
     if not files:
         pytest.skip("shared Argoverse 2 sample data not available")
     importers = pytest.importorskip("cmtool.data.importers")
-    for path in files:
-        hd = importers.import_hd_map("av2", path)
+    return [(path, importers.import_hd_map("av2", path)) for path in files]
+
+
+def test_argoverse2_maps():
+    for _, hd in av2_maps():
         sd = derive_sd(hd)
         SDMap.from_json(sd.to_json())  # valid: lane counts 1..16, classes known, finite points
         net = road_network(hd)
@@ -135,3 +163,70 @@ def test_argoverse2_maps():
         pts = np.concatenate([r.polyline for r in sd.roads])
         lo, hi = np.array(hd.bounds()[:2]), np.array(hd.bounds()[2:])
         assert np.all(pts >= lo - 20.0) and np.all(pts <= hi + 20.0)
+
+
+@pytest.mark.parametrize("pieces", [1, 3])
+def test_spur_of_intersection_lanes_is_a_road(pieces):
+    """A dead-end road whose lanes are all flagged as intersection lanes (as Argoverse 2 maps have them) is kept."""
+    hd = HDMap(city="TST")
+    add_road(hd, "W", (-100, 0), (-12, 0), road_id=False, pieces=pieces)
+    add_road(hd, "E", (12, 0), (100, 0), road_id=False, pieces=pieces)
+    add_road(hd, "N", (0, 12), (0, 96), road_id=False, pieces=pieces)  # the spur, 84 m
+    connect_intersection(hd, "I", (0, 0), with_id=False)
+    for lane in hd.lanes.values():
+        lane.is_intersection |= lane.id.startswith("N")
+    sd = derive_sd(hd)
+    assert len(sd.roads) == 2
+    main, spur = sorted(sd.roads, key=lambda r: np.ptp(r.polyline[:, 1]))
+    assert np.ptp(main.polyline[:, 0]) > 195 and np.abs(main.polyline[:, 1]).max() < 0.3
+    assert (spur.lanes, spur.oneway) == (2, 0)
+    assert np.abs(spur.polyline[:, 0]).max() < 0.3 and spur.polyline[:, 1].max() > 95
+    assert spur.polyline[:, 1].min() < 4.0  # it meets the main road at the junction node
+    assert beyond_roads(sd, np.concatenate([l.centerline for l in hd.lanes.values()])).max() <= BEYOND_M
+
+
+def test_a_branching_lane_is_its_own_road():
+    """A lane forking off a road without an intersection gets its own road rather than vanishing in the road."""
+    hd = HDMap(city="TST")
+    hd.add_lane(Lane("a", np.linspace([-100.0, 0.0], [0.0, 0.0], 11)))
+    hd.add_lane(Lane("b", np.linspace([0.0, 0.0], [100.0, 0.0], 11)))
+    hd.add_lane(Lane("c", np.linspace([0.0, 0.0], [60.0, 45.0], 11)))
+    hd.link("a", "b")
+    hd.link("a", "c")
+    sd = derive_sd(hd)
+    assert len(sd.roads) == 2
+    assert beyond_roads(sd, np.concatenate([l.centerline for l in hd.lanes.values()])).max() <= BEYOND_M
+
+
+def test_argoverse2_crops_lie_on_the_sd_map():
+    """Every drivable lane piece of a crop lies near a road of the derived SD map, so no SD raster is empty."""
+    for path, hd in av2_maps():
+        sd = derive_sd(hd)
+        cropper = SceneCropper(hd)
+        for pose in hd_poses(hd, 16, np.random.default_rng(0)):
+            scene = cropper.extract(pose, num_lines=1000, num_points=40)
+            lines = scene.lines[scene.line_mask].astype(np.float64)
+            assert len(lines) and rasterize_sd(sd, pose.x, pose.y, pose.yaw)[..., 0].any(), (path.name, pose)
+            beyond = beyond_roads(sd, from_frame(lines.reshape(-1, 2), pose.x, pose.y, pose.yaw))
+            assert beyond.max() <= BEYOND_M, (path.name, pose, float(beyond.max()))
+
+
+@pytest.mark.parametrize("city", ["PIT", "SGP", "BOS"])
+def test_roads_meet_at_shared_nodes(city):
+    from cmtool.data.synth import generate_city
+
+    sd = derive_sd(generate_city(city, seed=0, extent=400.0))
+    lines = [shapely.LineString(r.polyline) for r in sd.roads]
+    vertices = [{tuple(p) for p in r.polyline} for r in sd.roads]
+    touching = 0
+    for i, road in enumerate(sd.roads):
+        for end in (road.polyline[0], road.polyline[-1]):
+            for j, other in enumerate(lines):
+                if j != i and shapely.distance(shapely.Point(end), other) < 5.0:
+                    assert tuple(end) in vertices[j]  # ends on a node of the road it meets
+                    touching += 1
+    for i in range(len(lines)):
+        for j in range(i + 1, len(lines)):
+            for p in shapely.get_coordinates(shapely.intersection(lines[i], lines[j])):
+                assert tuple(p) in vertices[i] and tuple(p) in vertices[j]  # crossings are shared nodes
+    assert touching > 0

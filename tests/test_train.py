@@ -362,7 +362,18 @@ def test_info_on_checkpoints_and_paper_recipes(runs):
 
 def test_user_errors_are_one_line(runs, tmp_path):
     root = runs["root"]
+    narrow = write_recipe(tmp_path / "n.toml", "rvae", 2, data=str(runs["data"]))
+    narrow.write_text(narrow.read_text() + "num_lines = 30\n")  # into [rvae]; the tiny data has 50 lines
+    parent = shutil.copytree(ckpt.resolve(root / "rvae"), tmp_path / "narrow")  # an RVAE with 30 line queries
+    config = json.loads((parent / ckpt.CONFIG).read_text())
+    config["model"]["num_lines"] = 30
+    (parent / ckpt.CONFIG).write_text(json.dumps(config))
     bad = [
+        (["train", "rvae", "--recipe", narrow, "--out", tmp_path / "n"],
+         "rvae.num_lines 30 is fewer than the dataset's num_lines 50"),
+        (["train", "decoder", "--recipe", write_recipe(tmp_path / "dn.toml", "decoder", 2, data=str(runs["data"]),
+                                                        rvae=str(parent)),
+          "--out", tmp_path / "dn"], "train it on data built with data.num_lines = 30"),
         (["train", "dit", "--recipe", runs["rvae_recipe"], "--out", tmp_path / "x"], "rvae stage"),
         (["train", "controlnet", "--recipe", write_recipe(tmp_path / "c.toml", "controlnet", 2, data=str(runs["data"]),
                                                            rvae=str(root / "rvae"), dit=str(root / "rvae")),

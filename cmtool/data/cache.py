@@ -9,13 +9,19 @@ the split their recipe entry names.
 
 Layout of ``out_dir``::
 
-    manifest.json             format, recipe echo, units, city labels, splits -> shards + counts
+    manifest.json             format, recipe echo, units, city labels, splits -> shards, counts, line cap
+                              cuts and the mix of frame kinds
     <split>/u00003_00.npz     scenes of unit 3, part 0 (at most shard_size scenes)
 
 Shard arrays (S scenes; L lines, K lights, P points): ``lines`` float32 (S, L, P, 2),
 ``line_mask`` bool (S, L), ``edges`` int32 (E, 2) flat with ``edge_offsets`` int64 (S + 1,),
 ``green``/``red`` float32 (S, K, P, 2) with ``green_mask``/``red_mask`` bool (S, K), ``sd`` uint8
-(S, 128, 128, 3), ``city`` and ``source`` strings (S,), ``pose`` float64 (S, 3) world x, y, yaw.
+(S, 128, 128, 3), ``city`` and ``source`` strings (S,), ``pose`` float64 (S, 3) world x, y, yaw, ``cut``
+int32 (S,) lane pieces dropped by the ``num_lines`` cap, ``kind`` and ``tags`` strings (S,) what the frame
+shows (:mod:`cmtool.data.frames`); shards built before these three were stored read as 0 and "".
+A split's ``line_cap`` in the manifest (and the build's summary) counts the scenes the cap cut and the
+lane pieces it dropped, in all and per source (``"procedural LAV"``, or a real map's ``"av2:<file>"``);
+its ``frames`` count the scenes per frame kind and tag.
 HD rasters are not stored: :func:`cmtool.data.hd_raster.rasterize_scene` draws them on the fly
 at the manifest's ``px_m``.
 """
@@ -32,8 +38,9 @@ from pathlib import Path
 
 import numpy as np
 
+from cmtool.data.frames import label_order
 from cmtool.data.jsonio import atomic_open, read_json, write_json
-from cmtool.data.scene import Pose, Scene, SceneCropper, sample_poses
+from cmtool.data.scene import Pose, Scene, SceneCropper
 from cmtool.errors import CmtoolError
 from cmtool.progress import Progress
 from cmtool.recipe import DataRecipe, load_recipe
@@ -41,7 +48,8 @@ from cmtool.recipe import DataRecipe, load_recipe
 FORMAT = "cmtool.dataset"
 SD_SIZE = 128
 _ARRAYS = ("lines", "line_mask", "edges", "edge_offsets", "green", "green_mask", "red", "red_mask",
-           "sd", "city", "source", "pose")
+           "sd", "city", "source", "pose", "cut", "kind", "tags")
+_LATER = {"cut": 0, "kind": "", "tags": ""}  # arrays added after the first format, and their value in old shards
 
 
 @dataclass(frozen=True)
@@ -78,8 +86,11 @@ def plan_units(recipe) -> list[WorkUnit]:
 
 
 def unit_scenes(unit: WorkUnit, data: DataRecipe) -> list[Scene]:
-    """Make the map of ``unit`` and crop its scenes, each paired with its SD raster."""
+    """Make the map of ``unit`` and crop its scenes, framed on its derived SD map in the recipe's mix of
+    frame kinds, each paired with the SD raster of that map made to look like OpenStreetMap."""
+    from cmtool.data.frames import FrameSampler
     from cmtool.data.sd_derive import derive_sd
+    from cmtool.data.sd_jitter import apply_jitter
     from cmtool.data.sd_raster import rasterize_sd
 
     if unit.fmt == "procedural":
@@ -90,14 +101,19 @@ def unit_scenes(unit: WorkUnit, data: DataRecipe) -> list[Scene]:
         from cmtool.data.importers import import_hd_map
 
         hd = import_hd_map(unit.fmt, unit.path, city=unit.city)
-    jitter = data.sd_jitter if data.sd_jitter.enabled else None
-    sd = derive_sd(hd, jitter, seed=unit.seed)
+    sd = derive_sd(hd)
+    control = apply_jitter(sd, data.sd_jitter, unit.seed * 10_000 + unit.index) if data.sd_jitter.enabled else sd
+    kept = {r.id for r in control.roads}  # no frame stands on a road the jitter dropped
     rng = np.random.default_rng([data.seed, unit.index])
+    frames = FrameSampler(sd, data.frame_m).sample(unit.scenes, rng, data.frame_mix.as_dict(), data.min_pose_spacing_m,
+                                                   roads={k for k, r in enumerate(sd.roads) if r.id in kept})
     cropper = SceneCropper(hd)
     scenes = []
-    for pose in sample_poses(hd, unit.scenes, rng, data.min_pose_spacing_m):
+    for frame in frames:
+        pose = frame.pose
         scene = cropper.extract(pose, data.num_lines, data.num_points, data.num_lights, data.frame_m, data.min_piece_m)
-        scene.sd = rasterize_sd(sd, pose.x, pose.y, pose.yaw, frame_m=data.frame_m, size=SD_SIZE)
+        scene.sd = rasterize_sd(control, pose.x, pose.y, pose.yaw, frame_m=data.frame_m, size=SD_SIZE)
+        scene.kind, scene.tags = frame.label, ",".join(frame.tags)
         scenes.append(scene)
     return scenes
 
@@ -118,6 +134,9 @@ def pack_scenes(scenes: list[Scene]) -> dict[str, np.ndarray]:
         "city": np.array([s.city for s in scenes], dtype=str),
         "source": np.array([s.source for s in scenes], dtype=str),
         "pose": np.stack([s.pose.as_array() for s in scenes]),
+        "cut": np.array([s.cut for s in scenes], np.int32),
+        "kind": np.array([s.kind for s in scenes], dtype=str),
+        "tags": np.array([s.tags for s in scenes], dtype=str),
     }
 
 
@@ -131,7 +150,7 @@ def _build_unit(job) -> tuple[int, int]:
     unit, data, out_dir = job
     scenes = unit_scenes(unit, data)
     if not scenes:
-        raise CmtoolError(f"{unit.path or unit.city}: no drivable lanes to crop scenes from")
+        raise CmtoolError(f"{unit.path or unit.city}: no roads to frame scenes on")
     for p, name in enumerate(unit.shard_files(data.shard_size)):
         path = out_dir / name
         if not path.exists():
@@ -141,8 +160,8 @@ def _build_unit(job) -> tuple[int, int]:
 
 def build_dataset(recipe_path, out_dir, workers: int | None = None, progress: bool = True) -> dict:
     """Build (or finish building) the dataset of a recipe into ``out_dir``; returns a summary:
-    ``{"splits": {split: {"scenes": n, "cities": {city: n}}}, "units_built", "units_skipped",
-    "scenes_built", "seconds"}``."""
+    ``{"splits": {split: {"scenes": n, "cities": {city: n}, "line_cap": cuts}}, "num_lines", "units_built",
+    "units_skipped", "scenes_built", "seconds"}`` with ``cuts`` as :func:`_count` counts them."""
     start = time.perf_counter()
     recipe = load_recipe(recipe_path)
     data = recipe.data
@@ -185,27 +204,63 @@ def build_dataset(recipe_path, out_dir, workers: int | None = None, progress: bo
     labels = list(dict.fromkeys(data.train_cities + data.test_cities + labels))
     write_json(manifest_path, head | {"complete": True, "cities": labels, "splits": splits})
     return {
-        "splits": {s: {"scenes": v["scenes"], "cities": v["cities"]} for s, v in splits.items()},
-        "units_built": len(pending), "units_skipped": len(units) - len(pending),
+        "splits": {s: {k: v[k] for k in ("scenes", "cities", "line_cap", "frames")} for s, v in splits.items()},
+        "num_lines": data.num_lines, "units_built": len(pending), "units_skipped": len(units) - len(pending),
         "scenes_built": bar.done, "seconds": round(time.perf_counter() - start, 2),
     }
 
 
 def _count(out_dir: Path, units: list[WorkUnit], shard_size: int) -> tuple[dict, list[str]]:
-    """Per split: shard files with scene counts, and scenes per city (read from the shards)."""
+    """Per split: shard files with scene counts, scenes per city, the line cap's cuts (read from the
+    shards): ``{"scenes_cut", "pieces_cut", "sources": {source: {"scenes", "scenes_cut", "pieces_cut"}}}``,
+    and the frames' mix: ``{"kinds": {kind: n}, "tags": {tag: n}}``."""
     splits: dict = {}
     labels: list[str] = []
     for u in units:
-        entry = splits.setdefault(u.split, {"scenes": 0, "cities": {}, "shards": []})
+        entry = splits.setdefault(u.split, {"scenes": 0, "cities": {}, "shards": [],
+                                            "line_cap": {"scenes_cut": 0, "pieces_cut": 0, "sources": {}},
+                                            "frames": {"kinds": {}, "tags": {}}})
         for name in u.shard_files(shard_size):
             with np.load(out_dir / name) as z:
-                cities = z["city"].tolist()
+                cities, sources, cut = z["city"].tolist(), z["source"].tolist(), _array(z, "cut").tolist()
+                kinds, tags = _array(z, "kind").tolist(), _array(z, "tags").tolist()
             entry["shards"].append({"file": name, "scenes": len(cities)})
             entry["scenes"] += len(cities)
             for city, n in Counter(cities).items():
                 entry["cities"][city] = entry["cities"].get(city, 0) + n
                 labels.append(city)
+            for city, source, pieces in zip(cities, sources, cut):
+                _tally(entry["line_cap"], source_label(source, city), pieces)
+            frames = entry["frames"]
+            for kind, n in Counter(k or "unknown" for k in kinds).items():
+                frames["kinds"][kind] = frames["kinds"].get(kind, 0) + n
+            for tag, n in Counter(t for row in tags for t in row.split(",") if t).items():
+                frames["tags"][tag] = frames["tags"].get(tag, 0) + n
+    for entry in splits.values():
+        for key, counts in entry["frames"].items():
+            entry["frames"][key] = {k: counts[k] for k in sorted(counts, key=label_order)}
     return splits, labels
+
+
+def _tally(cap: dict, source: str, pieces: int) -> None:
+    """Count one scene of ``source`` that lost ``pieces`` lane pieces to the line cap (maybe 0)."""
+    row = cap["sources"].setdefault(source, {"scenes": 0, "scenes_cut": 0, "pieces_cut": 0})
+    row["scenes"] += 1
+    for tally in (cap, row):
+        tally["scenes_cut"] += int(pieces > 0)
+        tally["pieces_cut"] += pieces
+
+
+def source_label(source: str, city: str) -> str:
+    """A scene's source as the build reports it: ``"procedural LAV"`` for any procedural LAV map, else the map's."""
+    return f"procedural {city}" if source.startswith("procedural:") else source
+
+
+def _array(z, key: str) -> np.ndarray:
+    """Array ``key`` of an open shard; for an array added later, its old value in a shard built before."""
+    if key in z.files or key not in _LATER:
+        return z[key]
+    return np.full(len(z["city"]), _LATER[key], dtype=np.int32 if key == "cut" else str)
 
 
 def _plain(obj):
@@ -259,7 +314,7 @@ class SceneDataset:
             lines=a["lines"][i], line_mask=a["line_mask"][i], edges=a["edges"][e0:e1].astype(np.int64),
             green=a["green"][i], green_mask=a["green_mask"][i], red=a["red"][i], red_mask=a["red_mask"][i],
             city=str(a["city"][i]), source=str(a["source"][i]), pose=Pose(*map(float, a["pose"][i])),
-            frame_m=self.frame_m, sd=a["sd"][i],
+            frame_m=self.frame_m, sd=a["sd"][i], cut=int(a["cut"][i]), kind=str(a["kind"][i]), tags=str(a["tags"][i]),
         )
 
     def __iter__(self):
@@ -286,7 +341,7 @@ def load_dataset(data_dir, split: str | None = None) -> SceneDataset:
     for path in _shard_paths(manifest, data_dir, split):
         try:
             with np.load(path) as z:
-                parts.append({k: z[k] for k in _ARRAYS})
+                parts.append({k: _array(z, k) for k in _ARRAYS})
         except (OSError, ValueError, KeyError) as e:
             raise CmtoolError(f"{path}: unreadable shard ({e}); delete it and re-run the build") from None
     if not parts:

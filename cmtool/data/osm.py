@@ -4,13 +4,14 @@ Only drivable highway ways are kept: motorway, trunk, primary, secondary, tertia
 residential, service (``*_link`` ways join their parent class, ``living_street`` counts as
 residential); footways, cycleways, paths, steps, tracks and the like are skipped. Tags read:
 ``lanes`` (an integer 1-16, else unknown), ``oneway`` (yes/true/1 -> 1, -1/reverse -> -1, else 0;
-motorways, motorway links and roundabouts are one-way unless tagged otherwise). Coordinates are
-projected with a transverse Mercator projection centred on the mean of the nodes used. A way whose
+motorways, motorway links and roundabouts are one-way unless tagged otherwise), ``*_link`` (a
+ramp or slip road) and ``layer`` (an integer -5..5; else bridges 1, tunnels -1, other ways 0).
+Coordinates are projected with a transverse Mercator projection centred on the mean of the nodes used. A way whose
 nodes are partly missing from the file (a clipped extract) keeps each run of >= 2 present nodes.
 
-:func:`write_osm` writes an SD map as ``.osm`` XML (roads as ``highway`` ways with ``lanes`` and
-``oneway`` tags, road ends at the same spot sharing one node), placed at a chosen latitude and
-longitude, so procedural maps can stand in for OpenStreetMap extracts.
+:func:`write_osm` writes an SD map as ``.osm`` XML (roads as ``highway`` ways with ``lanes``,
+``oneway`` and ``layer`` tags, points at the same spot sharing one node), placed at a chosen
+latitude and longitude, so procedural maps can stand in for OpenStreetMap extracts.
 """
 
 from __future__ import annotations
@@ -59,6 +60,18 @@ def parse_oneway(tags: dict[str, str]) -> int:
     return 0
 
 
+def parse_layer(tags: dict[str, str]) -> int:
+    try:
+        layer = int(tags.get("layer", "").strip())
+    except ValueError:
+        layer = None
+    if layer is not None and -5 <= layer <= 5:
+        return layer
+    if tags.get("bridge", "no") not in ("no", ""):
+        return 1
+    return -1 if tags.get("tunnel", "no") not in ("no", "") else 0
+
+
 def read_osm(path: str | os.PathLike) -> SDMap:
     """Read the road network of an OpenStreetMap ``.osm`` or ``.osm.pbf`` file."""
     path = Path(path)
@@ -99,6 +112,8 @@ def read_osm(path: str | os.PathLike) -> SDMap:
             road_class=road_class_of(tags.get("highway")),
             lanes=parse_lanes(tags.get("lanes")),
             oneway=parse_oneway(tags),
+            link=tags.get("highway", "").endswith("_link"),
+            layer=parse_layer(tags),
         ))
     return sd
 
@@ -141,11 +156,13 @@ def write_osm(sd: SDMap, path: str | os.PathLike, lat0: float, lon0: float) -> N
                 coords.append((x, y))
             if not refs or refs[-1] != node_ids[key]:
                 refs.append(node_ids[key])
-        tags = {"highway": road.road_class}
+        tags = {"highway": road.road_class + ("_link" if road.link else "")}
         if road.lanes is not None:
             tags["lanes"] = str(road.lanes)
         if road.oneway:
             tags["oneway"] = "yes" if road.oneway == 1 else "-1"
+        if road.layer:
+            tags["layer"] = str(road.layer)
         if len(refs) >= 2:
             ways.append((refs, tags))
     latlon = proj.to_latlon(np.array(coords).reshape(-1, 2))

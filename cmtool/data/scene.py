@@ -3,7 +3,8 @@
 A scene holds the drivable lane centerlines (vehicle and bus lanes, intersection connectors
 included) in the ego frame (x forward, y left), clipped to the square frame and split where a
 lane leaves and re-enters it. Pieces shorter than ``min_piece_m`` are dropped; the ``num_lines``
-pieces nearest the ego are kept, nearest first, each resampled to ``num_points`` points.
+pieces nearest the ego are kept, nearest first, each resampled to ``num_points`` points, and the
+scene counts the pieces this cap drops (``cut``).
 Successor edges survive clipping: piece p -> piece q when p ends where its lane ends, q starts
 where its lane starts and the lanes are successors. Traffic-light lines are the pieces of the
 lanes that green / red stop lines control, nearest first, up to ``num_lights`` per state.
@@ -50,6 +51,9 @@ class Scene:
     pose: Pose
     frame_m: float = 64.0
     sd: np.ndarray | None = None  # (128, 128, 3) uint8 SD raster of the same frame, when paired
+    cut: int = 0  # lane pieces beyond num_lines, dropped by the cap
+    kind: str = ""  # what the frame shows (cmtool.data.frames: "junction T", "straight", ...), when known
+    tags: str = ""  # comma-separated frame tags (oneway, divided, multilane)
 
     def to_lanegraph(self) -> LaneGraph:
         """The scene in the lane graph interchange format (cmtool.data.lanegraph)."""
@@ -68,49 +72,6 @@ def drivable_lanes(hd: HDMap) -> list:
     return [lane for lane in hd.lanes.values() if lane.lane_type in DRIVABLE]
 
 
-def sample_poses(hd: HDMap, n: int, rng: np.random.Generator, min_spacing_m: float = 16.0,
-                 oversample: int = 4) -> list[Pose]:
-    """``n`` ego poses on drivable lanes, uniform over lane length, heading along the lane.
-
-    ``oversample * n`` candidates are drawn; they are taken in order when at least
-    ``min_spacing_m`` from every pose already taken, and the rest fill up when too few are.
-    """
-    lanes = drivable_lanes(hd)
-    if n <= 0 or not lanes:
-        return []
-    starts = np.concatenate([l.centerline[:-1] for l in lanes])
-    vecs = np.concatenate([np.diff(l.centerline, axis=0) for l in lanes])
-    seglen = np.linalg.norm(vecs, axis=1)
-    cum = np.cumsum(seglen)
-    s = rng.uniform(0.0, cum[-1], size=n * oversample)
-    seg = np.minimum(np.searchsorted(cum, s, side="right"), len(cum) - 1)
-    t = (s - cum[seg] + seglen[seg]) / np.maximum(seglen[seg], 1e-12)
-    points = starts[seg] + np.clip(t, 0.0, 1.0)[:, None] * vecs[seg]
-    yaws = np.arctan2(vecs[seg, 1], vecs[seg, 0])
-
-    taken: list[int] = []
-    for k in range(len(points)):
-        if len(taken) == n:
-            break
-        if not taken or np.min(np.linalg.norm(points[taken] - points[k], axis=1)) >= min_spacing_m:
-            taken.append(k)
-    chosen = set(taken)
-    taken += [k for k in range(len(points)) if k not in chosen][: n - len(taken)]
-    return [Pose(float(points[k, 0]), float(points[k, 1]), float(yaws[k])) for k in taken]
-
-
-def near_junction(hd: HDMap, poses: list[Pose], within_m: float) -> list[Pose]:
-    """The poses within ``within_m`` metres of an intersection lane of ``hd`` (in their order)."""
-    junctions = [shapely.LineString(l.centerline) for l in drivable_lanes(hd)
-                 if l.in_intersection]
-    if not junctions:
-        return []
-    tree = shapely.STRtree(junctions)
-    points = shapely.points([[p.x, p.y] for p in poses])
-    _, dist = tree.query_nearest(points, return_distance=True, all_matches=False)
-    return [p for p, d in zip(poses, dist) if d <= within_m]
-
-
 class SceneCropper:
     """Crops scenes out of one HD map (the map's lane geometry is indexed once)."""
 
@@ -127,7 +88,7 @@ class SceneCropper:
             for state in ("green", "red")
         }
 
-    def extract(self, pose: Pose, num_lines: int = 30, num_points: int = 20, num_lights: int = 10,
+    def extract(self, pose: Pose, num_lines: int = 50, num_points: int = 20, num_lights: int = 10,
                 frame_m: float = 64.0, min_piece_m: float = 2.0) -> Scene:
         lane_of, lines, at_start, at_end = self._pieces(pose, frame_m / 2.0, min_piece_m)
         kept = range(min(len(lines), num_lines))
@@ -157,7 +118,7 @@ class SceneCropper:
             lines=out, line_mask=mask, edges=np.array(edges, np.int64).reshape(-1, 2),
             green=lights["green"][0], green_mask=lights["green"][1],
             red=lights["red"][0], red_mask=lights["red"][1],
-            city=self.hd.city, source=self.hd.source, pose=pose, frame_m=frame_m,
+            city=self.hd.city, source=self.hd.source, pose=pose, frame_m=frame_m, cut=len(lines) - len(kept),
         )
 
     def _pieces(self, pose: Pose, half: float, min_piece_m: float):
@@ -201,7 +162,7 @@ class SceneCropper:
         return lane_idx[order].tolist(), lines, at_start[order], at_end[order]
 
 
-def extract_scene(hd: HDMap, pose: Pose, num_lines: int = 30, num_points: int = 20, num_lights: int = 10,
+def extract_scene(hd: HDMap, pose: Pose, num_lines: int = 50, num_points: int = 20, num_lights: int = 10,
                   frame_m: float = 64.0, min_piece_m: float = 2.0) -> Scene:
     """Crop one scene around ``pose`` (see :class:`SceneCropper` to crop many from one map)."""
     return SceneCropper(hd).extract(pose, num_lines, num_points, num_lights, frame_m, min_piece_m)

@@ -7,18 +7,26 @@ the total lane count and whether the road is one-way. We rebuild that from any :
 1. **Carriageways**: road lanes (vehicle/bus lanes outside intersections) of one travel direction
    that belong together: linked as successor/predecessor or left/right neighbours, or lying side by
    side (heading within 30 degrees, centre distance at most the half widths + 0.75 m). Lanes with a
-   ``road_id`` only join lanes of the same road. A carriageway's line is its longest successor chain
-   shifted to the middle of the lanes beside it; its lane count is the most common number of lanes
-   across it.
+   ``road_id`` only join lanes of the same road. Connector lanes that do not lead from a road lane to
+   a road lane (a road whose lanes are all flagged as intersection lanes and that dead-ends or leaves
+   the map) count as road lanes that join only each other; the turns between them and a road stay
+   connectors. A carriageway's line is its longest successor chain shifted to the middle of the lanes
+   beside it; its lane count is the most common number of lanes across it. Lanes leaving it (a point
+   farther from the line than a lane beside its outermost lane, or partly outside it and leading only
+   into or out of such lanes) are split off into carriageways of their own.
 2. **Road pieces**: opposite carriageways running antiparallel with at most ``PAIR_GAP_M`` between
    their outer lanes (medians included) form one two-way piece whose line is the midline between
-   them; a carriageway without a partner is a one-way piece in travel direction.
-3. **Intersections**: connector lanes grouped by ``intersection_id``, or where that is missing, by
-   touching geometry. Piece ends are attached to the intersections their lanes connect to.
+   them, unless the median is wider than ``DIVIDED_GAP_M``: then, as OSM maps a divided road, each
+   carriageway is a one-way piece of its own (its class from the lanes of both). A carriageway
+   without a partner is a one-way piece in travel direction.
+3. **Intersections**: the other connector lanes grouped by ``intersection_id``, or where that is
+   missing, by touching geometry. Piece ends are attached to the intersections their lanes connect to.
 4. **Roads**: pieces are chained through an intersection when a connector path leads from one to
    the other, the heading changes by less than ``THROUGH_MAX_DEG``, both pieces agree in lane count
-   and one-way-ness, and each is the other's straightest continuation. Chain ends that stop at an
-   intersection are extended to its centre, as OSM ways meet at a junction node.
+   and one-way-ness, and each is the other's straightest continuation. Roads meet at shared nodes,
+   as OSM ways do: roads running on through an intersection share the point where they cross, and
+   a chain that stops at an intersection ends on that crossing (or on the nearest road running
+   through, or at the intersection's centre when none does).
 
 Road class follows the lane count (a documented, deliberately simple rule): total lanes >= 6 ->
 ``primary``, 4-5 -> ``secondary``, 3 -> ``tertiary``, else ``residential``, or ``service`` when its
@@ -27,7 +35,7 @@ lanes are narrower than ``SERVICE_WIDTH_M``.
 
 from __future__ import annotations
 
-from collections import Counter, defaultdict
+from collections import Counter, defaultdict, deque
 from dataclasses import dataclass, field
 
 import numpy as np
@@ -35,37 +43,20 @@ import shapely
 from scipy.ndimage import median_filter
 
 from cmtool.data.hdmap import HDMap, Lane
+from cmtool.data.sd_jitter import SDJitter, apply_jitter
 from cmtool.data.sdmap import Road, SDMap
-from cmtool.geometry import arc_length, from_frame, headings, polyline_length, resample_step, unit
+from cmtool.geometry import arc_length, headings, insert_vertex, polyline_length, resample_step, unit
 from cmtool.unionfind import UnionFind
 
 ROAD_LANE_TYPES = ("vehicle", "bus")
-MINOR_CLASSES = ("residential", "service", "unclassified")
 SAMPLE_M = 2.0  # spacing of carriageway samples
 PAIR_GAP_M = 8.0  # widest median between two directions of one road
+DIVIDED_GAP_M = 1.5  # a wider median makes a divided road: two one-way ways, as OSM maps it
 PARALLEL_DEG = 30.0  # heading tolerance for "side by side" and "antiparallel"
 THROUGH_MAX_DEG = 35.0  # largest heading change of a road continuing through an intersection
 SERVICE_WIDTH_M = 2.75
 _END_REACH_M = 15.0  # a lane end this close to a piece end belongs to that end
 _SEARCH_DEPTH = 8  # connector pieces followed through one intersection
-
-
-@dataclass
-class SDJitter:
-    """Random perturbation of a derived SD map, to mimic real OSM/HD misalignment.
-
-    ``offset_m``: translation of up to this many metres in a random direction; ``rotation_deg``:
-    rotation of up to +-this about the map centre; ``drop_minor``: probability of dropping each
-    minor road (residential, service, unclassified).
-    """
-
-    offset_m: float = 0.0
-    rotation_deg: float = 0.0
-    drop_minor: float = 0.0
-
-    @property
-    def enabled(self) -> bool:
-        return self.offset_m > 0 or self.rotation_deg > 0 or self.drop_minor > 0
 
 
 @dataclass
@@ -78,6 +69,7 @@ class RoadPiece:
     width: float  # mean lane width (m)
     lane_ids: list[str]
     ends: list[str | None] = field(default_factory=lambda: [None, None])  # intersection at start/end
+    road_lanes: int = 0  # lanes of the whole road (both carriageways of a divided road); 0: ``lanes``
 
 
 @dataclass
@@ -109,58 +101,90 @@ def road_class(lanes: int, lane_width: float) -> str:
 
 
 def sd_from_network(net: RoadNetwork, hd: HDMap) -> SDMap:
-    """One SD road per chain of pieces (polylines simplified to within 0.1 m)."""
-    roads = []
+    """One SD road per chain of pieces (polylines simplified to within 0.1 m), meeting at shared
+    junction nodes (:func:`_share_nodes`)."""
+    lines, ends, through = [], [], defaultdict(list)
     for k, chain in enumerate(net.chains):
-        parts, ends = [], []
+        parts, piece_ends = [], []
         for idx, forward in chain:
             piece = net.pieces[idx]
             parts.append(piece.line if forward else piece.line[::-1])
-            ends.append(piece.ends if forward else piece.ends[::-1])
-        first, last = ends[0][0], ends[-1][1]
+            piece_ends.append(piece.ends if forward else piece.ends[::-1])
+        for (_, out_of), (into, _) in zip(piece_ends[:-1], piece_ends[1:]):
+            if out_of is not None and out_of == into:
+                through[out_of].append(k)
+        first, last = piece_ends[0][0], piece_ends[-1][1]
         if first is not None:
             parts.insert(0, net.intersections[first][None])
         if last is not None:
             parts.append(net.intersections[last][None])
-        line = shapely.get_coordinates(shapely.simplify(shapely.LineString(_dedupe(np.concatenate(parts))), 0.1))
+        line = shapely.simplify(shapely.LineString(_dedupe(np.concatenate(parts))), 0.1)
+        lines.append(shapely.get_coordinates(line))
+        ends.append((first, last))
+    _share_nodes(lines, ends, through, net.intersections)
+    roads = []
+    for k, (chain, line) in enumerate(zip(net.chains, lines)):
         pieces = [net.pieces[i] for i, _ in chain]
         lanes = pieces[0].lanes
         width = float(np.mean([p.width for p in pieces]))
-        roads.append(Road(f"r{k}", line, road_class(lanes, width), min(lanes, 16), int(pieces[0].oneway)))
+        roads.append(Road(f"r{k}", line, road_class(pieces[0].road_lanes or lanes, width), min(lanes, 16),
+                          int(pieces[0].oneway)))
     return SDMap(city=hd.city, roads=roads, source=f"derived:{hd.source}" if hd.source else "derived")
 
 
-def apply_jitter(sd: SDMap, jitter: SDJitter, seed: int = 0) -> SDMap:
-    """Drop minor roads, rotate about the map centre and translate, all drawn from ``seed``."""
-    rng = np.random.default_rng(seed)
-    direction, radius = rng.uniform(0.0, 2.0 * np.pi), rng.uniform(0.0, 1.0) * jitter.offset_m
-    angle = np.radians(rng.uniform(-1.0, 1.0) * jitter.rotation_deg)
-    drop = rng.random(len(sd.roads)) < jitter.drop_minor
-    kept = [r for r, d in zip(sd.roads, drop) if not (d and r.road_class in MINOR_CLASSES)]
-    if not kept:
-        return SDMap(sd.city, [], sd.source, dict(sd.meta))
-    pts = np.concatenate([r.polyline for r in kept])
-    centre = (pts.min(axis=0) + pts.max(axis=0)) / 2.0
-    shift = radius * np.array([np.cos(direction), np.sin(direction)])
-    roads = []
-    for r in kept:
-        moved = from_frame(r.polyline - centre, 0.0, 0.0, angle) + centre + shift
-        roads.append(Road(r.id, moved, r.road_class, r.lanes, r.oneway))
-    return SDMap(sd.city, roads, sd.source, dict(sd.meta))
+def _share_nodes(lines: list[np.ndarray], ends: list[tuple], through: dict[str, list[int]],
+                 centres: dict[str, np.ndarray]) -> None:
+    """Make roads meet at shared points, as OSM ways meet at nodes (``lines`` edited in place): roads
+    running on through an intersection get a vertex where they cross each other, and roads ending
+    there end on the crossing nearest its centre, or else on the nearest road running through. Roads
+    still crossing elsewhere get a shared vertex there too."""
+    for ix, centre in centres.items():
+        runs = sorted(set(through.get(ix, [])))
+        crossings = []
+        for a, b in ((a, b) for i, a in enumerate(runs) for b in runs[i + 1:]):
+            hit = shapely.intersection(shapely.LineString(lines[a]), shapely.LineString(lines[b]))
+            pts = shapely.get_coordinates(hit)
+            if len(pts):
+                p = pts[np.argmin(np.linalg.norm(pts - centre, axis=1))]
+                lines[a], p = insert_vertex(lines[a], p)
+                lines[b], p = insert_vertex(lines[b], p)
+                crossings.append(p)
+        node = centre
+        if crossings:
+            node = min(crossings, key=lambda p: float(np.linalg.norm(p - centre)))
+        elif runs:
+            near = min(runs, key=lambda r: shapely.distance(shapely.LineString(lines[r]), shapely.Point(centre)))
+            lines[near], node = insert_vertex(lines[near], centre)
+        for k, (first, last) in enumerate(ends):
+            if first == ix:
+                lines[k][0] = node
+            if last == ix:
+                lines[k][-1] = node
+    geoms = _linestrings(lines)
+    for a, b in zip(*shapely.STRtree(geoms).query(geoms, predicate="crosses")):
+        if a < b:
+            for p in shapely.get_coordinates(shapely.intersection(shapely.LineString(lines[a]),
+                                                                  shapely.LineString(lines[b]))):
+                lines[a], p = insert_vertex(lines[a], p)
+                lines[b], _ = insert_vertex(lines[b], p)
 
 
 # ----------------------------------------------------------------------------- the network
 
 
-def road_network(hd: HDMap) -> RoadNetwork:
-    """Build carriageways, road pieces, intersections and road chains from ``hd``."""
+def road_network(hd: HDMap, split_divided: bool = True) -> RoadNetwork:
+    """Build carriageways, road pieces, intersections and road chains from ``hd``; ``split_divided``
+    False keeps a divided road as one two-way piece (as the style statistics count roads)."""
     usable = {i: l for i, l in hd.lanes.items()
               if l.lane_type in ROAD_LANE_TYPES and polyline_length(l.centerline) > 0.1}
-    road = {i: l for i, l in usable.items() if not l.in_intersection}
     conn = {i: l for i, l in usable.items() if l.in_intersection}
+    dead = _dead_end_connectors(usable, conn)
+    conn = {i: l for i, l in conn.items() if i not in dead}
+    road = {i: l for i, l in usable.items() if i not in conn}
     intersections, lane_ix = _intersections(conn)
-    carriageways = [_carriageway([road[i] for i in group]) for group in _carriageway_groups(road)]
-    pieces = _pair(carriageways)
+    groups = _carriageway_groups({i: l for i, l in road.items() if i not in dead})
+    groups += _carriageway_groups({i: l for i, l in road.items() if i in dead})
+    pieces = _pair(_carriageways(groups, road), split_divided)
     lane_piece = {lid: k for k, p in enumerate(pieces) for lid in p.lane_ids}
     _attach_ends(pieces, road, lane_ix)
     links = _through_links(pieces, road, conn, lane_piece)
@@ -174,6 +198,31 @@ class _Carriageway:
     width: float  # mean lane width
     lane_ids: list[str]
     road_id: str | None
+
+
+def _dead_end_connectors(usable: dict[str, Lane], conn: dict[str, Lane]) -> set[str]:
+    """Connector lanes that do not lead from a road lane to a road lane (dead ends, lanes leading out of
+    the map), less the turns between a road lane and such lanes: these lanes form roads of their own."""
+    road = usable.keys() - conn.keys()
+    dead = set(conn) - (_reaching_road(road, conn, forward=True) & _reaching_road(road, conn, forward=False))
+    turns = {i for i in dead
+             if not road.isdisjoint(conn[i].predecessors) and not dead.isdisjoint(conn[i].successors)
+             or not road.isdisjoint(conn[i].successors) and not dead.isdisjoint(conn[i].predecessors)}
+    return dead - turns
+
+
+def _reaching_road(road: set[str], conn: dict[str, Lane], forward: bool) -> set[str]:
+    """Connector lanes from which a lane in ``road`` is reached through connectors, along successors
+    (``forward``) or predecessors."""
+    ahead, behind = ("successors", "predecessors") if forward else ("predecessors", "successors")
+    found = {i for i, l in conn.items() if not road.isdisjoint(getattr(l, ahead))}
+    todo = list(found)
+    while todo:
+        for j in getattr(conn[todo.pop()], behind):
+            if j in conn and j not in found:
+                found.add(j)
+                todo.append(j)
+    return found
 
 
 def _intersections(conn: dict[str, Lane]) -> tuple[dict[str, np.ndarray], dict[str, str]]:
@@ -258,6 +307,43 @@ def _direction(lines, at) -> np.ndarray:
     return d / np.maximum(np.linalg.norm(d, axis=1, keepdims=True), 1e-9)
 
 
+def _carriageways(groups: list[list[str]], road: dict[str, Lane]) -> list[_Carriageway]:
+    """One carriageway per group; lanes straying from its line are split off and grouped anew."""
+    out, todo = [], deque(groups)
+    while todo:
+        group = todo.popleft()
+        cw = _carriageway([road[i] for i in group])
+        strays = _strays(cw, [road[i] for i in group])
+        if 0 < len(strays) < len(group):
+            todo.append([i for i in group if i not in strays])
+            todo += _carriageway_groups({i: road[i] for i in group if i in strays})
+        else:
+            out.append(cw)
+    return out
+
+
+def _strays(cw: _Carriageway, lanes: list[Lane]) -> set[str]:
+    """Lanes leaving the carriageway: a point farther from ``cw.line`` than a lane beside its outermost lane
+    (see :func:`_side_by_side`), or lying partly outside its edge and leading only into (or coming only from)
+    such lanes."""
+    line = shapely.LineString(cw.line)
+    half = cw.lanes * cw.width / 2.0
+    far = {l.id: float(shapely.distance(shapely.points(l.centerline), line).max()) for l in lanes}
+    strays = {i for i, d in far.items() if d > half + cw.width / 2.0 + 0.75}
+    while True:
+        more = {l.id for l in lanes if l.id not in strays and far[l.id] > half
+                and (_only_into(l.successors, far, strays) or _only_into(l.predecessors, far, strays))}
+        if not more:
+            return strays
+        strays |= more
+
+
+def _only_into(links: list[str], group, strays: set[str]) -> bool:
+    """Whether ``links`` name lanes of ``group`` and all of those are ``strays``."""
+    inside = [i for i in links if i in group]
+    return bool(inside) and all(i in strays for i in inside)
+
+
 def _carriageway(lanes: list[Lane]) -> _Carriageway:
     spine = _dedupe(np.concatenate([l.centerline for l in _longest_chain(lanes)]))
     samples = resample_step(spine, SAMPLE_M) if polyline_length(spine) > 0 else spine
@@ -334,8 +420,10 @@ def _slice(p: np.ndarray, n: np.ndarray, a: np.ndarray, b: np.ndarray) -> tuple[
     return lat, (np.abs(den) > 1e-9) & (t >= 0.0) & (t <= 1.0)
 
 
-def _pair(cws: list[_Carriageway]) -> list[RoadPiece]:
-    """Pair antiparallel carriageways into two-way pieces; the rest become one-way pieces."""
+def _pair(cws: list[_Carriageway], split_divided: bool = True) -> list[RoadPiece]:
+    """Pair antiparallel carriageways into two-way pieces, or, across a median wider than
+    ``DIVIDED_GAP_M`` (when ``split_divided``), into the two one-way pieces of a divided road; the
+    rest become one-way pieces."""
     half = np.array([c.lanes * c.width / 2.0 for c in cws])
     scores = []
     if len(cws) > 1:
@@ -357,11 +445,13 @@ def _pair(cws: list[_Carriageway]) -> list[RoadPiece]:
             if k not in paired and k not in absorbed and o in paired:
                 if _matched(cws[k].line, cws[o].line, half[k] + half[o] + PAIR_GAP_M).mean() >= 0.7:
                     absorbed[k] = o
+    divided = {k for k, o in paired.items()
+               if split_divided and _median(cws[k], cws[o], half[k], half[o]) > DIVIDED_GAP_M}
     pieces, piece_of = [], {}
     for k, c in enumerate(cws):
-        if k in absorbed or k in piece_of:
+        if (k in absorbed and absorbed[k] not in divided) or k in piece_of:
             continue
-        if k in paired:
+        if k in paired and k not in divided:
             o = cws[paired[k]]
             lanes = c.lanes + o.lanes
             line = _midline(c.line, o.line, half[k] + half[paired[k]] + PAIR_GAP_M)
@@ -369,11 +459,20 @@ def _pair(cws: list[_Carriageway]) -> list[RoadPiece]:
                                     c.lane_ids + o.lane_ids))
             piece_of[paired[k]] = len(pieces) - 1
         else:
-            pieces.append(RoadPiece(c.line, c.lanes, True, c.width, list(c.lane_ids)))
+            partner = paired.get(k, absorbed.get(k))
+            road_lanes = c.lanes + (cws[partner].lanes if partner is not None else 0)
+            pieces.append(RoadPiece(c.line, c.lanes, True, c.width, list(c.lane_ids), road_lanes=road_lanes))
         piece_of[k] = len(pieces) - 1
     for k, o in absorbed.items():
-        pieces[piece_of[o]].lane_ids += cws[k].lane_ids
+        if o not in divided:
+            pieces[piece_of[o]].lane_ids += cws[k].lane_ids
     return pieces
+
+
+def _median(c: _Carriageway, o: _Carriageway, half_c: float, half_o: float) -> float:
+    """Typical gap (m) between the outer lanes of two opposite carriageways: the median strip."""
+    ok, lat = _across(c.line, o.line, half_c + half_o + PAIR_GAP_M)
+    return float(np.median(np.abs(lat[ok]))) - half_c - half_o if ok.any() else 0.0
 
 
 def _across(line: np.ndarray, other: np.ndarray, reach: float) -> tuple[np.ndarray, np.ndarray]:

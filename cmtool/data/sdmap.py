@@ -8,11 +8,13 @@ JSON schema (``*.json``)::
 
     {"format": "cmtool.sdmap", "version": 1, "city": "PIT", "source": "...",
      "roads": [{"id": "r1", "polyline": [[x, y], ...], "road_class": "primary",
-                "lanes": 4, "oneway": 0}, ...],
+                "lanes": 4, "oneway": 0, "link": false, "layer": 0}, ...],
      "meta": {}}
 
 ``lanes`` is the total lane count over both directions, or null when unknown. ``oneway`` follows
-OSM: 0 two-way, 1 one-way in polyline order, -1 one-way against polyline order.
+OSM: 0 two-way, 1 one-way in polyline order, -1 one-way against polyline order. ``link`` (optional,
+default false) marks a ramp or slip road (OSM ``*_link``); ``layer`` (optional, default 0) is OSM's
+vertical layer (bridges above 0, tunnels below): roads of different layers cross without meeting.
 """
 
 from __future__ import annotations
@@ -34,6 +36,8 @@ class Road:
     road_class: str = "residential"  # one of ROAD_CLASSES
     lanes: int | None = None  # total over both directions; None = unknown
     oneway: int = 0  # 0 two-way, 1 along the polyline, -1 against it
+    link: bool = False  # a ramp or slip road (OSM *_link)
+    layer: int = 0  # vertical layer: roads of different layers cross without meeting
 
     def travel_polyline(self) -> np.ndarray:
         """The polyline in travel direction (reversed for ``oneway == -1``)."""
@@ -61,6 +65,8 @@ class SDMap:
                     "lanes": r.lanes,
                     "oneway": r.oneway,
                 }
+                | ({"link": True} if r.link else {})
+                | ({"layer": r.layer} if r.layer else {})
                 for r in self.roads
             ],
             "meta": self.meta,
@@ -87,7 +93,11 @@ class SDMap:
             oneway = f.get("oneway", int, 0)
             if oneway not in (-1, 0, 1):
                 f.fail("oneway", f"expected -1, 0 or 1, got {oneway}")
-            road = Road(f.get("id", str), f.points("polyline"), road_class, lanes, oneway)
+            layer = f.get("layer", int, 0)
+            if not -5 <= layer <= 5:
+                f.fail("layer", f"expected -5..5, got {layer}")
+            road = Road(f.get("id", str), f.points("polyline"), road_class, lanes, oneway, f.get("link", bool, False),
+                        layer)
             if road.id in seen:
                 f.fail("id", f"duplicate road id {road.id!r}")
             seen.add(road.id)

@@ -27,7 +27,7 @@ def map_stats(hd: HDMap) -> dict[str, float]:
     - ``lane_width_m``: mean width of road lanes (outside intersections), weighted by length;
     - ``lanes``, ``intersections``: counts; ``road_km``: total SD road length.
     """
-    net = road_network(hd)
+    net = road_network(hd, split_divided=False)
     sd = sd_from_network(net, hd)
     road_len = np.array([polyline_length(r.polyline) for r in sd.roads])
     total = float(road_len.sum())

@@ -23,7 +23,7 @@ class RVAEConfig:
     heads: int = 8
     ffn: int = 1024
     dropout: float = 0.1
-    num_lines: int = 30
+    num_lines: int = 50  # line queries: at least the dataset's num_lines (training refuses fewer)
     num_lights: int = 10
     num_points: int = 20
     control_points: int = 0  # 0: the heads regress every point; K >= 2: K Bézier control points per line

@@ -80,17 +80,18 @@ def osm_inputs(path, centers: list[tuple[float, float, float]]) -> list[ControlI
 def hd_inputs(path, poses: list[tuple[float, float, float]] | None, seed: int = 0) -> list[ControlInput]:
     """SD rasters derived from an HD map JSON at ego poses ``(x, y, yaw degrees)``, each with the
     ground-truth lane graph of the same frame; ``poses`` None picks one drivable pose at random."""
+    from cmtool.data.frames import FrameSampler
     from cmtool.data.hdmap import HDMap
-    from cmtool.data.scene import Pose, SceneCropper, sample_poses
+    from cmtool.data.scene import Pose, SceneCropper
     from cmtool.data.sd_derive import derive_sd
 
     hd = HDMap.load(path)
     if not hd.lanes:
         raise CmtoolError(f"{path}: the HD map has no lanes")
-    if poses is None:
-        picked = sample_poses(hd, 1, np.random.default_rng(seed))
-        poses = [(p.x, p.y, math.degrees(p.yaw)) for p in picked]
     sd_map = derive_sd(hd)
+    if poses is None:
+        picked = FrameSampler(sd_map).sample(1, np.random.default_rng(seed))
+        poses = [(f.pose.x, f.pose.y, math.degrees(f.pose.yaw)) for f in picked]
     cropper = SceneCropper(hd)
     stem = Path(path).name.split(".")[0]
     inputs = []

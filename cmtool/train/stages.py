@@ -49,6 +49,17 @@ def _train_scenes(data_dir, latents, cache):
     return scenes
 
 
+def _check_queries(model: dict, data_dir, where, fix: str) -> None:
+    """Refuse an RVAE with fewer line or light queries than the dataset's scenes have slots: the matching would
+    leave the lines beyond them unmatched, unseen by the loss."""
+    data = load_manifest(data_dir)["recipe"]
+    for key in ("num_lines", "num_lights"):
+        m, n = model[key], data[key]
+        if m < n:
+            raise CmtoolError(f"{where}: rvae.{key} {m} is fewer than the dataset's {key} {n} ({data_dir}): a scene's "
+                              f"lines beyond {m} would go unmatched; {fix.format(key=key, m=m, n=n)}")
+
+
 def _preview_split(data_dir) -> str:
     return "test" if "test" in load_manifest(data_dir)["splits"] else "train"
 
@@ -66,6 +77,8 @@ class RVAEStage(Stage):
         if px != recipe.rvae.raster_px or manifest["frame_m"] != recipe.rvae.frame_m:
             raise CmtoolError(f"{recipe.path}: rvae.raster_px {recipe.rvae.raster_px} / frame_m {recipe.rvae.frame_m} "
                               f"do not match the dataset {self.data_dir} ({px} px over {manifest['frame_m']} m)")
+        _check_queries(dataclasses.asdict(recipe.rvae), self.data_dir, recipe.path,
+                       "set rvae.{key} = {n} in [rvae], or build the data with data.{key} = {m}")
         self._preview = None
 
     def model(self):
@@ -122,6 +135,8 @@ class DecoderStage(RVAEStage):
         if self.parent_config["kind"] != "rvae" or "latent_scale" not in self.parent_config:
             raise CmtoolError(f"{self.parent_run}: train.rvae must be a finished RVAE run (with its latent cache)")
         self.latents = latent_dir(self.parent_run, self.parent_config).resolve()
+        _check_queries(self.parent_config["model"], self.data_dir, self.parent_run,
+                       "the decoder keeps its RVAE's queries: train it on data built with data.{key} = {m}")
         self._preview = None
 
     def model(self):

@@ -22,7 +22,7 @@ def pick(count: int, n: int, seed: int = 0) -> list[int]:
 
 
 def scene_title(k: int, scene) -> str:
-    return f"#{k} {scene.city}  {scene.source}"
+    return f"#{k} {scene.city} {scene.kind}  {scene.source}" if scene.kind else f"#{k} {scene.city}  {scene.source}"
 
 
 def scene_tile(scene, title: str, panel: int = PANEL) -> np.ndarray:
