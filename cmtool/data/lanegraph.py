@@ -25,6 +25,7 @@ import numpy as np
 from cmtool.data.jsonio import Fields, write_text_atomic
 from cmtool.errors import CmtoolError
 from cmtool.geometry import unit
+from cmtool.unionfind import UnionFind
 
 
 @dataclass
@@ -119,3 +120,23 @@ def infer_successors(lanes, max_gap_m: float = 1.5, max_angle_deg: float = 60.0)
     np.fill_diagonal(ok, False)
     return [(int(i), int(j)) for i, j in zip(*np.nonzero(ok))]
 
+
+def join_successors(lanes, successors) -> list[np.ndarray]:
+    """Lanes moved so that every successor pair shares its joint point: the end of i and the start of j
+    (and every other end or start linked to them) meet at their mean. Each lane takes its end's move
+    in full at that end, fading linearly to none at its other end, so it bends without a kink."""
+    lanes = [np.asarray(l, np.float64) for l in lanes]
+    ports = UnionFind([(k, end) for k in range(len(lanes)) for end in (0, 1)])
+    for i, j in successors:
+        ports.union((int(i), 1), (int(j), 0))
+    moves = {}
+    for group in ports.groups():
+        if len(group) > 1:
+            points = np.array([lanes[k][-1 if end else 0] for k, end in group])
+            for (k, end), p in zip(group, points):
+                moves[(k, end)] = points.mean(axis=0) - p
+    out = []
+    for k, lane in enumerate(lanes):
+        t = np.linspace(0.0, 1.0, len(lane))[:, None]
+        out.append(lane + t * moves.get((k, 1), 0.0) + (1.0 - t) * moves.get((k, 0), 0.0))
+    return out

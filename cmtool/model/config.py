@@ -27,6 +27,8 @@ class RVAEConfig:
     num_lights: int = 10
     num_points: int = 20
     control_points: int = 0  # 0: the heads regress every point; K >= 2: K Bézier control points per line
+    decoder: str = "detr"  # detr: SLEDGE's (learned queries regress points); graph: reference polylines refined
+    #                        layer by layer on an upsampled feature map, plus a successor head (cmtool.model.graph)
     frame_m: float = 64.0
 
     @property
@@ -43,6 +45,8 @@ class RVAELossConfig:
     existence_weight: float = 5.0
     kl_weight: float = 0.1
     aux_weight: float = 0.0  # weight of the same loss on each earlier decoder layer (0: final layer only)
+    direction_weight: float = 0.0  # matched lines' segment directions, 1 - cosine (MapTR's edge-direction loss)
+    successor_weight: float = 0.0  # successor BCE between matched lines (graph decoder)
     frame_m: float = 64.0
 
 

@@ -6,7 +6,9 @@ latent. The decoder is DETR-style: one learned query per output slot (lines, gre
 red-light lines) attends to the latent tokens through a pre-norm transformer decoder; per element type
 an MLP head regresses the polyline points (ego-frame metres, tanh-bounded to the frame) and a linear
 layer its existence logit. The same heads can read every decoder layer (DETR's auxiliary outputs,
-used by the training loss only).
+used by the training loss only). With ``rvae.decoder = "graph"`` the decoder is
+:class:`cmtool.model.graph.GraphDecoder` instead (polyline queries refined layer by layer, and
+successor logits between lines).
 """
 
 from __future__ import annotations
@@ -22,9 +24,11 @@ from torch import Tensor, nn
 from cmtool.errors import CmtoolError
 from cmtool.geometry import bernstein_basis
 from cmtool.model.config import RVAEConfig
+from cmtool.model.graph import GraphDecoder
 
 ELEMENTS = ("lines", "green", "red")
 BACKBONES = ("resnet18", "resnet34", "resnet50")
+DECODERS = ("detr", "graph")
 ENCODER_PREFIXES = ("trunk.", "to_latent.")  # state-dict keys of the encoder (raster -> posterior)
 _STAGES = ("layer1", "layer2", "layer3", "layer4")  # the trunk through layer k has stride 2 ** (k + 1)
 
@@ -112,7 +116,14 @@ class RVAE(nn.Module):
             self.trunk, trunk_channels = encoder_trunk(cfg.backbone, cfg.in_channels, cfg.raster_px, cfg.latent_size,
                                                        cfg.encoder_stages)
             self.to_latent = nn.Conv2d(trunk_channels, 2 * cfg.latent_channels, kernel_size=3, padding=1)
-
+        if cfg.decoder not in DECODERS:
+            raise CmtoolError(f"rvae.decoder: must be one of {', '.join(DECODERS)}, got {cfg.decoder!r}")
+        if cfg.decoder == "graph":
+            if cfg.control_points:
+                raise CmtoolError("rvae.control_points: the graph decoder refines free points; set it to 0")
+            self.graph = GraphDecoder(cfg, sine_position_encoding(cfg.latent_size, cfg.d_model), ELEMENTS)
+            return
+        self.graph = None
         self.token_proj = nn.Linear(cfg.latent_channels, cfg.d_model)
         self.register_buffer("pos", sine_position_encoding(cfg.latent_size, cfg.d_model), persistent=False)
         self.query = nn.Embedding(sum(cfg.queries.values()), cfg.d_model)
@@ -136,7 +147,10 @@ class RVAE(nn.Module):
     def decode(self, z: Tensor, aux: bool = False) -> dict[str, Tensor]:
         """Latent (B, latent_channels, S, S) -> {"lines", "lines_logit", "green", "green_logit", "red", "red_logit"}.
 
-        With ``aux``, also ``"aux"``: such dicts read from each earlier decoder layer, first to last."""
+        With ``aux``, also ``"aux"``: such dicts read from each earlier decoder layer, first to last. The
+        graph decoder adds ``"succ_logit"`` (B, L, L): line i flows into line j."""
+        if self.graph is not None:
+            return self.graph(z, aux)
         b = z.shape[0]
         memory = self.token_proj(z.flatten(2).transpose(1, 2)) + self.pos
         h = self.query.weight.expand(b, -1, -1)
@@ -177,7 +191,16 @@ def same_encoder(a: dict[str, Tensor], b: dict[str, Tensor]) -> bool:
 
 def decoded_elements(decoded: dict[str, Tensor], threshold: float = 0.5) -> list[dict[str, np.ndarray]]:
     """Per batch item, the polylines whose existence probability exceeds ``threshold``:
-    ``{"lines": (n, P, 2) float32, "green": ..., "red": ...}``."""
+    ``{"lines": (n, P, 2) float32, "green": ..., "red": ...}``; from the graph decoder also
+    ``"successors"`` (E, 2) int64, pairs of kept lines (indices into ``"lines"``) whose successor
+    probability exceeds 0.5."""
     keep = {name: (torch.sigmoid(decoded[f"{name}_logit"]) > threshold).cpu().numpy() for name in ELEMENTS}
     points = {name: decoded[name].detach().float().cpu().numpy() for name in ELEMENTS}
-    return [{name: points[name][i][keep[name][i]] for name in ELEMENTS} for i in range(len(points["lines"]))]
+    out = [{name: points[name][i][keep[name][i]] for name in ELEMENTS} for i in range(len(points["lines"]))]
+    if "succ_logit" in decoded:
+        linked = (decoded["succ_logit"].detach().float() > 0).cpu().numpy()
+        for item, kept, links in zip(out, keep["lines"], linked):
+            idx = np.flatnonzero(kept)
+            pairs = np.argwhere(links[np.ix_(idx, idx)])
+            item["successors"] = pairs[pairs[:, 0] != pairs[:, 1]].astype(np.int64).reshape(-1, 2)
+    return out

@@ -10,6 +10,10 @@ the posterior to N(0, I) averaged over latent elements.
 
 With ``aux_weight`` > 0 the matched L1 and existence terms are added again, so weighted, for the
 outputs of each earlier decoder layer, each matched on its own (DETR's auxiliary decoding losses).
+``direction_weight`` adds 1 - cosine between the matched lines' segment directions (MapTR's
+edge-direction loss), ``successor_weight`` the BCE of the graph decoder's successor logits between
+matched lines against the ground truth's successors (final layer only; pairs of a line with itself
+left out).
 
 Weights follow SLEDGE (line reconstruction 2.0 per metre, existence 5.0, KL 0.1); SLEDGE measures L1
 in metres, so its reconstruction weight is multiplied by the half frame (32 m) to keep the same
@@ -59,9 +63,12 @@ def kl_divergence(mean: Tensor, logvar: Tensor) -> Tensor:
     return -0.5 * torch.mean(1.0 + logvar - mean.square() - logvar.exp())
 
 
-def set_loss(decoded: dict[str, Tensor], batch: dict[str, Tensor], cfg: RVAELossConfig) -> dict[str, Tensor]:
-    """Matched L1 and existence BCE per element type of one set of outputs: ``{"l1/lines", "exist/lines", ...}``."""
+def set_loss(decoded: dict[str, Tensor], batch: dict[str, Tensor],
+             cfg: RVAELossConfig) -> tuple[dict[str, Tensor], list[tuple[np.ndarray, np.ndarray]]]:
+    """Matched L1 and existence BCE (and direction) per element type of one set of outputs
+    (``{"l1/lines", "exist/lines", ...}``), and the matched (query, target) pairs of the lines."""
     parts: dict[str, Tensor] = {}
+    line_pairs = []
     for name in ELEMENTS:
         pred, logit = decoded[name], decoded[f"{name}_logit"]
         gt, mask = batch[name].to(pred), batch[MASK_KEYS[name]].to(pred.device)
@@ -73,11 +80,38 @@ def set_loss(decoded: dict[str, Tensor], batch: dict[str, Tensor], cfg: RVAELoss
         target[b, q] = 1.0
         parts[f"l1/{name}"] = line_l1(pred[b, q], gt[b, g], cfg.frame_m).sum() / logit.numel()
         parts[f"exist/{name}"] = F.binary_cross_entropy_with_logits(logit, target)
-    return parts
+        if cfg.direction_weight > 0:
+            parts[f"dir/{name}"] = direction_loss(pred[b, q], gt[b, g]).sum() / logit.numel()
+        if name == "lines":
+            line_pairs = pairs
+    return parts, line_pairs
+
+
+def direction_loss(pred: Tensor, gt: Tensor) -> Tensor:
+    """Per polyline (..., P, 2): mean over segments of 1 - cosine between predicted and true directions."""
+    return (1.0 - F.cosine_similarity(pred.diff(dim=-2), gt.diff(dim=-2), dim=-1, eps=1e-6)).mean(-1)
+
+
+def successor_loss(logits: Tensor, succ: Tensor, pairs: list[tuple[np.ndarray, np.ndarray]]) -> Tensor:
+    """BCE of successor logits (B, Q, Q) between matched queries against the targets' successors
+    (B, G, G), self pairs left out."""
+    terms = []
+    for k, (q, g) in enumerate(pairs):
+        if len(q) < 2:
+            continue
+        q_t, g_t = torch.from_numpy(q).to(logits.device), torch.from_numpy(g).to(logits.device)
+        off = ~torch.eye(len(q), dtype=torch.bool, device=logits.device)
+        target = succ[k][g_t][:, g_t].to(logits.dtype)
+        terms.append(F.binary_cross_entropy_with_logits(logits[k][q_t][:, q_t][off], target[off], reduction="sum"))
+    count = sum(len(q) * (len(q) - 1) for q, _ in pairs)
+    return sum(terms) / max(count, 1) if terms else logits.sum() * 0.0
+
+
+_WEIGHTS = {"l1/": "l1_weight", "exist/": "existence_weight", "dir/": "direction_weight", "succ/": "successor_weight"}
 
 
 def _weighted(parts: dict[str, Tensor], cfg: RVAELossConfig) -> Tensor:
-    return sum((cfg.l1_weight if k.startswith("l1/") else cfg.existence_weight) * v for k, v in parts.items())
+    return sum(getattr(cfg, next(w for p, w in _WEIGHTS.items() if k.startswith(p))) * v for k, v in parts.items())
 
 
 def rvae_loss(decoded: dict[str, Tensor], mean: Tensor, logvar: Tensor, batch: dict[str, Tensor],
@@ -86,12 +120,15 @@ def rvae_loss(decoded: dict[str, Tensor], mean: Tensor, logvar: Tensor, batch: d
     weighted loss of the earlier layers, when ``decoded`` holds them and ``cfg.aux_weight`` > 0) as floats.
 
     ``batch`` holds the targets: "lines" (B, L, P, 2) metres with "line_mask" (B, L) bool, and
-    "green"/"green_mask", "red"/"red_mask" likewise.
+    "green"/"green_mask", "red"/"red_mask" likewise, and "succ" (B, L, L) bool (line i flows into
+    line j) for the successor loss.
     """
-    parts = set_loss(decoded, batch, cfg)
+    parts, pairs = set_loss(decoded, batch, cfg)
+    if cfg.successor_weight > 0 and "succ_logit" in decoded:
+        parts["succ/lines"] = successor_loss(decoded["succ_logit"], batch["succ"], pairs)
     parts["kl"] = kl_divergence(mean, logvar)
     total = _weighted({k: v for k, v in parts.items() if k != "kl"}, cfg) + cfg.kl_weight * parts["kl"]
     if cfg.aux_weight > 0 and decoded.get("aux"):
-        parts["aux"] = cfg.aux_weight * sum(_weighted(set_loss(d, batch, cfg), cfg) for d in decoded["aux"])
+        parts["aux"] = cfg.aux_weight * sum(_weighted(set_loss(d, batch, cfg)[0], cfg) for d in decoded["aux"])
         total = total + parts["aux"]
     return total, {k: float(v.detach()) for k, v in parts.items()}

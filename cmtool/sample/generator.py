@@ -15,12 +15,12 @@ import numpy as np
 import torch
 
 from cmtool import checkpoint as ckpt
-from cmtool.data.lanegraph import LaneGraph, infer_successors
+from cmtool.data.lanegraph import LaneGraph, infer_successors, join_successors
 from cmtool.errors import CmtoolError
 from cmtool.geometry import bezier_fit_matrix
 from cmtool.model.config import ScheduleConfig
 from cmtool.model.controlmap import ControlMap, sd_tensor
-from cmtool.model.rvae import decoded_elements
+from cmtool.model.rvae import ELEMENTS, decoded_elements
 from cmtool.recipe import from_table
 from cmtool.sample import DEFAULT_SAMPLER, DEFAULT_SMOOTH
 from cmtool.sample.diffusion import NoiseSchedule, sample
@@ -110,16 +110,26 @@ class Generator:
     @torch.no_grad()
     def decode(self, latents: torch.Tensor, threshold: float = 0.5) -> list[dict[str, np.ndarray]]:
         """Scaled latents (N, C, H, W) -> per latent ``{"lines", "green", "red"}`` polylines (metres), each
-        replaced by its least-squares Bézier curve unless ``smooth`` is 0."""
+        replaced by its least-squares Bézier curve unless ``smooth`` is 0; a graph decoder's predicted
+        ``"successors"`` come along, their lanes joined at shared points (after the smoothing)."""
         elements = decoded_elements(self.rvae.decode(latents.to(self.device).float() / self.scale), threshold)
-        if self._fit is None:
-            return elements
-        return [{name: (self._fit @ lines).astype(lines.dtype) for name, lines in el.items()} for el in elements]
+        for el in elements:
+            for name in ELEMENTS:
+                if self._fit is not None:
+                    el[name] = (self._fit @ el[name]).astype(el[name].dtype)
+            if "successors" in el:
+                el["lines"] = np.array(join_successors(el["lines"], el["successors"]), np.float32).reshape(
+                    el["lines"].shape)
+        return elements
 
     def lane_graph(self, elements: dict[str, np.ndarray], city: str | None, meta: dict) -> LaneGraph:
-        """A decoded latent as a lane graph, successors inferred from endpoint proximity."""
+        """A decoded latent as a lane graph: successors as the graph decoder predicted them, else inferred
+        from endpoint proximity (``meta["successors"]`` says which)."""
         lanes = [np.asarray(l, np.float64) for l in elements["lines"]]
-        return LaneGraph(lanes=lanes, successors=infer_successors(lanes),
+        predicted = "successors" in elements
+        successors = [(int(i), int(j)) for i, j in elements["successors"]] if predicted else infer_successors(lanes)
+        meta = meta | {"successors": "predicted" if predicted else "endpoint proximity"}
+        return LaneGraph(lanes=lanes, successors=successors,
                          green_lights=[np.asarray(l, np.float64) for l in elements["green"]],
                          red_lights=[np.asarray(l, np.float64) for l in elements["red"]],
                          city=city, frame_m=float(self.rvae.cfg.frame_m), meta=meta)

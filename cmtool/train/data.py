@@ -24,9 +24,13 @@ MIRROR = np.array([1.0, -1.0], np.float32)  # y -> -y: the scene mirrored left-r
 
 
 def vector_targets(arrays: dict, i: int, mirror: bool = False) -> dict[str, torch.Tensor]:
-    """The RVAE targets of scene ``i``: polylines (metres, ego frame; mirrored left-right on request)
-    and their masks."""
-    out = {}
+    """The RVAE targets of scene ``i``: polylines (metres, ego frame; mirrored left-right on request),
+    their masks, and ``succ`` (L, L) bool: line i flows into line j."""
+    lines = len(arrays["lines"][i])
+    edges = arrays["edges"][arrays["edge_offsets"][i]:arrays["edge_offsets"][i + 1]]
+    succ = torch.zeros(lines, lines, dtype=torch.bool)
+    succ[torch.from_numpy(edges[:, 0].astype(np.int64)), torch.from_numpy(edges[:, 1].astype(np.int64))] = True
+    out = {"succ": succ}
     for key in ELEMENTS:
         out[key] = torch.from_numpy(np.ascontiguousarray(arrays[key][i] * MIRROR if mirror else arrays[key][i],
                                                          dtype=np.float32))

@@ -1,0 +1,105 @@
+"""The RVAE's graph decoder (``rvae.decoder = "graph"``): polyline queries refined layer by layer, and a
+successor head, so that it learns in fewer steps and outputs a lane graph.
+
+Ideas taken from MapTR (polyline queries, point and edge-direction losses) and Deformable DETR
+(reference points refined layer by layer, each layer a prediction trained on its own), shaped for a
+64-token latent:
+
+- a small convolutional decoder upsamples the latent to a feature map of 4 x its size, aligned with
+  the raster (row 0 is the front edge, column 0 the left edge);
+- every query (lines, then green- and red-light lines) holds a reference polyline of P points in
+  half-frame units; each layer samples the feature map at those points (bilinear), adds what it
+  read to the query, runs self-attention among the queries and cross-attention to the latent tokens,
+  and moves the points by a predicted offset (in atanh space; as in Deformable DETR, the points a
+  layer starts from are detached from the layer before); the offset heads start at zero;
+- the successor head scores "lane i flows into lane j" from the two lanes' states and the gap
+  between i's last and j's first point; it starts out linking lanes whose ends touch.
+"""
+
+from __future__ import annotations
+
+import math
+
+import torch
+import torch.nn.functional as F
+from torch import Tensor, nn
+
+from cmtool.model.config import RVAEConfig
+
+FEATURES = 32  # channels of the upsampled feature map the queries sample
+_GAP_SCALE = -1.0  # initial successor logit per metre of gap between a lane's end and the next lane's start
+_GAP_BIAS = 2.0  # initial successor logit of touching lanes
+
+
+class GraphDecoder(nn.Module):
+    """Latent (B, C, S, S) -> per element type polylines (B, Q, P, 2) in metres and existence logits
+    (B, Q), and ``succ_logit`` (B, L, L) over the line queries."""
+
+    def __init__(self, cfg: RVAEConfig, positions: Tensor, elements: tuple[str, ...]):
+        super().__init__()
+        d, c, p = cfg.d_model, cfg.latent_channels, cfg.num_points
+        self.cfg, self.elements, self.sizes = cfg, elements, [cfg.queries[e] for e in elements]
+        self.token_proj = nn.Linear(c, d)
+        self.register_buffer("pos", positions, persistent=False)
+        self.features = nn.Sequential(
+            nn.Conv2d(c, d, 3, padding=1), nn.GroupNorm(8, d), nn.GELU(),
+            nn.Upsample(scale_factor=2, mode="bilinear"), nn.Conv2d(d, d, 3, padding=1), nn.GroupNorm(8, d), nn.GELU(),
+            nn.Upsample(scale_factor=2, mode="bilinear"), nn.Conv2d(d, FEATURES, 3, padding=1))
+        self.query = nn.Embedding(sum(self.sizes), d)
+        self.first_points = nn.Linear(d, p * 2)
+        self.read_points = nn.ModuleList(nn.Linear(p * FEATURES, d) for _ in range(cfg.decoder_layers))
+        self.layers = nn.ModuleList(
+            nn.TransformerDecoderLayer(d, cfg.heads, cfg.ffn, cfg.dropout, batch_first=True, norm_first=True)
+            for _ in range(cfg.decoder_layers))
+        self.norm = nn.LayerNorm(d)
+        self.offsets = nn.ModuleList(nn.Sequential(nn.Linear(d, d), nn.ReLU(), nn.Linear(d, p * 2))
+                                     for _ in range(cfg.decoder_layers))
+        for head in self.offsets:
+            nn.init.zeros_(head[-1].weight)
+            nn.init.zeros_(head[-1].bias)
+        self.logits = nn.ModuleDict({name: nn.Linear(d, 1) for name in elements})
+        self.succ_out, self.succ_in = nn.Linear(d, d), nn.Linear(d, d)
+        self.succ_gap = nn.Parameter(torch.tensor(_GAP_SCALE))
+        self.succ_bias = nn.Parameter(torch.tensor(_GAP_BIAS))
+
+    def forward(self, z: Tensor, aux: bool = False) -> dict:
+        b, p = z.shape[0], self.cfg.num_points
+        memory = self.token_proj(z.flatten(2).transpose(1, 2)) + self.pos
+        feat = self.features(z)
+        h = self.query.weight.expand(b, -1, -1)
+        ref = torch.tanh(self.first_points(self.query.weight)).reshape(1, -1, p, 2).expand(b, -1, -1, -1)
+        outputs = []
+        for layer, read, offset in zip(self.layers, self.read_points, self.offsets):
+            h = h + read(sample_points(feat, ref).flatten(2))
+            h = layer(h, memory)
+            state = self.norm(h)
+            moved = torch.tanh(torch.atanh(ref.clamp(-0.999, 0.999)) + offset(state).reshape(b, -1, p, 2))
+            outputs.append((state, moved))
+            ref = moved.detach()  # the next layer refines these points without back-propagating into them
+        out = self._read(*outputs[-1])
+        if aux:
+            out["aux"] = [self._read(state, points) for state, points in outputs[:-1]]
+        return out
+
+    def _read(self, state: Tensor, ref: Tensor) -> dict[str, Tensor]:
+        """States (B, Q, d) and reference polylines (B, Q, P, 2) -> the element dict of one layer."""
+        out = {}
+        half = self.cfg.frame_m / 2.0
+        for name, h, points in zip(self.elements, state.split(self.sizes, dim=1), ref.split(self.sizes, dim=1)):
+            out[name], out[f"{name}_logit"] = points * half, self.logits[name](h).squeeze(-1)
+        out["succ_logit"] = self.successor_logits(state[:, :self.sizes[0]], out[self.elements[0]])
+        return out
+
+    def successor_logits(self, h: Tensor, lines: Tensor) -> Tensor:
+        """Logit (B, L, L) that line i flows into line j: state affinity plus a (learned) penalty on the
+        gap in metres between i's last and j's first point (detached: the link does not pull lanes)."""
+        affinity = self.succ_out(h) @ self.succ_in(h).transpose(1, 2) / math.sqrt(h.shape[-1])
+        gap = torch.cdist(lines[:, :, -1].detach().float(), lines[:, :, 0].detach().float()).to(h.dtype)
+        return affinity + self.succ_gap * gap + self.succ_bias
+
+
+def sample_points(feat: Tensor, points: Tensor) -> Tensor:
+    """Bilinear samples (B, Q, P, F) of a raster-aligned feature map (B, F, H, W) at ego-frame points
+    (B, Q, P, 2) in half-frame units (x forward = up, y left = left)."""
+    grid = torch.stack([-points[..., 1], -points[..., 0]], dim=-1).to(feat.dtype)  # (column, row) in [-1, 1]
+    return F.grid_sample(feat, grid, align_corners=False).permute(0, 2, 3, 1)
