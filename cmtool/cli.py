@@ -226,8 +226,8 @@ def poses(map_file, n, seed, kind, near_junction, latlon, out):
               help="Also write the SD rasters of some frames of each source, a row each.")
 @click.option("--json", "json_out", type=click.Path(dir_okay=False, path_type=Path), help="Write the numbers here.")
 def frames(sources, recipe, maps, n, seed, png, json_out):
-    """Per-frame statistics of SD maps side by side: roads, road length, one-way, divided-road and
-    lane-count shares, junctions. SOURCES: OpenStreetMap .osm/.osm.pbf files, SD or HD map JSON
+    """Per-frame statistics of SD maps side by side: roads, road length, one-way, divided-road,
+    lane-count and major-road shares, junctions. SOURCES: OpenStreetMap .osm/.osm.pbf files, SD or HD map JSON
     (framed as `data poses` frames them); --recipe adds the maps a dataset would be built from."""
     import numpy as np
 
