@@ -798,7 +798,8 @@ def ablate_city_swap(ckpt, data_dir, split, n, steps, sampler, smooth, out, devi
 @click.option("--device", help="torch device [default: cuda when available, else cpu].")
 @click.option("--quiet", is_flag=True, help="No progress line.")
 def ablate_rvae(rvae_path, encoder_path, data_dir, n, tol, out, device, quiet):
-    """What the RVAE keeps: lane F1 (at --tol m) of its reconstructions, and the driving side of the ground
+    """What the RVAE keeps: lane F1 (at --tol m and at 0.5 m), successor precision and recall (lanes
+    matched within --tol m) and validity of its reconstructions, and the driving side of the ground
     truth and of the reconstructions, per split and city (the ceiling of the city swap)."""
     from cmtool import checkpoint as ckpt
     from cmtool.eval.reconstruction import reconstruction_report

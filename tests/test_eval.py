@@ -159,6 +159,8 @@ def test_ablate_rvae_scores_reconstructions_and_the_driving_side(sampling_ckpt, 
     assert [(r["split"], r["city"]) for r in rows] == [("train", "LAV"), ("train", "PIT"), ("train", "SGP"),
                                                        ("test", "BOS")]
     assert all(r["scenes"] == 4 and 0.0 <= r["f1"] <= 1.0 for r in rows) and "| f1 |" in out
+    assert all(r["f1_0.5m"] <= r["f1"] and 0.0 <= r["validity"] <= 1.0 for r in rows)
+    assert all(r["succ_recall"] is None or 0.0 <= r["succ_recall"] <= 1.0 for r in rows) and "succ_precision" in out
     truth = {r["city"]: r["left_hand_oncoming_truth"] for r in rows}
     assert truth["SGP"] > 0.8 and truth["LAV"] < 0.2 and truth["BOS"] < 0.2  # each city's own side
     # the RVAE's own encoder is the default

@@ -124,3 +124,20 @@ def test_join_successors_shares_joints_without_kinks():
     steps = np.diff(joined[1], axis=0)
     assert np.allclose(steps, steps[0])  # the move fades linearly: still a straight line
     assert [np.array_equal(x, y) for x, y in zip(join_successors([a, b], []), [a, b])] == [True, True]
+
+
+def test_successor_counts_match_lanes_before_links():
+    from cmtool.data.lanegraph import LaneGraph
+    from cmtool.eval.reconstruction import successor_counts
+
+    def lane(x0, y):
+        return np.stack([np.linspace(x0, x0 + 19, 20), np.full(20, y)], 1)
+
+    truth = np.stack([lane(-20, 0.0), lane(0, 0.0), lane(0, 3.5)])
+    edges = np.array([[0, 1], [0, 2]])
+    # the prediction lists the same lanes in another order, one shifted 0.4 m, plus a lane far off
+    pred = LaneGraph(lanes=[lane(0, 3.5), lane(-20, 0.4), lane(0, 0.0), lane(0, 20.0)],
+                     successors=[(1, 2), (1, 0), (2, 0), (1, 3)])
+    correct, predicted, true = successor_counts(pred, truth, edges, tol=1.0)
+    assert (correct, predicted, true) == (2, 4, 2)  # 1->2 and 1->0 are true; 2->0 reversed; 3 matches nothing
+    assert successor_counts(pred, truth, edges, tol=0.1)[0] == 0  # the shifted lane, in both links, no longer matches

@@ -1,9 +1,11 @@
-"""What the RVAE keeps of a scene: lane accuracy and driving side of its reconstructions.
+"""What the RVAE keeps of a scene: lane accuracy, successors, validity and driving side of its
+reconstructions.
 
-A reconstruction is the scene's HD raster encoded (posterior mean) and decoded again. The diffusion
-models generate latents that this decoder draws, so their maps cannot keep the driving side better
-than the decoder does with the encoder's own latents: :func:`reconstruction_report` measures that
-ceiling next to the ground truth's, per split and city (``cmtool ablate rvae``).
+A reconstruction is the scene's HD raster encoded (posterior mean) and decoded again, as a lane
+graph: the graph decoder's predicted successors (linked lanes joined at shared points), or the
+successors inferred from endpoint proximity. The diffusion models generate latents that this decoder
+draws, so their maps cannot do better than the decoder does with the encoder's own latents:
+:func:`reconstruction_report` measures that ceiling, per split and city (``cmtool ablate rvae``).
 """
 
 from __future__ import annotations
@@ -12,11 +14,14 @@ from pathlib import Path
 
 import numpy as np
 import torch
+from scipy.optimize import linear_sum_assignment
 
 from cmtool.data.cache import SceneDataset, load_dataset, load_manifest
 from cmtool.data.jsonio import write_json, write_text_atomic
+from cmtool.data.lanegraph import LaneGraph, infer_successors, join_successors
 from cmtool.eval.geometric import driving_side, oncoming_side
 from cmtool.eval.lanes import lane_scores
+from cmtool.eval.validity import check
 from cmtool.eval.metrics import drives_on, markdown_table, weighted_mean
 from cmtool.model.rvae import RVAE, decoded_elements
 from cmtool.progress import Progress
@@ -24,6 +29,7 @@ from cmtool.train.data import SceneRasters
 
 BATCH = 64
 TOL_M = 1.0  # lane F1 tolerance
+FINE_M = 0.5  # the finer tolerance reported beside it
 
 
 @torch.no_grad()
@@ -57,9 +63,11 @@ def reconstruction_scores(rvae: RVAE, data_dir, split: str, device, n: int, tol:
 
 def reconstruction_report(encoder: RVAE, decoder: RVAE, data_dir, device, n: int, out: Path,
                           progress: bool = True, tol: float = TOL_M) -> list[dict]:
-    """Per split and city, ``n`` scenes spread over the city's: lane F1 at ``tol`` metres of the
-    reconstructions, and the left-hand share (along two-way SD roads; by oncoming lanes) of the
-    ground truth and of the reconstructions. Writes ``ablate_rvae.json`` and ``ablate_rvae.md`` to ``out``."""
+    """Per split and city, ``n`` scenes spread over the city's: lane F1 at ``tol`` metres and at 0.5 m
+    of the reconstructions, successor precision and recall (:func:`successor_counts`, pooled over the
+    scenes), the mean validity score (``cmtool validate``), and the left-hand share (along two-way SD
+    roads; by oncoming lanes) of the ground truth and of the reconstructions. Writes
+    ``ablate_rvae.json`` and ``ablate_rvae.md`` to ``out``."""
     rows = []
     parts = []
     for split in load_manifest(data_dir)["splits"]:
@@ -70,12 +78,18 @@ def reconstruction_report(encoder: RVAE, decoder: RVAE, data_dir, device, n: int
         for split, scenes, city in parts:
             members = np.flatnonzero(scenes.arrays["city"] == city)
             idx = members[spread(len(members), n)]
-            recon = [el["lines"] for el in reconstruct(encoder, decoder, scenes, idx, device)]
+            graphs = [lane_graph(el, scenes.frame_m) for el in reconstruct(encoder, decoder, scenes, idx, device)]
+            recon = [np.array(g.lanes).reshape(-1, scenes.arrays["lines"].shape[2], 2) for g in graphs]
             truth = [_truth(scenes, i) for i in idx]
             sds = [scenes.arrays["sd"][i] for i in idx]
             f1 = [lane_scores(list(r), list(t), tol=tol)["f1"] for r, t in zip(recon, truth)]
+            fine = [lane_scores(list(r), list(t), tol=FINE_M)["f1"] for r, t in zip(recon, truth)]
+            links = np.sum([successor_counts(g, t, _edges(scenes, i), tol)
+                            for g, t, i in zip(graphs, truth, idx)], axis=0)
             rows.append({"split": split, "city": city, "drives_on": drives_on(city), "scenes": len(idx),
-                         "f1": float(np.mean(f1)),
+                         "f1": float(np.mean(f1)), f"f1_{FINE_M:g}m": float(np.mean(fine)),
+                         "succ_precision": _ratio(links[0], links[1]), "succ_recall": _ratio(links[0], links[2]),
+                         "validity": float(np.mean([check(g).score for g in graphs])),
                          "left_hand_truth": _left(truth, sds), "left_hand_recon": _left(recon, sds),
                          "left_hand_oncoming_truth": _left(truth), "left_hand_oncoming_recon": _left(recon)})
             bar.update()
@@ -83,6 +97,45 @@ def reconstruction_report(encoder: RVAE, decoder: RVAE, data_dir, device, n: int
     write_json(out / "ablate_rvae.json", {"scenes_per_city": n, "tol_m": tol, "rows": rows})
     write_text_atomic(out / "ablate_rvae.md", markdown_table(rows, list(rows[0]) if rows else []))
     return rows
+
+
+def lane_graph(elements: dict, frame_m: float) -> LaneGraph:
+    """Decoded elements as a lane graph: predicted successors with linked lanes joined, or successors
+    inferred from endpoint proximity."""
+    lanes = [np.asarray(l, np.float64) for l in elements["lines"]]
+    if "successors" in elements:
+        succ = [(int(i), int(j)) for i, j in elements["successors"]]
+        lanes = join_successors(lanes, succ)
+    else:
+        succ = infer_successors(lanes)
+    return LaneGraph(lanes=lanes, successors=succ, frame_m=frame_m)
+
+
+def successor_counts(graph: LaneGraph, truth: np.ndarray, truth_edges: np.ndarray,
+                     tol: float) -> tuple[int, int, int]:
+    """(correct, predicted, true) successor links: lanes are matched one to one (Hungarian on the mean
+    distance of their ordered points, a match within ``tol``), and a predicted link i -> j is correct
+    when i and j match the two lanes of a true link, in its order."""
+    pred = np.array(graph.lanes).reshape(-1, truth.shape[1], 2)
+    if len(pred) and len(truth):
+        cost = np.linalg.norm(pred[:, None] - truth[None], axis=-1).mean(-1)
+        rows, cols = linear_sum_assignment(cost)
+        keep = cost[rows, cols] <= tol
+        to_truth = dict(zip(rows[keep].tolist(), cols[keep].tolist()))
+    else:
+        to_truth = {}
+    true = {(int(a), int(b)) for a, b in truth_edges}
+    correct = sum((to_truth.get(i), to_truth.get(j)) in true for i, j in graph.successors)
+    return correct, len(graph.successors), len(true)
+
+
+def _ratio(num: float, den: float) -> float | None:
+    return float(num / den) if den else None
+
+
+def _edges(scenes: SceneDataset, i: int) -> np.ndarray:
+    a = scenes.arrays
+    return a["edges"][a["edge_offsets"][i]:a["edge_offsets"][i + 1]]
 
 
 def _truth(scenes: SceneDataset, i: int) -> np.ndarray:
