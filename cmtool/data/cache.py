@@ -160,8 +160,9 @@ def _build_unit(job) -> tuple[int, int]:
 
 def build_dataset(recipe_path, out_dir, workers: int | None = None, progress: bool = True) -> dict:
     """Build (or finish building) the dataset of a recipe into ``out_dir``; returns a summary:
-    ``{"splits": {split: {"scenes": n, "cities": {city: n}, "line_cap": cuts}}, "num_lines", "units_built",
-    "units_skipped", "scenes_built", "seconds"}`` with ``cuts`` as :func:`_count` counts them."""
+    ``{"splits": {split: {"scenes": n, "cities": {city: n}, "line_cap": cuts, "frames": mix}}, "num_lines",
+    "units_built", "units_skipped", "scenes_built", "seconds"}`` with ``cuts`` and ``mix`` as :func:`_count`
+    counts them."""
     start = time.perf_counter()
     recipe = load_recipe(recipe_path)
     data = recipe.data
