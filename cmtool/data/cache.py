@@ -88,9 +88,7 @@ def plan_units(recipe) -> list[WorkUnit]:
 def unit_scenes(unit: WorkUnit, data: DataRecipe) -> list[Scene]:
     """Make the map of ``unit`` and crop its scenes, framed on its derived SD map in the recipe's mix of
     frame kinds, each paired with the SD raster of that map made to look like OpenStreetMap."""
-    from cmtool.data.frames import FrameSampler
     from cmtool.data.sd_derive import derive_sd
-    from cmtool.data.sd_jitter import apply_jitter
     from cmtool.data.sd_raster import rasterize_sd
 
     if unit.fmt == "procedural":
@@ -101,12 +99,8 @@ def unit_scenes(unit: WorkUnit, data: DataRecipe) -> list[Scene]:
         from cmtool.data.importers import import_hd_map
 
         hd = import_hd_map(unit.fmt, unit.path, city=unit.city)
-    sd = derive_sd(hd)
-    control = apply_jitter(sd, data.sd_jitter, unit.seed * 10_000 + unit.index) if data.sd_jitter.enabled else sd
-    kept = {r.id for r in control.roads}  # no frame stands on a road the jitter dropped
-    rng = np.random.default_rng([data.seed, unit.index])
-    frames = FrameSampler(sd, data.frame_m).sample(unit.scenes, rng, data.frame_mix.as_dict(), data.min_pose_spacing_m,
-                                                   roads={k for k, r in enumerate(sd.roads) if r.id in kept})
+    control, frames = framed(derive_sd(hd), data, unit.scenes, unit.seed * 10_000 + unit.index,
+                             np.random.default_rng([data.seed, unit.index]))
     cropper = SceneCropper(hd)
     scenes = []
     for frame in frames:
@@ -116,6 +110,20 @@ def unit_scenes(unit: WorkUnit, data: DataRecipe) -> list[Scene]:
         scene.kind, scene.tags = frame.label, ",".join(frame.tags)
         scenes.append(scene)
     return scenes
+
+
+def framed(sd, data: DataRecipe, n: int, jitter_seed: int, rng: np.random.Generator) -> tuple:
+    """The SD map the model sees (``sd`` jittered as the recipe says) and ``n`` frames on ``sd`` in the
+    recipe's mix, none on a road the jitter dropped."""
+    from cmtool.data.frames import FrameSampler
+    from cmtool.data.sd_jitter import apply_jitter
+
+    control = apply_jitter(sd, data.sd_jitter, jitter_seed) if data.sd_jitter.enabled else sd
+    kept = {r.id for r in control.roads}
+    roads = {k for k, r in enumerate(sd.roads) if r.id in kept}
+    frames = FrameSampler(sd, data.frame_m).sample(n, rng, data.frame_mix.as_dict(), data.min_pose_spacing_m,
+                                                   roads=roads)
+    return control, frames
 
 
 def pack_scenes(scenes: list[Scene]) -> dict[str, np.ndarray]:

@@ -14,9 +14,9 @@ from pathlib import Path
 
 import numpy as np
 
+from cmtool.data.cache import framed
 from cmtool.data.frames import SHARE_ROWS, STAT_ROWS, Frame, FrameSampler, frame_stats, read_sd_source
 from cmtool.data.sd_derive import derive_sd
-from cmtool.data.sd_jitter import apply_jitter
 from cmtool.data.sd_raster import rasterize_sd
 from cmtool.data.sdmap import SDMap
 from cmtool.errors import CmtoolError
@@ -67,12 +67,9 @@ def recipe_columns(recipe_path, maps: int, seed: int = 0) -> list[Column]:
         for m in range(maps):
             map_seed = data.seed * 100_000 + m
             sd = derive_sd(generate_city(city, seed=map_seed, extent=data.extent))
-            rng = np.random.default_rng([seed, c, m])
-            control = apply_jitter(sd, data.sd_jitter, map_seed * 10_000 + c) if data.sd_jitter.enabled else sd
-            kept = {r.id for r in control.roads}
-            col.frames.append(FrameSampler(sd, data.frame_m).sample(
-                data.scenes_per_map, rng, data.frame_mix.as_dict(), data.min_pose_spacing_m,
-                roads={k for k, r in enumerate(sd.roads) if r.id in kept}))
+            control, frames = framed(sd, data, data.scenes_per_map, map_seed * 10_000 + c,
+                                     np.random.default_rng([seed, c, m]))
+            col.frames.append(frames)
             col.maps.append(control)
         columns.append(col)
     columns.append(Column("derived", [sd for col in columns for sd in col.maps],
