@@ -7,6 +7,7 @@ bad option) ends with one ``Error: ...`` line on stderr and a non-zero exit, nev
 
 from __future__ import annotations
 
+import os
 import sys
 from pathlib import Path
 
@@ -356,12 +357,14 @@ def show(data_dir, n, png, rrd, split, seed):
 
 
 @cli.command("train")
-@click.argument("stage", type=click.Choice(["rvae", "decoder", "dit", "controlnet"]))
+@click.argument("stage", type=click.Choice(["rvae", "decoder", "dit", "controlnet", "pipeline"]))
 @click.option("--recipe", required=True, type=click.Path(path_type=Path), help="Recipe TOML (see recipes/).")
 @click.option("--out", type=click.Path(file_okay=False, path_type=Path), help="Run folder [default: the recipe's train.out].")
-@click.option("--resume", is_flag=True, help="Continue from the run folder's newest checkpoint.")
+@click.option("--resume", is_flag=True, help="Continue from the run folder's newest checkpoint (pipeline: from where "
+              "it stopped, finished stages skipped).")
 @click.option("--data", "data_dir", type=click.Path(file_okay=False, path_type=Path),
-              help="Override train.data (the dataset cache).")
+              help="Override train.data (the dataset cache); pipeline: a dataset built before, instead of its data "
+                   "stage.")
 @click.option("--steps", type=click.IntRange(min=1), help="Override train.steps (e.g. for a quick try).")
 @click.option("--precision", type=click.Choice(PRECISIONS),
               help="Override train.precision: bf16 autocast pays on CUDA and on CPUs with native bf16 "
@@ -371,6 +374,8 @@ def show(data_dir, n, png, rrd, split, seed):
 def train_cmd(stage, recipe, out, resume, data_dir, steps, precision, device, quiet):
     """Train one stage: rvae (stage 1), dit (stage 2) or controlnet (stage 3); decoder trains a
     finished RVAE's decoder further on its frozen encoder's latents (DiTs trained on them stay valid).
+    pipeline runs the whole chain of a pipeline recipe (recipes/tiny-cpu/pipeline.toml): data, RVAE,
+    decoder, DiT, ControlMap, packed weights and their evaluation, each stage into a folder of --out.
 
     Multi-GPU / multi-node: launch with torchrun, e.g.
     torchrun --nproc_per_node 8 -m cmtool train dit --recipe recipes/paper/dit-b.toml
@@ -378,6 +383,9 @@ def train_cmd(stage, recipe, out, resume, data_dir, steps, precision, device, qu
     from cmtool.recipe import load_recipe
 
     rec = load_recipe(recipe)
+    if stage == "pipeline":
+        _train_pipeline(rec, out, resume, data_dir, steps, precision, device, quiet)
+        return
     if rec.train.stage and rec.train.stage != stage:
         raise CmtoolError(f"{recipe}: a recipe for the {rec.train.stage} stage, not {stage}")
     if steps is not None:
@@ -395,6 +403,28 @@ def train_cmd(stage, recipe, out, resume, data_dir, steps, precision, device, qu
 
     final = train(STAGES[stage](rec, _device(device)), run_dir, resume=resume, progress=not quiet)
     click.echo(f"checkpoint: {final}")
+
+
+def _train_pipeline(rec, out, resume, data_dir, steps, precision, device, quiet):
+    from cmtool.train.pipeline import Pipeline, summary
+
+    if not rec.pipeline.rvae:
+        raise CmtoolError(f"{rec.path}: no [pipeline] table; `train pipeline` takes a pipeline recipe "
+                          "(recipes/tiny-cpu/pipeline.toml)")
+    if steps is not None:
+        raise CmtoolError("--steps: set train.steps in the stage recipes a pipeline names")
+    if out is None:
+        raise CmtoolError("train pipeline: give --out, the folder of its stages")
+    if (out / "pipeline.json").exists() and not resume and os.environ.get("RANK", "0") == "0":
+        raise CmtoolError(f"{out}: holds a pipeline run; pass --resume to continue it or choose another --out")
+    if data_dir is not None and not (data_dir / "manifest.json").is_file():
+        raise CmtoolError(f"--data {data_dir}: not a dataset (no manifest.json); build one with `cmtool data build`")
+    if precision is not None:
+        rec.pipeline.precision = precision
+    report = Pipeline(rec, out, _device(device), progress=not quiet, data_dir=data_dir).run()
+    click.echo(summary(report))
+    if (out / "eval" / "summary.md").is_file():
+        click.echo(f"evaluation: {out / 'eval' / 'summary.md'}; weights: {out / 'weights'}")
 
 
 def _origin(value: str) -> tuple[float, float]:
@@ -790,15 +820,16 @@ def ablate_city_swap(ckpt, data_dir, split, n, steps, sampler, smooth, out, devi
                    "without one, such as the shipped decoder (its encoder does not ship; README: \"Training the "
                    "shipped models further\" recreates it).")
 @click.option("--data", "data_dir", required=True, type=click.Path(file_okay=False, path_type=Path),
-              help="Dataset cache (every split is measured).")
+              help="Dataset cache.")
+@click.option("--split", "splits", multiple=True, help="Split to measure (repeatable) [default: every split].")
 @click.option("--n", default=64, show_default=True, type=click.IntRange(min=1), help="Scenes per split and city.")
 @click.option("--tol", default=1.0, show_default=True, type=click.FloatRange(min=0, min_open=True),
               help="Lane F1 tolerance (m).")
 @click.option("--out", required=True, type=click.Path(file_okay=False, path_type=Path), help="Output folder.")
 @click.option("--device", help="torch device [default: cuda when available, else cpu].")
 @click.option("--quiet", is_flag=True, help="No progress line.")
-def ablate_rvae(rvae_path, encoder_path, data_dir, n, tol, out, device, quiet):
-    """What the RVAE keeps: lane F1 (at --tol m and at 0.5 m), successor precision and recall (lanes
+def ablate_rvae(rvae_path, encoder_path, data_dir, splits, n, tol, out, device, quiet):
+    """What the RVAE keeps: lane F1 (at --tol m and at 0.5 m), successor precision, recall and F1 (lanes
     matched within --tol m) and validity of its reconstructions, and the driving side of the ground
     truth and of the reconstructions, per split and city (the ceiling of the city swap)."""
     from cmtool import checkpoint as ckpt
@@ -823,7 +854,8 @@ def ablate_rvae(rvae_path, encoder_path, data_dir, n, tol, out, device, quiet):
     elif decoder.trunk is None:
         raise CmtoolError(f"{path}: a decoder without its encoder (the shipped weights hold none); give --encoder "
                           "RUN, the RVAE run it was trained on")
-    reconstruction_report(encoder, decoder, data_dir, dev, n, out, progress=not quiet, tol=tol)
+    reconstruction_report(encoder, decoder, data_dir, dev, n, out, progress=not quiet, tol=tol,
+                          splits=list(splits) or None)
     click.echo((out / "ablate_rvae.md").read_text().rstrip())
     click.echo(f"wrote {out / 'ablate_rvae.md'}, {out / 'ablate_rvae.json'}")
 

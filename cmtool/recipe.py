@@ -31,6 +31,7 @@ from cmtool.data.importers import FORMATS as IMPORT_FORMATS
 from cmtool.data.sd_jitter import SDJitter
 from cmtool.errors import CmtoolError
 from cmtool.model.config import ControlConfig, DiTConfig, RVAEConfig, RVAELossConfig, ScheduleConfig
+from cmtool.sample import SAMPLERS
 from cmtool.train import PRECISIONS
 
 if sys.version_info >= (3, 11):
@@ -127,6 +128,8 @@ class TrainRecipe:
     #                      driving on the other side (teaches the label the driving side; never dropped)
     sd_shift_m: float = 0.0  # controlnet: move each SD raster sideways by up to this many metres (uniform, whole
     #                          pixels), so that where the road lies in the frame does not give the driving side away
+    min_snr_gamma: float = 0.0  # dit, controlnet: Min-SNR-gamma loss weights min(SNR, gamma) / SNR (Hang et al.,
+    #                             ICCV 2023, use 5): nearly clean timesteps (SNR > gamma) count less; 0 = plain MSE
     ckpt_every: int = 500
     keep: int = 2  # checkpoints kept in the run folder
     log_every: int = 10  # steps between scalar logs in the Rerun recording
@@ -141,13 +144,16 @@ class TrainRecipe:
         for key in ("steps", "batch_size", "lr", "ckpt_every", "keep", "log_every", "preview_steps"):
             if getattr(self, key) <= 0:
                 raise CmtoolError(f"{where}: train.{key}: must be positive, got {getattr(self, key)}")
-        for key in ("warmup_steps", "weight_decay", "grad_clip", "preview_every", "workers", "sd_shift_m"):
+        for key in ("warmup_steps", "weight_decay", "grad_clip", "preview_every", "workers", "sd_shift_m",
+                    "min_snr_gamma"):
             if getattr(self, key) < 0:
                 raise CmtoolError(f"{where}: train.{key}: must not be negative, got {getattr(self, key)}")
         if self.stage not in ("", "rvae", "decoder", "dit", "controlnet"):
             raise CmtoolError(f"{where}: train.stage: expected rvae, decoder, dit or controlnet, got {self.stage!r}")
         if self.mirror > 0 and self.stage not in ("", "dit", "controlnet"):
             raise CmtoolError(f"{where}: train.mirror: mirrored scenes are a dit- and controlnet-stage option")
+        if self.min_snr_gamma and self.stage not in ("", "dit", "controlnet"):
+            raise CmtoolError(f"{where}: train.min_snr_gamma: a dit- and controlnet-stage option (diffusion loss)")
         if self.sd_shift_m and self.stage not in ("", "controlnet"):
             raise CmtoolError(f"{where}: train.sd_shift_m: SD rasters are a controlnet-stage input")
         if self.branch_from and self.stage not in ("", "controlnet"):
@@ -167,6 +173,47 @@ class TrainRecipe:
 
 
 @dataclass
+class PipelineEval:
+    """``[pipeline.eval]``: how ``cmtool train pipeline`` evaluates the packed weights (as ``cmtool eval``)."""
+
+    split: str = "test"
+    n: int = 512
+    cfg: float = 1.0
+    steps: int = 50
+    sampler: str = "ddpm"
+    seed: int = 0
+    batch: int = 64
+    features: bool = False  # the ResNet-50 recall metrics (slow on a CPU)
+    rrd_samples: int = 16
+
+
+@dataclass
+class PipelineRecipe:
+    """``[pipeline]``: the recipe of every stage of ``cmtool train pipeline`` (paths relative to this file)."""
+
+    data: str = ""
+    rvae: str = ""
+    decoder: str = ""  # optional: the RVAE's decoder trained further ("" = none)
+    dit: str = ""
+    controlnet: str = ""
+    precision: str = ""  # of every training stage ("" = each recipe's own train.precision)
+    eval: PipelineEval = field(default_factory=PipelineEval)
+
+    def check(self, where: str) -> None:
+        if self.precision and self.precision not in PRECISIONS:
+            raise CmtoolError(f"{where}: pipeline.precision: expected one of {', '.join(PRECISIONS)} or \"\", "
+                              f"got {self.precision!r}")
+        for key in ("n", "steps", "batch"):
+            if getattr(self.eval, key) <= 0:
+                raise CmtoolError(f"{where}: pipeline.eval.{key}: must be positive, got {getattr(self.eval, key)}")
+        if self.eval.sampler not in SAMPLERS:
+            raise CmtoolError(f"{where}: pipeline.eval.sampler: expected one of {', '.join(SAMPLERS)}, "
+                              f"got {self.eval.sampler!r}")
+        if not (math.isfinite(self.eval.cfg) and self.eval.cfg >= 0):
+            raise CmtoolError(f"{where}: pipeline.eval.cfg: must be a finite number >= 0, got {self.eval.cfg}")
+
+
+@dataclass
 class Recipe:
     """A whole recipe: one section per stage."""
 
@@ -177,6 +224,7 @@ class Recipe:
     dit: DiTConfig = field(default_factory=DiTConfig)
     control: ControlConfig = field(default_factory=ControlConfig)
     diffusion: ScheduleConfig = field(default_factory=ScheduleConfig)
+    pipeline: PipelineRecipe = field(default_factory=PipelineRecipe)
     path: Path | None = field(default=None, metadata={"toml": False})  # the file it was read from
 
     def to_dict(self) -> dict:
@@ -213,6 +261,7 @@ def load_recipe(path) -> Recipe:
     recipe.path = path
     recipe.data.check(str(path))
     recipe.train.check(str(path))
+    recipe.pipeline.check(str(path))
     recipe.real_map_files()
     return recipe
 

@@ -38,6 +38,16 @@ Y = torch.tensor([0, 3])
 CTRL = torch.rand(2, 3, 128, 128, generator=gen(9))
 
 
+def test_min_snr_weights_count_nearly_clean_steps_less():
+    t = torch.tensor([0, 100, 500, 999])
+    w = SCHEDULE.min_snr_weight(t, 5.0)
+    ab = SCHEDULE.alphas_cumprod[t]
+    snr = ab / (1 - ab)
+    assert torch.allclose(w, (torch.minimum(snr, torch.tensor(5.0)) / snr).float())
+    assert w[0] < 0.01 and w[-1] == 1.0  # t = 0: SNR about 1e4; t = 999: SNR far below 5
+    assert torch.all(w[1:] >= w[:-1])
+
+
 def test_linear_and_cosine_schedules():
     assert SCHEDULE.betas[0].item() == pytest.approx(1e-4) and SCHEDULE.betas[-1].item() == pytest.approx(0.02)
     for schedule in (SCHEDULE, NoiseSchedule(ScheduleConfig(kind="cosine"))):

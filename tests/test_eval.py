@@ -161,6 +161,8 @@ def test_ablate_rvae_scores_reconstructions_and_the_driving_side(sampling_ckpt, 
     assert all(r["scenes"] == 4 and 0.0 <= r["f1"] <= 1.0 for r in rows) and "| f1 |" in out
     assert all(r["f1_0.5m"] <= r["f1"] and 0.0 <= r["validity"] <= 1.0 for r in rows)
     assert all(r["succ_recall"] is None or 0.0 <= r["succ_recall"] <= 1.0 for r in rows) and "succ_precision" in out
+    assert all(min(r["succ_precision"], r["succ_recall"]) <= r["succ_f1"] <= max(r["succ_precision"], r["succ_recall"])
+               for r in rows if r["succ_precision"] is not None and r["succ_recall"] is not None)
     truth = {r["city"]: r["left_hand_oncoming_truth"] for r in rows}
     assert truth["SGP"] > 0.8 and truth["LAV"] < 0.2 and truth["BOS"] < 0.2  # each city's own side
     # the RVAE's own encoder is the default
@@ -172,6 +174,11 @@ def test_ablate_rvae_scores_reconstructions_and_the_driving_side(sampling_ckpt, 
     loose = json.loads((tmp_path / "t" / "ablate_rvae.json").read_text())
     assert loose["tol_m"] == 4.0 and all(l["f1"] >= r["f1"] for l, r in zip(loose["rows"], rows))
     assert any(l["f1"] > r["f1"] for l, r in zip(loose["rows"], rows))
+    # --split measures that split only, with the same numbers; an unknown one is named
+    assert in_process(capsys, *rvae, *args, "--split", "test", "--out", tmp_path / "s")[0] == 0
+    assert json.loads((tmp_path / "s" / "ablate_rvae.json").read_text())["rows"] == rows[-1:]
+    code, _, err = in_process(capsys, *rvae, *args, "--split", "val", "--out", tmp_path / "s")
+    assert code == 1 and "no split val (it has train, test)" in err
     # a packed decoder holds no encoder: it needs --encoder, and cannot be one
     assert in_process(capsys, "pack", "--ckpt", sampling_ckpt["controlmap"], "--out", tmp_path / "w")[0] == 0
     packed = tmp_path / "w" / "rvae"

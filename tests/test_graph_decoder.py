@@ -9,7 +9,7 @@ from cmtool.errors import CmtoolError
 from cmtool.model.config import RVAEConfig, RVAELossConfig
 from cmtool.model.graph import sample_points
 from cmtool.model.rvae import RVAE, decoded_elements
-from cmtool.model.rvae_loss import direction_loss, rvae_loss, successor_loss
+from cmtool.model.rvae_loss import denoise_input, denoise_loss, direction_loss, rvae_loss, successor_loss
 from cmtool.train.data import vector_targets
 
 SMALL = dict(d_model=64, decoder_layers=2, heads=4, ffn=128, dropout=0.0, decoder="graph")
@@ -47,6 +47,19 @@ def test_graph_decoder_refuses_control_points():
         RVAE(RVAEConfig(decoder="mlp"))
 
 
+def test_points_stay_float32_under_bf16_autocast():
+    """bf16's 8-bit mantissa made the refined points jagged (docs/rvae-decoders.md): they stay float32."""
+    torch.manual_seed(0)
+    model = RVAE(RVAEConfig(**SMALL))
+    for head in model.graph.offsets:
+        torch.nn.init.normal_(head[-1].weight, std=0.05)
+    with torch.autocast("cpu", dtype=torch.bfloat16):
+        out, _, _ = model(torch.rand(1, 6, 128, 128), sample=False, aux=True)
+    assert out["lines"].dtype == torch.float32 and out["aux"][0]["lines"].dtype == torch.float32
+    for lines in (out["lines"], out["aux"][0]["lines"]):  # not rounded to what bf16 holds (0.06 m at 16 m)
+        assert (lines.to(torch.bfloat16).float() != lines).float().mean() > 0.9
+
+
 def test_successor_loss_on_matched_pairs():
     succ = torch.zeros(1, 3, 3, dtype=torch.bool)
     succ[0, 0, 1] = succ[0, 1, 2] = True  # targets: 0 -> 1 -> 2
@@ -77,10 +90,8 @@ def test_successor_targets_from_the_scene_edges():
     assert first.nonzero().tolist() == [[0, 1], [2, 3]] and second.nonzero().tolist() == [[1, 3]]
 
 
-def test_loss_has_every_term_and_trains_every_part():
-    torch.manual_seed(0)
-    model = RVAE(RVAEConfig(**SMALL))
-    decoded, mean, logvar = model(torch.rand(2, 6, 128, 128), aux=True)
+def _batch():
+    """Two scenes of three lines along x (0 flows into 2), no lights."""
     lines = torch.zeros(2, 50, 20, 2)
     lines[:, :3] = torch.stack([torch.linspace(-30, 30, 20), torch.zeros(20)], dim=-1)
     lines[:, 1, :, 1] = 3.5
@@ -88,16 +99,52 @@ def test_loss_has_every_term_and_trains_every_part():
     mask[:, :3] = True
     succ = torch.zeros(2, 50, 50, dtype=torch.bool)
     succ[:, 0, 2] = True
-    batch = {"lines": lines, "line_mask": mask, "green": torch.zeros(2, 10, 20, 2), "red": torch.zeros(2, 10, 20, 2),
-             "green_mask": torch.zeros(2, 10, dtype=torch.bool), "red_mask": torch.zeros(2, 10, dtype=torch.bool),
-             "succ": succ}
-    cfg = RVAELossConfig(aux_weight=1.0, direction_weight=2.0, successor_weight=5.0)
+    return {"lines": lines, "line_mask": mask, "green": torch.zeros(2, 10, 20, 2), "red": torch.zeros(2, 10, 20, 2),
+            "green_mask": torch.zeros(2, 10, dtype=torch.bool), "red_mask": torch.zeros(2, 10, dtype=torch.bool),
+            "succ": succ}
+
+
+def test_loss_has_every_term_and_trains_every_part():
+    torch.manual_seed(0)
+    model = RVAE(RVAEConfig(**SMALL))
+    batch = _batch()
+    cfg = RVAELossConfig(aux_weight=1.0, direction_weight=2.0, successor_weight=5.0, denoise_weight=1.0)
+    decoded, mean, logvar = model(torch.rand(2, 6, 128, 128), aux=True, denoise=denoise_input(batch, cfg))
     total, parts = rvae_loss(decoded, mean, logvar, batch, cfg)
-    assert {"l1/lines", "exist/lines", "dir/lines", "succ/lines", "aux", "kl"} <= set(parts)
-    assert all(np.isfinite(v) for v in parts.values()) and parts["succ/lines"] > 0
+    assert {"l1/lines", "exist/lines", "dir/lines", "succ/lines", "aux", "denoise", "kl"} <= set(parts)
+    assert all(np.isfinite(v) for v in parts.values()) and parts["succ/lines"] > 0 and parts["denoise"] > 0
     total.backward()
     unused = [k for k, p in model.named_parameters() if p.grad is None]
     assert unused == []
+
+
+def test_denoising_queries_are_hidden_from_the_matched_ones():
+    torch.manual_seed(0)
+    model = RVAE(RVAEConfig(**SMALL)).eval()
+    z = torch.randn(2, 64, 8, 8)
+    batch = _batch()
+    plain = model.decode(z, aux=True)
+    with_dn = model.decode(z, aux=True, denoise=denoise_input(batch, RVAELossConfig(denoise_weight=1.0)))
+    for key in ("lines", "lines_logit", "green", "succ_logit"):
+        assert torch.allclose(plain[key], with_dn[key], atol=1e-5), key
+    assert len(with_dn["denoise"]) == 2 and with_dn["denoise"][-1]["lines"].shape == (2, 50, 20, 2)
+    assert with_dn["denoise"][-1]["succ_logit"].shape == (2, 50, 50)
+    with pytest.raises(CmtoolError, match="denoise"):
+        RVAE(RVAEConfig(d_model=64, decoder_layers=1, heads=4, ffn=128)).decode(z, denoise=batch["lines"])
+
+
+def test_denoise_loss_is_zero_only_for_the_true_lines():
+    batch = _batch()
+    cfg = RVAELossConfig(direction_weight=2.0, successor_weight=5.0, denoise_weight=1.0)
+    succ_logit = torch.where(batch["succ"], 30.0, -30.0)
+    exact = [{"lines": batch["lines"].clone(), "succ_logit": succ_logit}]
+    assert denoise_loss(exact, batch, cfg) < 1e-6
+    shifted = [{"lines": batch["lines"] + torch.tensor([0.0, 1.0]), "succ_logit": succ_logit}]
+    assert denoise_loss(shifted, batch, cfg) == pytest.approx(64.0 * 6 * (1.0 / 32.0) / 100, rel=1e-4)  # 6 lines, 1 m off, 100 slots
+    # padded slots (mask False) are never scored, whatever they hold
+    padded = [{"lines": torch.where(batch["line_mask"][..., None, None], batch["lines"], 99.0),
+               "succ_logit": succ_logit}]
+    assert denoise_loss(padded, batch, cfg) < 1e-6
 
 
 def test_decoded_successors_are_pairs_of_kept_lines():

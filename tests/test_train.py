@@ -50,7 +50,8 @@ def runs(tmp_path_factory, tiny_data):
     out = {"root": root, "data": data}
     for stage, extra in (("rvae", {"data": str(data)}),
                          ("dit", {"rvae": str(root / "rvae")}),
-                         ("controlnet", {"data": str(data), "rvae": str(root / "rvae"), "dit": str(root / "dit")})):
+                         ("controlnet", {"data": str(data), "rvae": str(root / "rvae"), "dit": str(root / "dit"),
+                                         "min_snr_gamma": 5.0})):
         recipe = write_recipe(root / f"{stage}.toml", stage, 4, **extra)
         result = cli("train", stage, "--recipe", recipe, "--out", root / stage, "--quiet")
         assert result.returncode == 0, result.stderr
@@ -92,6 +93,7 @@ def test_training_recordings_hold_scalars_and_previews(runs):
     assert steps["/train/preview/sample_0/truth/hd/lanes"] == {4}
     steps = recording_steps(runs["controlnet"] / "train.rrd")
     assert steps["/train/loss"] == {1, 2, 3, 4}
+    assert steps["/train/mse"] == {1, 2, 3, 4}  # train.min_snr_gamma: the weighted loss, and the plain MSE beside it
     assert steps["/train/preview/sample_0/control/sd"] == {4}
     assert steps["/train/preview/sample_0/generated/hd/lanes"] == {4}
 
@@ -383,6 +385,9 @@ def test_user_errors_are_one_line(runs, tmp_path):
         (["info", tmp_path], "not a checkpoint"),
         (["train", "rvae", "--recipe", write_recipe(tmp_path / "m.toml", "rvae", 2, data=str(runs["data"]), mirror=0.5),
           "--out", tmp_path / "m"], "dit- and controlnet-stage option"),
+        (["train", "rvae", "--recipe", write_recipe(tmp_path / "s.toml", "rvae", 2, data=str(runs["data"]),
+                                                     min_snr_gamma=5.0),
+          "--out", tmp_path / "s"], "train.min_snr_gamma: a dit- and controlnet-stage option"),
         (["train", "dit", "--recipe", write_recipe(tmp_path / "b.toml", "dit", 2, rvae=str(root / "rvae"),
                                                     branch_from=str(runs["controlnet"])),
           "--out", tmp_path / "b"], "controlnet-stage option"),

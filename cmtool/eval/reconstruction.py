@@ -19,10 +19,11 @@ from scipy.optimize import linear_sum_assignment
 from cmtool.data.cache import SceneDataset, load_dataset, load_manifest
 from cmtool.data.jsonio import write_json, write_text_atomic
 from cmtool.data.lanegraph import LaneGraph, infer_successors, join_successors
+from cmtool.errors import CmtoolError
 from cmtool.eval.geometric import driving_side, oncoming_side
 from cmtool.eval.lanes import lane_scores
-from cmtool.eval.validity import check
 from cmtool.eval.metrics import drives_on, markdown_table, weighted_mean
+from cmtool.eval.validity import check
 from cmtool.model.rvae import RVAE, decoded_elements
 from cmtool.progress import Progress
 from cmtool.train.data import SceneRasters
@@ -62,15 +63,19 @@ def reconstruction_scores(rvae: RVAE, data_dir, split: str, device, n: int, tol:
 
 
 def reconstruction_report(encoder: RVAE, decoder: RVAE, data_dir, device, n: int, out: Path,
-                          progress: bool = True, tol: float = TOL_M) -> list[dict]:
-    """Per split and city, ``n`` scenes spread over the city's: lane F1 at ``tol`` metres and at 0.5 m
-    of the reconstructions, successor precision and recall (:func:`successor_counts`, pooled over the
-    scenes), the mean validity score (``cmtool validate``), and the left-hand share (along two-way SD
-    roads; by oncoming lanes) of the ground truth and of the reconstructions. Writes
-    ``ablate_rvae.json`` and ``ablate_rvae.md`` to ``out``."""
+                          progress: bool = True, tol: float = TOL_M, splits: list[str] | None = None) -> list[dict]:
+    """Per split (``splits``, default every one) and city, ``n`` scenes spread over the city's: lane F1 at
+    ``tol`` metres and at 0.5 m of the reconstructions, successor precision, recall and F1
+    (:func:`successor_counts`, pooled over the scenes), the mean validity score (``cmtool validate``),
+    and the left-hand share (along two-way SD roads; by oncoming lanes) of the ground truth and of the
+    reconstructions. Writes ``ablate_rvae.json`` and ``ablate_rvae.md`` to ``out``."""
     rows = []
     parts = []
-    for split in load_manifest(data_dir)["splits"]:
+    available = list(load_manifest(data_dir)["splits"])
+    unknown = sorted(set(splits or []) - set(available))
+    if unknown:
+        raise CmtoolError(f"{data_dir}: no split {', '.join(unknown)} (it has {', '.join(available)})")
+    for split in splits or available:
         scenes = load_dataset(data_dir, split)
         for city in sorted(set(scenes.arrays["city"].tolist())):
             parts.append((split, scenes, city))
@@ -89,6 +94,7 @@ def reconstruction_report(encoder: RVAE, decoder: RVAE, data_dir, device, n: int
             rows.append({"split": split, "city": city, "drives_on": drives_on(city), "scenes": len(idx),
                          "f1": float(np.mean(f1)), f"f1_{FINE_M:g}m": float(np.mean(fine)),
                          "succ_precision": _ratio(links[0], links[1]), "succ_recall": _ratio(links[0], links[2]),
+                         "succ_f1": _ratio(2 * links[0], links[1] + links[2]),
                          "validity": float(np.mean([check(g).score for g in graphs])),
                          "left_hand_truth": _left(truth, sds), "left_hand_recon": _left(recon, sds),
                          "left_hand_oncoming_truth": _left(truth), "left_hand_oncoming_recon": _left(recon)})

@@ -47,6 +47,8 @@ class RVAELossConfig:
     aux_weight: float = 0.0  # weight of the same loss on each earlier decoder layer (0: final layer only)
     direction_weight: float = 0.0  # matched lines' segment directions, 1 - cosine (MapTR's edge-direction loss)
     successor_weight: float = 0.0  # successor BCE between matched lines (graph decoder)
+    denoise_weight: float = 0.0  # graph decoder: weight of the denoising queries' loss (0: none)
+    denoise_m: float = 2.0  # noise of the denoising queries' starts: line shift sigma (points: half of it)
     frame_m: float = 64.0
 
 

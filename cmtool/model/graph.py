@@ -11,7 +11,11 @@ Ideas taken from MapTR (polyline queries, point and edge-direction losses) and D
   half-frame units; each layer samples the feature map at those points (bilinear), adds what it
   read to the query, runs self-attention among the queries and cross-attention to the latent tokens,
   and moves the points by a predicted offset (in atanh space; as in Deformable DETR, the points a
-  layer starts from are detached from the layer before); the offset heads start at zero;
+  layer starts from are detached from the layer before); the offset heads start at zero; the query
+  also gets an embedding of where its points are (DAB-DETR's positional queries);
+- in training, denoising queries (DN-DETR) start from noised copies of the true lines and learn to
+  return to them without matching, which gives every step a positive example per true line; the
+  queries that are matched cannot attend to them;
 - the successor head scores "lane i flows into lane j" from the two lanes' states and the gap
   between i's last and j's first point; it starts out linking lanes whose ends touch.
 """
@@ -46,6 +50,8 @@ class GraphDecoder(nn.Module):
             nn.Upsample(scale_factor=2, mode="bilinear"), nn.Conv2d(d, d, 3, padding=1), nn.GroupNorm(8, d), nn.GELU(),
             nn.Upsample(scale_factor=2, mode="bilinear"), nn.Conv2d(d, FEATURES, 3, padding=1))
         self.query = nn.Embedding(sum(self.sizes), d)
+        self.dn_query = nn.Parameter(torch.zeros(d))
+        self.where = nn.Sequential(nn.Linear(p * 2, d), nn.ReLU(), nn.Linear(d, d))
         self.first_points = nn.Linear(d, p * 2)
         self.read_points = nn.ModuleList(nn.Linear(p * FEATURES, d) for _ in range(cfg.decoder_layers))
         self.layers = nn.ModuleList(
@@ -62,23 +68,38 @@ class GraphDecoder(nn.Module):
         self.succ_gap = nn.Parameter(torch.tensor(_GAP_SCALE))
         self.succ_bias = nn.Parameter(torch.tensor(_GAP_BIAS))
 
-    def forward(self, z: Tensor, aux: bool = False) -> dict:
-        b, p = z.shape[0], self.cfg.num_points
+    def forward(self, z: Tensor, aux: bool = False, denoise: Tensor | None = None) -> dict:
+        """``denoise``: noised true lines (B, N, P, 2) in metres to start denoising queries from; their
+        outputs, one dict ``{"lines", "succ_logit"}`` per layer, come back under ``"denoise"``."""
+        b, p, q = z.shape[0], self.cfg.num_points, sum(self.sizes)
+        half = self.cfg.frame_m / 2.0
         memory = self.token_proj(z.flatten(2).transpose(1, 2)) + self.pos
         feat = self.features(z)
         h = self.query.weight.expand(b, -1, -1)
-        ref = torch.tanh(self.first_points(self.query.weight)).reshape(1, -1, p, 2).expand(b, -1, -1, -1)
+        # the points stay float32 under bf16 autocast: bf16's 8-bit mantissa makes the refinement jagged
+        ref = torch.tanh(self.first_points(self.query.weight).float()).reshape(1, -1, p, 2).expand(b, -1, -1, -1)
+        mask = None
+        if denoise is not None:
+            n = denoise.shape[1]
+            h = torch.cat([h, self.dn_query.expand(b, n, -1)], dim=1)
+            ref = torch.cat([ref, (denoise.float() / half).clamp(-0.98, 0.98)], dim=1)
+            mask = torch.zeros(q + n, q + n, dtype=torch.bool, device=z.device)
+            mask[:q, q:] = True  # the matched queries do not see the denoising ones (they hold the answer)
         outputs = []
         for layer, read, offset in zip(self.layers, self.read_points, self.offsets):
-            h = h + read(sample_points(feat, ref).flatten(2))
-            h = layer(h, memory)
+            h = h + read(sample_points(feat, ref).flatten(2)) + self.where(ref.flatten(2))
+            h = layer(h, memory, tgt_mask=mask)
             state = self.norm(h)
-            moved = torch.tanh(torch.atanh(ref.clamp(-0.999, 0.999)) + offset(state).reshape(b, -1, p, 2))
+            moved = torch.tanh(torch.atanh(ref.clamp(-0.999, 0.999)) + offset(state).float().reshape(b, -1, p, 2))
             outputs.append((state, moved))
             ref = moved.detach()  # the next layer refines these points without back-propagating into them
-        out = self._read(*outputs[-1])
+        out = self._read(*(t[:, :q] for t in outputs[-1]))
         if aux:
-            out["aux"] = [self._read(state, points) for state, points in outputs[:-1]]
+            out["aux"] = [self._read(state[:, :q], points[:, :q]) for state, points in outputs[:-1]]
+        if denoise is not None:
+            out["denoise"] = [{"lines": points[:, q:] * half,
+                               "succ_logit": self.successor_logits(state[:, q:], points[:, q:] * half)}
+                              for state, points in outputs]
         return out
 
     def _read(self, state: Tensor, ref: Tensor) -> dict[str, Tensor]:
@@ -101,5 +122,12 @@ class GraphDecoder(nn.Module):
 def sample_points(feat: Tensor, points: Tensor) -> Tensor:
     """Bilinear samples (B, Q, P, F) of a raster-aligned feature map (B, F, H, W) at ego-frame points
     (B, Q, P, 2) in half-frame units (x forward = up, y left = left)."""
-    grid = torch.stack([-points[..., 1], -points[..., 0]], dim=-1).to(feat.dtype)  # (column, row) in [-1, 1]
-    return F.grid_sample(feat, grid, align_corners=False).permute(0, 2, 3, 1)
+    grid = torch.stack([-points[..., 1], -points[..., 0]], dim=-1).float()  # (column, row) in [-1, 1]
+    return F.grid_sample(feat.float(), grid, align_corners=False).permute(0, 2, 3, 1)
+
+
+def noised_lines(lines: Tensor, sigma_m: float) -> Tensor:
+    """Denoising-query starts: each polyline (B, L, P, 2) moved as a whole by N(0, sigma_m) per axis and
+    each point by N(0, sigma_m / 2) more."""
+    shift = torch.randn_like(lines[:, :, :1]) * sigma_m
+    return lines + shift + torch.randn_like(lines) * (sigma_m / 2.0)

@@ -144,13 +144,16 @@ class RVAE(nn.Module):
         mean, logvar = self.to_latent(self.trunk(raster)).chunk(2, dim=1)
         return mean, logvar
 
-    def decode(self, z: Tensor, aux: bool = False) -> dict[str, Tensor]:
+    def decode(self, z: Tensor, aux: bool = False, denoise: Tensor | None = None) -> dict[str, Tensor]:
         """Latent (B, latent_channels, S, S) -> {"lines", "lines_logit", "green", "green_logit", "red", "red_logit"}.
 
         With ``aux``, also ``"aux"``: such dicts read from each earlier decoder layer, first to last. The
-        graph decoder adds ``"succ_logit"`` (B, L, L): line i flows into line j."""
+        graph decoder adds ``"succ_logit"`` (B, L, L): line i flows into line j, and with ``denoise``
+        (noised true lines, training only) the denoising queries' outputs (:class:`GraphDecoder`)."""
         if self.graph is not None:
-            return self.graph(z, aux)
+            return self.graph(z, aux, denoise)
+        if denoise is not None:
+            raise CmtoolError("rvae_loss.denoise_weight: denoising queries need rvae.decoder = \"graph\"")
         b = z.shape[0]
         memory = self.token_proj(z.flatten(2).transpose(1, 2)) + self.pos
         h = self.query.weight.expand(b, -1, -1)
@@ -173,14 +176,14 @@ class RVAE(nn.Module):
 
     def forward(self, raster: Tensor | None, sample: bool = True,
                 posterior: tuple[Tensor, Tensor] | None = None,
-                aux: bool = False) -> tuple[dict[str, Tensor], Tensor, Tensor]:
+                aux: bool = False, denoise: Tensor | None = None) -> tuple[dict[str, Tensor], Tensor, Tensor]:
         """Encode, take z (reparameterised sample, or the mean when ``sample`` is False), decode.
 
         ``posterior``: a (mean, logvar) pair to decode instead of encoding ``raster`` (decoder
-        fine-tuning on a latent cache); ``aux``: see :meth:`decode`."""
+        fine-tuning on a latent cache); ``aux``, ``denoise``: see :meth:`decode`."""
         mean, logvar = posterior if posterior is not None else self.encode(raster)
         z = mean + torch.exp(0.5 * logvar) * torch.randn_like(mean) if sample else mean
-        return self.decode(z, aux), mean, logvar
+        return self.decode(z, aux, denoise), mean, logvar
 
 
 def same_encoder(a: dict[str, Tensor], b: dict[str, Tensor]) -> bool:

@@ -13,7 +13,9 @@ outputs of each earlier decoder layer, each matched on its own (DETR's auxiliary
 ``direction_weight`` adds 1 - cosine between the matched lines' segment directions (MapTR's
 edge-direction loss), ``successor_weight`` the BCE of the graph decoder's successor logits between
 matched lines against the ground truth's successors (final layer only; pairs of a line with itself
-left out).
+left out). ``denoise_weight`` adds, for the graph decoder's denoising queries (started from noised
+true lines, :func:`denoise_input`), the same L1, direction and successor terms against the line each
+started from, every layer, no matching needed.
 
 Weights follow SLEDGE (line reconstruction 2.0 per metre, existence 5.0, KL 0.1); SLEDGE measures L1
 in metres, so its reconstruction weight is multiplied by the half frame (32 m) to keep the same
@@ -29,6 +31,7 @@ from scipy.optimize import linear_sum_assignment
 from torch import Tensor
 
 from cmtool.model.config import RVAELossConfig
+from cmtool.model.graph import noised_lines
 from cmtool.model.rvae import ELEMENTS
 
 MASK_KEYS = {"lines": "line_mask", "green": "green_mask", "red": "red_mask"}
@@ -107,6 +110,28 @@ def successor_loss(logits: Tensor, succ: Tensor, pairs: list[tuple[np.ndarray, n
     return sum(terms) / max(count, 1) if terms else logits.sum() * 0.0
 
 
+def denoise_input(batch: dict[str, Tensor], cfg: RVAELossConfig) -> Tensor | None:
+    """The denoising queries' noised starts for ``batch`` (None when ``cfg.denoise_weight`` is 0)."""
+    return noised_lines(batch["lines"], cfg.denoise_m) if cfg.denoise_weight > 0 else None
+
+
+def denoise_loss(outputs: list[dict[str, Tensor]], batch: dict[str, Tensor], cfg: RVAELossConfig) -> Tensor:
+    """Weighted L1 + direction + successor loss of the denoising queries of every layer, each against the
+    true line it started from (normalised per line slot, as the matched terms)."""
+    gt, valid = batch["lines"], batch["line_mask"].bool()
+    pairs = valid[:, :, None] & valid[:, None, :] & ~torch.eye(valid.shape[1], dtype=torch.bool, device=valid.device)
+    total = gt.new_zeros(())
+    for out in outputs:
+        pred = out["lines"].to(gt)
+        total = total + cfg.l1_weight * line_l1(pred[valid], gt[valid], cfg.frame_m).sum() / valid.numel()
+        if cfg.direction_weight > 0:
+            total = total + cfg.direction_weight * direction_loss(pred[valid], gt[valid]).sum() / valid.numel()
+        if cfg.successor_weight > 0 and pairs.any():
+            total = total + cfg.successor_weight * F.binary_cross_entropy_with_logits(
+                out["succ_logit"][pairs].float(), batch["succ"][pairs].float())
+    return total
+
+
 _WEIGHTS = {"l1/": "l1_weight", "exist/": "existence_weight", "dir/": "direction_weight", "succ/": "successor_weight"}
 
 
@@ -117,7 +142,8 @@ def _weighted(parts: dict[str, Tensor], cfg: RVAELossConfig) -> Tensor:
 def rvae_loss(decoded: dict[str, Tensor], mean: Tensor, logvar: Tensor, batch: dict[str, Tensor],
               cfg: RVAELossConfig) -> tuple[Tensor, dict[str, float]]:
     """Total loss and its unweighted parts ``{"l1/lines", "exist/lines", ..., "kl"}`` (and ``"aux"``, the
-    weighted loss of the earlier layers, when ``decoded`` holds them and ``cfg.aux_weight`` > 0) as floats.
+    weighted loss of the earlier layers, when ``decoded`` holds them and ``cfg.aux_weight`` > 0, and
+    ``"denoise"``, the weighted loss of the denoising queries, when ``decoded`` holds them) as floats.
 
     ``batch`` holds the targets: "lines" (B, L, P, 2) metres with "line_mask" (B, L) bool, and
     "green"/"green_mask", "red"/"red_mask" likewise, and "succ" (B, L, L) bool (line i flows into
@@ -131,4 +157,7 @@ def rvae_loss(decoded: dict[str, Tensor], mean: Tensor, logvar: Tensor, batch: d
     if cfg.aux_weight > 0 and decoded.get("aux"):
         parts["aux"] = cfg.aux_weight * sum(_weighted(set_loss(d, batch, cfg)[0], cfg) for d in decoded["aux"])
         total = total + parts["aux"]
+    if cfg.denoise_weight > 0 and "denoise" in decoded:
+        parts["denoise"] = cfg.denoise_weight * denoise_loss(decoded["denoise"], batch, cfg)
+        total = total + parts["denoise"]
     return total, {k: float(v.detach()) for k, v in parts.items()}

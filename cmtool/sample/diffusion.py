@@ -67,6 +67,13 @@ class NoiseSchedule:
         ab = self._at(self.alphas_cumprod, t, x0)
         return ab.sqrt() * x0 + (1 - ab).sqrt() * noise
 
+    def min_snr_weight(self, t: Tensor, gamma: float) -> Tensor:
+        """Min-SNR-gamma loss weights (Hang et al., ICCV 2023) of an epsilon-prediction loss at timesteps
+        ``t`` (B,): ``min(SNR_t, gamma) / SNR_t`` with ``SNR_t = abar_t / (1 - abar_t)``."""
+        ab = self.alphas_cumprod[t.cpu().long()]
+        snr = ab / (1 - ab)
+        return (snr.clamp(max=gamma) / snr).to(t.device, torch.float32)
+
     def predict_x0(self, x_t: Tensor, t: Tensor, eps: Tensor) -> Tensor:
         """Clean estimate from ``x_t`` and predicted noise ``eps`` at timesteps ``t`` (B,)."""
         ab = self._at(self.alphas_cumprod, t, x_t)

@@ -19,7 +19,7 @@ from cmtool.eval.reconstruction import reconstruction_scores
 from cmtool.model.controlmap import ControlMap, sd_tensor
 from cmtool.model.dit import DiT, DiTConfig
 from cmtool.model.rvae import RVAE, decoded_elements, same_encoder
-from cmtool.model.rvae_loss import rvae_loss
+from cmtool.model.rvae_loss import denoise_input, rvae_loss
 from cmtool.sample.diffusion import NoiseSchedule, sample
 from cmtool.train.data import CachedPosteriors, Latents, SceneRasters, shift_sideways
 from cmtool.train.latents import latent_dir, mirrored_latents, read_latents, write_latents
@@ -88,7 +88,8 @@ class RVAEStage(Stage):
         return SceneRasters(load_dataset(self.data_dir, "train"))
 
     def loss(self, model, batch):
-        decoded, mean, logvar = model(batch["raster"], aux=self.recipe.rvae_loss.aux_weight > 0)
+        cfg = self.recipe.rvae_loss
+        decoded, mean, logvar = model(batch["raster"], aux=cfg.aux_weight > 0, denoise=denoise_input(batch, cfg))
         return rvae_loss(decoded, mean, logvar, batch, self.recipe.rvae_loss)
 
     def config(self):
@@ -153,8 +154,9 @@ class DecoderStage(RVAEStage):
         return CachedPosteriors(lat.mean, lat.logvar, scenes)
 
     def loss(self, model, batch):
-        decoded, mean, logvar = model(None, posterior=(batch["mean"], batch["logvar"]),
-                                      aux=self.recipe.rvae_loss.aux_weight > 0)
+        cfg = self.recipe.rvae_loss
+        decoded, mean, logvar = model(None, posterior=(batch["mean"], batch["logvar"]), aux=cfg.aux_weight > 0,
+                                      denoise=denoise_input(batch, cfg))
         return rvae_loss(decoded, mean, logvar, batch, self.recipe.rvae_loss)
 
     def config(self):
@@ -235,7 +237,11 @@ class _DiffusionStage(Stage):
         drop = (torch.rand(len(y), device=y.device) < self.recipe.train.label_dropout) & ~keep_label
         y = torch.where(drop, torch.full_like(y, len(self.cities)), y)
         eps = model(self.schedule.q_sample(z, t, noise), t, y, **extra)
-        return F.mse_loss(eps.float(), noise), {}
+        gamma = self.recipe.train.min_snr_gamma
+        if not gamma:
+            return F.mse_loss(eps.float(), noise), {}
+        per_scene = (eps.float() - noise).square().flatten(1).mean(1)
+        return (self.schedule.min_snr_weight(t, gamma) * per_scene).mean(), {"mse": float(per_scene.mean())}
 
     def decode(self, latents: torch.Tensor) -> list[dict]:
         with torch.no_grad():
