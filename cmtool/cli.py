@@ -386,6 +386,8 @@ def train_cmd(stage, recipe, out, resume, data_dir, steps, precision, device, qu
     if stage == "pipeline":
         _train_pipeline(rec, out, resume, data_dir, steps, precision, device, quiet)
         return
+    if rec.pipeline.rvae:
+        raise CmtoolError(f"{recipe}: a pipeline recipe; run it with `cmtool train pipeline`")
     if rec.train.stage and rec.train.stage != stage:
         raise CmtoolError(f"{recipe}: a recipe for the {rec.train.stage} stage, not {stage}")
     if steps is not None:

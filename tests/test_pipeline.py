@@ -83,6 +83,8 @@ def test_finished_pipeline_is_skipped_and_a_changed_stage_refused(straight, tmp_
     # a recipe that is not a pipeline's, and a folder the pipeline did not make
     single = cli("train", "pipeline", "--recipe", run.parent / "recipes" / "dit.toml", "--out", tmp_path / "x")
     assert single.returncode == 1 and "no [pipeline] table" in single.stderr
+    whole = cli("train", "rvae", "--recipe", recipe, "--out", tmp_path / "x")
+    assert whole.returncode == 1 and "a pipeline recipe; run it with `cmtool train pipeline`" in whole.stderr
     (tmp_path / "y" / "rvae").mkdir(parents=True)
     (tmp_path / "y" / "rvae" / "notes.txt").write_text("mine")
     foreign = cli("train", "pipeline", "--recipe", recipe, "--out", tmp_path / "y", "--data", run / "data")
