@@ -31,7 +31,7 @@ from cmtool.data.importers import FORMATS as IMPORT_FORMATS
 from cmtool.data.sd_jitter import SDJitter
 from cmtool.errors import CmtoolError
 from cmtool.model.config import ControlConfig, DiTConfig, RVAEConfig, RVAELossConfig, ScheduleConfig
-from cmtool.sample import SAMPLERS
+from cmtool.sample import DEFAULT_SAMPLER, SAMPLERS
 from cmtool.train import PRECISIONS
 
 if sys.version_info >= (3, 11):
@@ -180,7 +180,7 @@ class PipelineEval:
     n: int = 512
     cfg: float = 1.0
     steps: int = 50
-    sampler: str = "ddpm"
+    sampler: str = DEFAULT_SAMPLER
     seed: int = 0
     batch: int = 64
     features: bool = False  # the ResNet-50 recall metrics (slow on a CPU)
