@@ -4,7 +4,9 @@ A *checkpoint directory* holds::
 
     config.json              format, kind (rvae | dit | controlmap), model config, city labels,
                              latent scale, recipe, step, training record
-    model.safetensors        the weights to use (EMA weights during training)
+    model.safetensors        the weights to use (EMA weights during training), or, split into
+                             files of a size limit, model-0000k-of-0000n.safetensors listed in
+                             model.safetensors.index.json (Hugging Face's layout)
     train_state.safetensors  raw weights + optimiser state, for ``--resume`` (training only)
     train_state.json         optimiser hyper-parameters and the step counter (training only)
 
@@ -31,7 +33,7 @@ from cmtool.data.jsonio import read_json
 from cmtool.errors import CmtoolError
 
 FORMAT = "cmtool.checkpoint"
-CONFIG, WEIGHTS = "config.json", "model.safetensors"
+CONFIG, WEIGHTS, INDEX = "config.json", "model.safetensors", "model.safetensors.index.json"
 STATE, STATE_META = "train_state.safetensors", "train_state.json"
 KINDS = ("rvae", "dit", "controlmap")
 DIT_RECORD = ("step", "steps", "training", "recipe_path", "init_from")  # how a DiT was trained (packs keep it)
@@ -72,15 +74,44 @@ def as_stored(config: dict) -> dict:
     return json.loads(json.dumps(config, default=_plain))
 
 
+def _write_shards(folder: Path, tensors: dict[str, torch.Tensor], max_bytes: int) -> None:
+    """The weights in files of at most ``max_bytes`` each (tensors in name order) and their index."""
+    groups: list[dict[str, torch.Tensor]] = [{}]
+    size = 0
+    for name in sorted(tensors):
+        t = tensors[name]
+        nbytes = t.numel() * t.element_size()
+        if nbytes + 4096 > max_bytes:  # room for the file's header
+            raise CmtoolError(f"weight {name} alone ({nbytes / 2**20:.1f} MiB) exceeds the file limit of "
+                              f"{max_bytes / 2**20:.1f} MiB")
+        if groups[-1] and size + nbytes + 256 * (len(groups[-1]) + 1) > max_bytes:
+            groups.append({})
+            size = 0
+        groups[-1][name] = t
+        size += nbytes
+    weight_map = {}
+    for k, group in enumerate(groups, 1):
+        name = f"model-{k:05d}-of-{len(groups):05d}.safetensors"
+        _write_tensors(folder / name, group)
+        weight_map.update({t: name for t in group})
+    total = sum(t.numel() * t.element_size() for t in tensors.values())
+    _write_json(folder / INDEX, {"metadata": {"total_size": total}, "weight_map": weight_map})
+
+
 def save_checkpoint(target: Path, config: dict, weights: dict[str, torch.Tensor],
-                    state: dict[str, torch.Tensor] | None = None, state_meta: dict | None = None) -> Path:
-    """Write a checkpoint directory at ``target`` atomically (replacing an existing one)."""
+                    state: dict[str, torch.Tensor] | None = None, state_meta: dict | None = None,
+                    max_file_bytes: int | None = None) -> Path:
+    """Write a checkpoint directory at ``target`` atomically (replacing an existing one); with
+    ``max_file_bytes``, weights larger than that are split into files of at most that size."""
     target = Path(target)
     target.parent.mkdir(parents=True, exist_ok=True)
     tmp = target.with_name(f".{target.name}.tmp-{os.getpid()}")
     shutil.rmtree(tmp, ignore_errors=True)
     tmp.mkdir()
-    _write_tensors(tmp / WEIGHTS, weights)
+    if max_file_bytes and sum(t.numel() * t.element_size() for t in weights.values()) + 4096 > max_file_bytes:
+        _write_shards(tmp, weights, max_file_bytes)
+    else:
+        _write_tensors(tmp / WEIGHTS, weights)
     if state is not None:
         _write_tensors(tmp / STATE, state)
         _write_json(tmp / STATE_META, state_meta or {})
@@ -106,7 +137,7 @@ def run_checkpoints(run_dir: Path) -> list[Path]:
     root = Path(run_dir) / "checkpoints"
     if not root.is_dir():
         return []
-    return sorted(p for p in root.glob("step_*") if (p / CONFIG).is_file() and (p / WEIGHTS).is_file())
+    return sorted(p for p in root.glob("step_*") if (p / CONFIG).is_file() and weight_files(p))
 
 
 def prune(run_dir: Path, keep: int) -> None:
@@ -121,14 +152,14 @@ def prune(run_dir: Path, keep: int) -> None:
 def resolve(path) -> Path:
     """A checkpoint directory, or a run directory -> its newest complete checkpoint."""
     path = Path(path)
-    if (path / CONFIG).is_file() and (path / WEIGHTS).is_file():
+    if (path / CONFIG).is_file() and weight_files(path):
         return path
     found = run_checkpoints(path)
     if found:
         return found[-1]
     if not path.exists():
         raise CmtoolError(f"{path}: no such checkpoint")
-    raise CmtoolError(f"{path}: not a checkpoint (no {CONFIG} + {WEIGHTS}, no checkpoints/step_*)")
+    raise CmtoolError(f"{path}: not a checkpoint (no {CONFIG} + {WEIGHTS} or {INDEX}, no checkpoints/step_*)")
 
 
 def file_sha256(path: Path) -> str:
@@ -139,10 +170,27 @@ def file_sha256(path: Path) -> str:
     return h.hexdigest()
 
 
+def weight_files(checkpoint: Path) -> list[Path]:
+    """The weight files of a checkpoint folder: ``model.safetensors``, or the files its index lists
+    (empty when it has neither, or when a listed file is missing)."""
+    checkpoint = Path(checkpoint)
+    if (checkpoint / WEIGHTS).is_file():
+        return [checkpoint / WEIGHTS]
+    if not (checkpoint / INDEX).is_file():
+        return []
+    try:
+        names = sorted(set(read_json(checkpoint / INDEX)["weight_map"].values()))
+    except (CmtoolError, KeyError, TypeError, AttributeError):
+        raise CmtoolError(f"{checkpoint / INDEX}: not a weight index (expected a weight_map of files)") from None
+    files = [checkpoint / n for n in names]
+    return files if all(f.is_file() for f in files) else []
+
+
 def weights_digest(*checkpoints: Path) -> str:
     """A short SHA-256 over the weights of checkpoint folders: tells their contents apart where
     their paths are the same (e.g. the shipped weights after a re-pack)."""
-    return hashlib.sha256("".join(file_sha256(Path(c) / WEIGHTS) for c in checkpoints).encode()).hexdigest()[:16]
+    return hashlib.sha256("".join(file_sha256(f) for c in checkpoints for f in weight_files(c)).encode()
+                          ).hexdigest()[:16]
 
 
 def linked(checkpoint: Path, target: str) -> Path:
@@ -169,17 +217,29 @@ def load_tensors(path: Path) -> dict[str, torch.Tensor]:
         raise CmtoolError(f"{path}: unreadable weights ({e})") from None
 
 
-def load_weights(module: torch.nn.Module, path: Path) -> None:
-    """Load a safetensors file into ``module``; a key or shape mismatch is a one-line error."""
-    tensors = load_tensors(path)
+def read_weights(checkpoint: Path) -> dict[str, torch.Tensor]:
+    """All weights of a checkpoint folder, from one file or from the files of its index."""
+    files = weight_files(checkpoint)
+    if not files:
+        raise CmtoolError(f"{checkpoint}: no weights ({WEIGHTS}, or {INDEX} and every file it lists)")
+    tensors = {}
+    for f in files:
+        tensors.update(load_tensors(f))
+    return tensors
+
+
+def load_weights(module: torch.nn.Module, checkpoint: Path) -> None:
+    """Load a checkpoint folder's weights into ``module``; a key or shape mismatch is a one-line error."""
+    tensors = read_weights(checkpoint)
     own = module.state_dict()
     missing, unexpected = sorted(set(own) - set(tensors)), sorted(set(tensors) - set(own))
     if missing or unexpected:
         what = f"missing {missing[:3]}" if missing else f"unexpected {unexpected[:3]}"
-        raise CmtoolError(f"{path}: weights do not match the model in its config ({what})")
+        raise CmtoolError(f"{checkpoint}: weights do not match the model in its config ({what})")
     for k, v in tensors.items():
         if v.shape != own[k].shape:
-            raise CmtoolError(f"{path}: weight {k} has shape {tuple(v.shape)}, the model expects {tuple(own[k].shape)}")
+            raise CmtoolError(f"{checkpoint}: weight {k} has shape {tuple(v.shape)}, the model expects "
+                              f"{tuple(own[k].shape)}")
     module.load_state_dict({k: v.to(own[k].dtype) for k, v in tensors.items()})
 
 
@@ -205,5 +265,5 @@ def load_model(path, device="cpu") -> tuple[torch.nn.Module, dict]:
     path = resolve(path)
     config = load_config(path)
     model = build_model(config, str(path / CONFIG))
-    load_weights(model, path / WEIGHTS)
+    load_weights(model, path)
     return model.to(device).eval(), config

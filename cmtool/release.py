@@ -7,6 +7,9 @@
     rvae/         config.json + model.safetensors   the RVAE's decoder only (latent -> lanes), float16
     MANIFEST.json                                   SHA-256 and size of every file, where they came from
 
+Weights over 16 MiB are split into files of at most that size (``model-00001-of-00002.safetensors``
+... with ``model.safetensors.index.json``), so every file fits the limits of file hosts and copies.
+
 Each config keeps its stage's recipe and training record (the DiT's is kept in the ControlMap
 config as ``dit_training``), so ``cmtool info`` shows how the shipped models were made.
 :func:`verify` checks the files against the manifest.
@@ -24,6 +27,7 @@ from cmtool.model.rvae import ENCODER_PREFIXES, same_encoder
 
 BUNDLED = Path(__file__).parent / "weights"
 MANIFEST = "MANIFEST.json"
+MAX_FILE_BYTES = 16 * 2**20
 
 
 def bundled_checkpoint() -> Path:
@@ -56,16 +60,17 @@ def pack(controlmap, out: Path, rvae=None) -> dict:
             pass  # the DiT run is gone; its weights are inside the ControlMap anyway
 
     out = Path(out)
-    half = {k: v.half() if v.is_floating_point() else v for k, v in ckpt.load_tensors(src / ckpt.WEIGHTS).items()}
+    half = {k: v.half() if v.is_floating_point() else v for k, v in ckpt.read_weights(src).items()}
     cm_config = {k: v for k, v in config.items() if k not in ("format", "version")}
-    cm_config.update(rvae="../rvae", packed_from=str(src), dit_training=dit_training)
-    ckpt.save_checkpoint(out / "controlmap", cm_config, half)
+    cm_config.update(rvae="../rvae", packed_from=config.get("packed_from", str(src)),
+                     dit_training=config.get("dit_training", dit_training))
+    ckpt.save_checkpoint(out / "controlmap", cm_config, half, max_file_bytes=MAX_FILE_BYTES)
 
-    decoder = {k: v.half() for k, v in ckpt.load_tensors(rvae_src / ckpt.WEIGHTS).items()
+    decoder = {k: v.half() for k, v in ckpt.read_weights(rvae_src).items()
                if not k.startswith(ENCODER_PREFIXES)}
     rvae_out = {k: v for k, v in rvae_config.items() if k not in ("format", "version")}
     rvae_out.update(weights="decoder", packed_from=rvae_config.get("packed_from", str(rvae_src)))
-    ckpt.save_checkpoint(out / "rvae", rvae_out, decoder)
+    ckpt.save_checkpoint(out / "rvae", rvae_out, decoder, max_file_bytes=MAX_FILE_BYTES)
 
     files = sorted(p for p in out.rglob("*") if p.is_file() and p.name != MANIFEST)
     manifest = {"files": {p.relative_to(out).as_posix(): {"sha256": ckpt.file_sha256(p), "bytes": p.stat().st_size}
@@ -83,7 +88,7 @@ def _same_latent_space(trained_on: Path, other: Path) -> Path:
     if b["kind"] != "rvae":
         raise CmtoolError(f"{other}: a {b['kind']} checkpoint; --rvae takes an RVAE")
     same = b.get("weights") == "decoder" or \
-        same_encoder(*(ckpt.load_tensors(p / ckpt.WEIGHTS) for p in (trained_on, other)))
+        same_encoder(*(ckpt.read_weights(p) for p in (trained_on, other)))
     if not same or a.get("latent_scale") != b.get("latent_scale"):
         raise CmtoolError(f"{other}: its encoder or latent scale differs from {trained_on}, the RVAE the ControlMap "
                           "was trained on; only a `cmtool train decoder` run on that RVAE reads the same latents")

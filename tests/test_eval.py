@@ -24,10 +24,15 @@ def test_eval_writes_reports_and_resumes(sampling_ckpt, tiny_data, tmp_path, cap
         assert m["scenes"] == 4 and 0.0 <= m["geometry"]["lane_f1"]["mean"] <= 1.0
         assert set(m["topology_fd"]) == {"connectivity", "density", "reach", "convenience"}
         assert 0.0 <= m["geometry"]["validity"]["mean"] <= 1.0
+        geo = m["geometry"]
+        assert all(v >= 0 and v == int(v) for k in ("dangling", "crossings") for v in geo[k]["per_scene"])
+        assert geo["legal_oneway"]["mean"] != geo["legal_oneway"]["mean"] or 0.0 <= geo["legal_oneway"]["mean"] <= 1.0
     assert 0.0 < report["ground_truth_validity"] <= 1.0
     summary = (out / "summary.md").read_text()
     assert "| metric | unguided | ControlMap |" in summary and "split test, 4 scenes" in summary
     assert "| validity score ↑ |" in summary and "validity score of the ground truth itself" in summary
+    assert "| lanes joined to nothing, per map ↓ |" in summary and "| lane crossings outside junctions, per map ↓ |" \
+        in summary and "| lane length on one-way SD roads running the legal way ↑ |" in summary
     assert "| lane F1 @1 m ↑ |" in stdout
     assert "- lanes: least-squares Bézier curves with 6 control points" in summary
     first = (out / "cache" / "controlmap.jsonl").read_text().splitlines()
@@ -123,6 +128,26 @@ def test_city_swap_of_a_dit_is_its_controlmap_at_w0(sampling_ckpt, tiny_data, tm
     code, _, err = in_process(capsys, "ablate", "cfg", "--ckpt", sampling_ckpt["dit"], *common[:-2],
                               "--out", tmp_path / "x")
     assert code == 1 and "needs a ControlMap checkpoint" in err
+
+
+def test_ablate_dit_compares_checkpoints_on_the_same_noise(sampling_ckpt, tiny_data, tmp_path, capsys):
+    common = ("--data", tiny_data, "--n", 4, "--steps", 2, "--quiet")
+    code, out, err = in_process(capsys, "ablate", "dit", "--ckpt", sampling_ckpt["dit"], "--ckpt",
+                                sampling_ckpt["controlmap"], *common, "--out", tmp_path / "a")
+    assert code == 0, err
+    report = json.loads((tmp_path / "a" / "ablate_dit.json").read_text())
+    truth, dit, controlmap = report["rows"]
+    assert truth["name"] == "ground truth" and truth["fd_density"] == 0.0 and truth["validity"] > 0.9
+    assert dit["name"] == "dit" and controlmap["name"] == "controlmap"
+    # a ControlMap without its control is its DiT: the same maps from the same noise
+    assert {k: v for k, v in dit.items() if k != "name"} == {k: v for k, v in controlmap.items() if k != "name"}
+    assert dit["lanes"] > 0 and 0.0 <= dit["validity"] <= 1.0 and dit["dangling"] >= 0 and dit["crossings"] >= 0
+    assert "| fd_reach |" in out and (tmp_path / "a" / "ablate_dit.png").stat().st_size > 0
+    code, _, err = in_process(capsys, "ablate", "dit", "--ckpt", sampling_ckpt["dit"], *common, "--seed", 1,
+                              "--out", tmp_path / "b")
+    assert code == 0, err
+    other = json.loads((tmp_path / "b" / "ablate_dit.json").read_text())["rows"][1]
+    assert other != dit and other["name"] == "dit"
 
 
 def test_eval_cache_tells_weights_apart_at_the_same_path(sampling_ckpt, tiny_data, tmp_path, capsys):

@@ -7,7 +7,7 @@ import pytest
 
 from cmtool.data.sd_raster import rasterize_sd
 from cmtool.data.sdmap import Road, SDMap
-from cmtool.eval.geometric import chamfer, driving_side, oncoming_side, sd_adherence
+from cmtool.eval.geometric import chamfer, driving_side, legal_oneway, oncoming_side, sd_adherence
 
 
 def line(y, x0=-30.0, x1=30.0, n=20):
@@ -70,3 +70,19 @@ def test_oncoming_side_needs_no_sd_map():
     assert oncoming_side(right_hand + [line(21.75), line(18.25)[::-1]], "right")[0] == pytest.approx(0.5)
     with pytest.raises(ValueError):
         oncoming_side(right_hand, "middle")
+
+
+def test_legal_oneway_judges_lanes_along_one_way_roads_by_their_heading():
+    forward = straight_road(oneway=1)  # travel along +x
+    lanes = [line(-1.75), line(1.75)]
+    share, length = legal_oneway(lanes, forward)
+    assert share == 1.0 and length == pytest.approx(2 * 60.0, abs=2.0)
+    assert legal_oneway([l[::-1] for l in lanes], forward)[0] == 0.0
+    assert legal_oneway([line(-1.75), line(1.75)[::-1]], forward)[0] == pytest.approx(0.5, abs=0.02)
+    assert legal_oneway(lanes, straight_road(oneway=-1))[0] == 0.0
+    # lanes across the road, far from it, or on two-way roads are not judged
+    across = np.stack([np.full(20, 5.0), np.linspace(-30.0, 30.0, 20)], axis=-1)
+    assert math.isnan(legal_oneway([across], forward)[0])
+    assert legal_oneway([line(20.0)], forward) == (pytest.approx(math.nan, nan_ok=True), 0.0)
+    assert math.isnan(legal_oneway(lanes, straight_road())[0])
+    assert math.isnan(legal_oneway([], forward)[0])

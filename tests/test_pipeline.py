@@ -111,3 +111,28 @@ def test_pipeline_resumes_after_kill_to_the_same_weights(straight, tmp_path):
     expected = {k: v["sha256"] for k, v in read_json(straight["run"] / "weights" / "MANIFEST.json")["files"].items()
                 if k.endswith(ckpt.WEIGHTS)}
     assert len(weights) == 2 and weights == expected  # the ControlMap and the decoder, bit for bit
+
+
+@pytest.mark.parametrize("name, limit", [("tiny-cpu", 30e6), ("gpu", 60e6)])
+def test_shipped_pipeline_recipes_load_and_pack_under_their_size(name, limit):
+    """Every stage recipe of a shipped pipeline loads for its stage, the ControlMap's DiT is the DiT stage's,
+    and what pack ships (the whole ControlMap and the RVAE's decoder, float16) stays under ``limit`` bytes."""
+    import dataclasses
+
+    from cmtool.model.controlmap import ControlMap
+    from cmtool.model.dit import DiT
+    from cmtool.model.rvae import ENCODER_PREFIXES, RVAE
+    from cmtool.recipe import load_recipe
+    from cmtool.train.pipeline import stage_recipes
+
+    files = stage_recipes(load_recipe(REPO / "recipes" / name / "pipeline.toml"))
+    recipes = {stage: load_recipe(path) for stage, path in files.items() if stage != "data"}
+    assert all(r.train.stage == stage for stage, r in recipes.items())
+    assert recipes["controlnet"].dit == recipes["dit"].dit
+    cities = 3  # the train cities of recipes/data_cpu.toml
+    dit = DiT(dataclasses.replace(recipes["dit"].dit, num_classes=cities).resolved())
+    controlmap = ControlMap(dit, recipes["controlnet"].control)
+    rvae = RVAE(recipes["rvae"].rvae)
+    shipped = sum(v.numel() for v in controlmap.state_dict().values()) + \
+        sum(v.numel() for k, v in rvae.state_dict().items() if not k.startswith(ENCODER_PREFIXES))
+    assert 2 * shipped < limit

@@ -47,7 +47,7 @@ def test_pack_writes_float16_weights_that_sample_like_the_original(sampling_ckpt
     code, out, err = in_process(capsys, "pack", "--ckpt", sampling_ckpt["controlmap"], "--out", tmp_path / "w")
     assert code == 0, err
     assert verify(tmp_path / "w") == []
-    weights = ckpt.load_tensors(tmp_path / "w" / "rvae" / ckpt.WEIGHTS)
+    weights = ckpt.read_weights(tmp_path / "w" / "rvae")
     assert weights and not any(k.startswith(("trunk.", "to_latent.")) for k in weights)
     assert all(v.dtype == torch.float16 for v in weights.values())
 
@@ -67,3 +67,35 @@ def test_pack_writes_float16_weights_that_sample_like_the_original(sampling_ckpt
 def test_pack_refuses_other_checkpoints(sampling_ckpt, tmp_path, capsys):
     code, _, err = in_process(capsys, "pack", "--ckpt", sampling_ckpt["dit"], "--out", tmp_path / "w")
     assert code == 1 and "pack takes a ControlMap" in err
+
+
+def test_pack_splits_weights_into_files_under_the_limit(sampling_ckpt, tmp_path, capsys, monkeypatch):
+    import cmtool.release
+
+    code, _, err = in_process(capsys, "pack", "--ckpt", sampling_ckpt["controlmap"], "--out", tmp_path / "whole")
+    assert code == 0, err
+    monkeypatch.setattr(cmtool.release, "MAX_FILE_BYTES", 64 * 1024)
+    code, _, err = in_process(capsys, "pack", "--ckpt", sampling_ckpt["controlmap"], "--out", tmp_path / "split")
+    assert code == 0, err
+    assert verify(tmp_path / "split") == []
+    cm = tmp_path / "split" / "controlmap"
+    shards = sorted(cm.glob("model-*-of-*.safetensors"))
+    assert len(shards) >= 2 and all(p.stat().st_size <= 64 * 1024 for p in shards)
+    assert not (cm / ckpt.WEIGHTS).exists() and (cm / ckpt.INDEX).is_file()
+    whole = ckpt.read_weights(tmp_path / "whole" / "controlmap")
+    split = ckpt.read_weights(cm)
+    assert whole.keys() == split.keys() and all(torch.equal(whole[k], split[k]) for k in whole)
+    assert ckpt.weights_digest(cm) != ckpt.weights_digest(tmp_path / "whole" / "controlmap")
+    code, _, err = in_process(capsys, "sample", "--ckpt", cm, "--sd", REPO / "sample_data" / "sd_lav.png", "--steps", 2,
+                              "--no-log", "--quiet", "--out", tmp_path / "s")
+    assert code == 0, err
+    # a missing file is named, not a stack trace
+    shards[-1].unlink()
+    assert any("missing" in p for p in verify(tmp_path / "split"))
+    with pytest.raises(CmtoolError, match="not a checkpoint"):
+        ckpt.resolve(cm)
+
+
+def test_a_weight_larger_than_the_file_limit_is_refused(tmp_path):
+    with pytest.raises(CmtoolError, match="exceeds the file limit"):
+        ckpt.save_checkpoint(tmp_path / "c", {"kind": "dit"}, {"w": torch.zeros(64, 64)}, max_file_bytes=8192)

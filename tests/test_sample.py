@@ -2,6 +2,7 @@
 lane graphs, w = 0 equal to the unguided model, the three SD input kinds, and one-line errors."""
 
 import json
+import math
 import socket
 import subprocess
 import sys
@@ -17,6 +18,8 @@ from rerun.chunk import RrdReader
 from cmtool.cli import main
 from cmtool.data.hdmap import HDMap
 from cmtool.data.lanegraph import LaneGraph, infer_successors, read_jsonl
+from cmtool.data.sd_raster import read_sd_image
+from cmtool.eval.geometric import legal_oneway
 from cmtool.eval.validity import check
 from cmtool.sample import DEFAULT_SAMPLER, DEFAULT_SMOOTH
 from cmtool.viz.trajectory import strips_column, tensor_column
@@ -112,12 +115,16 @@ def test_outputs_are_valid_lane_graphs_and_pictures(sampled):
         assert graph.city == "SGP" and graph.meta["cfg"] == 0.7 and graph.meta["index"] == k
         assert graph.lanes and sorted(graph.successors) == sorted(infer_successors(graph.lanes))
         assert graph.meta["validity"] == round(check(graph).score, 6)
+        share, judged = legal_oneway(graph.lanes, read_sd_image(SD_PNG)[0])  # the example has one-way roads
+        assert graph.meta["oneway_judged_m"] == round(judged, 1)
+        assert graph.meta["legal_oneway"] == (None if math.isnan(share) else round(share, 6))
         picture = cv2.imread(str(out / f"sd_bos_s{k}.png"))
         assert picture.shape[1] == 2 * 256 + 4  # SD | generated
     a, b = (graph_core(out / f"sd_bos_s{k}.json") for k in range(2))
     assert a != b  # two maps per input differ
     table = sampled["stdout"]
     assert "lanes" in table and "validity" in table and "sd_bos_s0" in table and "sd_bos_s1" in table
+    assert "one-way ok" in table and "2 maps: mean validity" in table
 
 
 def test_same_seed_same_json_and_cfg_zero_is_the_unguided_model(sampling_ckpt, tmp_path, capsys):

@@ -420,7 +420,7 @@ def test_checkpoint_writes_are_atomic_and_validated(tmp_path):
     assert ckpt.resolve(tmp_path) == target
     module = torch.nn.Linear(2, 3)
     with pytest.raises(CmtoolError, match="do not match"):
-        ckpt.load_weights(module, target / ckpt.WEIGHTS)
+        ckpt.load_weights(module, target)
     (target / ckpt.WEIGHTS).write_bytes(b"garbage")
     with pytest.raises(CmtoolError, match="unreadable"):
         ckpt.load_tensors(target / ckpt.WEIGHTS)

@@ -7,6 +7,9 @@
 - :func:`city_swap`: the same SD maps and noise under each city label; the driving side per label
   (share of lane length along two-way roads on the left / right), optionally with guidance on the
   city label (``city_cfg``).
+- :func:`dit_compare`: several DiTs (or ControlMaps without their control) on the same labels and
+  noise, judged as a set against the reference scenes: topology Fréchet distances, validity, lanes
+  joined to nothing and crossings per map, and the driving side by oncoming lanes.
 
 Each writes a markdown table and a JSON file, and a PNG (plot or picture grid) to its output
 folder; the sweep also an ``.rrd`` whose ``cfg`` timeline counts w in thousandths (700 = 0.7).
@@ -28,6 +31,8 @@ from cmtool.eval.features import FeatureExtractor, lanes_image
 from cmtool.eval.geometric import chamfer, driving_side, oncoming_side, sd_adherence
 from cmtool.eval.metrics import drives_on, markdown_table, weighted_mean
 from cmtool.eval.retrieval import batch_recall
+from cmtool.eval.topology import topology_fd
+from cmtool.eval.validity import check
 from cmtool.progress import Progress
 from cmtool.sample import DEFAULT_SAMPLER
 from cmtool.sample.diffusion import scene_seed, step_generator
@@ -135,6 +140,46 @@ def city_swap(gen: Generator, scenes, labels: list[str], steps: int, cfg: float,
         tiles += [_titled(f"{name}", graph_panel(maps[name][k])) for name in labels]
     write_png(out / "ablate_city_swap.png", grid(tiles, columns=1 + len(labels)))
     return rows
+
+
+def dit_compare(gens: dict[str, Generator], scenes, steps: int, seed: int, out, progress: bool = True,
+                sampler: str = DEFAULT_SAMPLER) -> list[dict]:
+    """One row per checkpoint: maps for the scenes' city labels (the null label where a checkpoint does
+    not know the city), without SD control, from the same noise, against the scenes' ground truth."""
+    truth = [s.to_lanegraph() for s in scenes]
+    sds = np.stack([s.sd for s in scenes])
+    rows, maps = [{"name": "ground truth", **_set_scores(truth, truth)}], {}
+    with Progress(len(gens), "ablate dit", "checkpoints", enabled=progress) as bar:
+        for name, gen in gens.items():
+            labels = [gen.known_label(s.city) for s in scenes]
+            maps[name] = generate(gen, sds, labels, 0.0, steps, seed, sampler)
+            rows.append({"name": name, **_set_scores(maps[name], truth)})
+            bar.update()
+    out.mkdir(parents=True, exist_ok=True)
+    keys = ["name", "lanes", "fd_connectivity", "fd_density", "fd_reach", "fd_convenience", "validity", "dangling",
+            "crossings", "oncoming_side"]
+    write_json(out / "ablate_dit.json", {"scenes": len(scenes), "steps": steps, "sampler": sampler, "seed": seed,
+                                          "checkpoints": {n: str(g.path) for n, g in gens.items()}, "rows": rows})
+    write_text_atomic(out / "ablate_dit.md", markdown_table(rows, keys))
+    tiles = []
+    for k in range(min(PICTURE_SCENES, len(scenes))):
+        tiles.append(_titled(f"truth {scenes[k].city}", graph_panel(truth[k])))
+        tiles += [_titled(name, graph_panel(maps[name][k])) for name in gens]
+    write_png(out / "ablate_dit.png", grid(tiles, columns=1 + len(gens)))
+    return rows
+
+
+def _set_scores(maps: list[LaneGraph], truth: list[LaneGraph]) -> dict:
+    """A generated set against the reference set: lanes per map, topology FDs, validity, dangling lanes and
+    crossings per map, and the share of judged points whose oncoming lanes run on the side of their city."""
+    reports = [check(m) for m in maps]
+    sides = [oncoming_side(m.lanes, drives_on(t.city)) for m, t in zip(maps, truth)]
+    return {"lanes": float(np.mean([len(m.lanes) for m in maps])),
+            **{f"fd_{k}": v for k, v in topology_fd(maps, truth).items()},
+            "validity": float(np.mean([r.score for r in reports])),
+            "dangling": float(np.mean([r.counts().get("dangling", 0) for r in reports])),
+            "crossings": float(np.mean([r.counts().get("crossing", 0) for r in reports])),
+            "oncoming_side": weighted_mean([v for v, _ in sides], [n for _, n in sides])}
 
 
 def _titled(title: str, panel: np.ndarray) -> np.ndarray:

@@ -9,7 +9,8 @@ beyond the paper). Lanes are ego-frame polylines in metres; SD rasters follow th
 - :func:`driving_side`: share of generated lane length along two-way SD roads that lies on the side
   of the road the city drives on;
 - :func:`oncoming_side`: the same judged from the lanes alone, by the side on which oncoming lanes
-  run (needs no SD map, so it also judges unguided samples).
+  run (needs no SD map, so it also judges unguided samples);
+- :func:`legal_oneway`: share of lane length along one-way SD roads that runs the legal way.
 """
 
 from __future__ import annotations
@@ -21,6 +22,7 @@ import cv2
 import numpy as np
 from scipy.spatial import cKDTree
 
+from cmtool.data.sd_raster import decode_direction
 from cmtool.eval.lanes import distance_to_polylines, sample_points
 from cmtool.geometry import as_polyline, resample_step
 
@@ -139,6 +141,35 @@ def oncoming_side(lanes: Sequence[np.ndarray], drives_on: str, reach: tuple[floa
     on_left = dirs[:, 0] * near[:, 1] - dirs[:, 1] * near[:, 0] > 0
     share_right = float(np.mean(on_left[judged]))
     return (share_right if drives_on == "right" else 1.0 - share_right), int(judged.sum())
+
+
+def legal_oneway(lanes: Sequence[np.ndarray], sd: np.ndarray, reach: float = 4.0, frame_m: float = 64.0,
+                 step: float = STEP_M) -> tuple[float, float]:
+    """Share of lane length along one-way SD roads that runs the legal way, and the length judged (m).
+
+    A lane point is judged when the nearest road pixel within ``reach`` m is one-way and the lane runs
+    along that road (within 45 degrees of its axis, so lanes crossing it at a junction are not
+    judged); it is legal when it heads within 90 degrees of the road's travel heading.
+    """
+    road = sd[..., 0] > 0
+    pieces = [resample_step(as_polyline(l), step) for l in lanes]
+    pieces = [p for p in pieces if len(p) >= 2]
+    if not (road & (sd[..., 2] > 0)).any() or not pieces:
+        return math.nan, 0.0
+    points = np.concatenate(pieces)
+    dirs = np.concatenate([np.gradient(p, axis=0) for p in pieces])
+    dirs /= np.maximum(np.linalg.norm(dirs, axis=1, keepdims=True), 1e-9)
+    rows, cols = np.nonzero(road)
+    _, nearest = cKDTree(pixel_centres(road, frame_m)).query(points, distance_upper_bound=reach)
+    found = nearest < len(rows)
+    value = np.zeros(len(points), np.uint8)
+    value[found] = sd[rows[nearest[found]], cols[nearest[found]], 2]
+    theta = decode_direction(value)
+    cos = dirs[:, 0] * np.cos(theta) + dirs[:, 1] * np.sin(theta)
+    judged = (value > 0) & (np.abs(cos) >= math.cos(math.radians(45.0)))
+    if not judged.any():
+        return math.nan, 0.0
+    return float(np.mean(cos[judged] > 0)), float(judged.sum() * step)
 
 
 def _pixel_of(points: np.ndarray, size: int, frame_m: float) -> tuple[np.ndarray, np.ndarray]:

@@ -4,9 +4,10 @@ controls when known; scene i of one set is paired with scene i of the other.
 - topology Fréchet distances (:mod:`cmtool.eval.topology`);
 - improved precision / recall and Ground-Truth Recall on ResNet-50 features of the map rasters,
   Control Recall against the SD rasters (:mod:`cmtool.eval.features`, :mod:`cmtool.eval.retrieval`);
-- lane Chamfer distance, lane precision / recall / F1 at 1 m, SD adherence and driving side
-  (:mod:`cmtool.eval.geometric`) and the validity score (:mod:`cmtool.eval.validity`), averaged over scenes (scenes where a score is undefined, e.g. an
-  empty map's Chamfer distance, are left out of that average and counted).
+- lane Chamfer distance, lane precision / recall / F1 at 1 m, SD adherence, driving side and legal
+  one-way direction (:mod:`cmtool.eval.geometric`), the validity score and the dangling lanes and
+  crossings per map (:mod:`cmtool.eval.validity`), averaged over scenes (scenes where a score is
+  undefined, e.g. an empty map's Chamfer distance, are left out of that average and counted).
 """
 
 from __future__ import annotations
@@ -18,7 +19,7 @@ import numpy as np
 
 from cmtool.errors import CmtoolError
 from cmtool.eval.features import FeatureExtractor, lanes_image, sd_image
-from cmtool.eval.geometric import chamfer, driving_side, sd_adherence
+from cmtool.eval.geometric import chamfer, driving_side, legal_oneway, sd_adherence
 from cmtool.eval.lanes import lane_scores
 from cmtool.eval.retrieval import batch_recall, improved_precision_recall
 from cmtool.eval.topology import topology_fd
@@ -95,25 +96,37 @@ def reference_image_features(graphs, extractor: FeatureExtractor) -> np.ndarray:
 
 def geometry(generated, reference, controls: np.ndarray | None) -> dict:
     """Per-scene geometric scores (``per_scene``, None where undefined) and their averages (with the
-    number of scenes each average covers)."""
-    rows: dict[str, list] = {k: [] for k in ("chamfer_m", "lane_precision", "lane_recall", "lane_f1", "validity")}
+    number of scenes each average covers); ``legal_oneway`` is averaged by the lane length judged."""
+    rows: dict[str, list] = {k: [] for k in ("chamfer_m", "lane_precision", "lane_recall", "lane_f1", "validity",
+                                             "dangling", "crossings")}
     if controls is not None:
-        rows.update({"sd_coverage": [], "lane_on_sd": [], "driving_side": []})
+        rows.update({"sd_coverage": [], "lane_on_sd": [], "driving_side": [], "legal_oneway": []})
+    judged = []
     for i, (g, r) in enumerate(zip(generated, reference)):
         rows["chamfer_m"].append(chamfer(g.lanes, r.lanes))
         scores = lane_scores(g.lanes, r.lanes, tol=1.0)
         for k in ("precision", "recall", "f1"):
             rows[f"lane_{k}"].append(scores[k])
-        rows["validity"].append(check(g).score)
+        report = check(g)
+        counts = report.counts()
+        rows["validity"].append(report.score)
+        rows["dangling"].append(counts.get("dangling", 0))
+        rows["crossings"].append(counts.get("crossing", 0))
         if controls is not None:
             for k, v in sd_adherence(g.lanes, controls[i]).items():
                 rows[k].append(v)
             rows["driving_side"].append(driving_side(g.lanes, controls[i], drives_on(g.city or r.city))[0])
+            share, length = legal_oneway(g.lanes, controls[i])
+            rows["legal_oneway"].append(share)
+            judged.append(length)
     out = {}
     for k, values in rows.items():
         v = np.asarray(values, float)
         ok = ~np.isnan(v)
-        out[k] = {"mean": float(v[ok].mean()) if ok.any() else math.nan, "scenes": int(ok.sum()),
+        mean = float(v[ok].mean()) if ok.any() else math.nan
+        if k == "legal_oneway" and ok.any():
+            mean = float(np.average(v[ok], weights=np.asarray(judged)[ok]))
+        out[k] = {"mean": mean, "scenes": int(ok.sum()),
                   "per_scene": [None if math.isnan(x) else round(float(x), 6) for x in v]}
     return out
 
@@ -134,7 +147,12 @@ def summary_table(results: dict[str, dict]) -> str:
                  ("SD road within 3 m of a lane ↑", lambda r: _num(r["geometry"].get("sd_coverage", {}).get("mean"))),
                  ("lane length within 5 m of SD ↑", lambda r: _num(r["geometry"].get("lane_on_sd", {}).get("mean"))),
                  ("driving side ↑", lambda r: _num(r["geometry"].get("driving_side", {}).get("mean"))),
-                 ("validity score ↑", lambda r: _num(r["geometry"].get("validity", {}).get("mean")))]
+                 ("lane length on one-way SD roads running the legal way ↑",
+                  lambda r: _num(r["geometry"].get("legal_oneway", {}).get("mean"))),
+                 ("validity score ↑", lambda r: _num(r["geometry"].get("validity", {}).get("mean"))),
+                 ("lanes joined to nothing, per map ↓", lambda r: _num(r["geometry"].get("dangling", {}).get("mean"))),
+                 ("lane crossings outside junctions, per map ↓",
+                  lambda r: _num(r["geometry"].get("crossings", {}).get("mean")))]
     names = list(results)
     scenes = ", ".join(f"{n}: {results[n]['scenes']}" for n in names)
     parts = [f"Scenes: {scenes}."]

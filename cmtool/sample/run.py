@@ -26,6 +26,8 @@ import torch
 from cmtool.data.jsonio import atomic_open, write_json
 from cmtool.data.lanegraph import LaneGraph
 from cmtool.errors import CmtoolError
+from cmtool.eval.geometric import legal_oneway
+from cmtool.eval.metrics import weighted_mean
 from cmtool.eval.validity import check
 from cmtool.geometry import polyline_length
 from cmtool.progress import Progress
@@ -160,8 +162,12 @@ def generate_maps(gen: Generator, jobs: list[Job], settings: SampleSettings, rec
                            callback=logger)
             decoded = gen.decode(z)
             graphs = [gen.lane_graph(el, gen.city_name(j.label), _meta(gen, j, settings)) for j, el in zip(batch, decoded)]
-            for graph in graphs:
+            for job, graph in zip(batch, graphs):
                 graph.meta["validity"] = round(check(graph).score, 6)
+                if job.source.sd is not None:  # lane length along one-way SD roads running the legal way
+                    share, judged = legal_oneway(graph.lanes, job.source.sd)
+                    graph.meta["legal_oneway"] = None if math.isnan(share) else round(share, 6)
+                    graph.meta["oneway_judged_m"] = round(judged, 1)
             if logger is not None:
                 logger.flush()
                 for job, graph in zip(batch, graphs):
@@ -276,14 +282,23 @@ def _write_png(path: Path, picture: np.ndarray) -> None:
 
 
 def summary_table(maps: list[SampledMap]) -> str:
-    """Per map: lanes, successor links, mean lane length, lights, validity score, seconds."""
+    """Per map: lanes, successor links, mean lane length, lights, validity score, share of lane length on
+    one-way SD roads running the legal way ("-" without one), seconds; then the means over the maps."""
     head = (f"{'map':<24} {'city':<5} {'lanes':>5} {'successors':>10} {'mean lane m':>11} {'lights':>6} "
-            f"{'validity':>8} {'time s':>7}")
+            f"{'validity':>8} {'one-way ok':>10} {'time s':>7}")
     rows = [head]
     for m in maps:
         g = m.graph
         mean = np.mean([polyline_length(l) for l in g.lanes]) if g.lanes else 0.0
+        legal = g.meta.get("legal_oneway")
         rows.append(f"{m.job.name[:24]:<24} {g.city or 'none':<5} {len(g.lanes):>5} {len(g.successors):>10} "
                     f"{mean:>11.1f} {len(g.green_lights) + len(g.red_lights):>6} {g.meta['validity']:>8.3f} "
-                    f"{m.seconds:>7.2f}")
+                    f"{'-' if legal is None else f'{legal:.3f}':>10} {m.seconds:>7.2f}")
+    if len(maps) > 1:
+        shares = [m.graph.meta.get("legal_oneway") for m in maps]
+        legal = weighted_mean([math.nan if v is None else v for v in shares],
+                              [m.graph.meta.get("oneway_judged_m", 0.0) for m in maps])
+        rows.append(f"{len(maps)} maps: mean validity {np.mean([m.graph.meta['validity'] for m in maps]):.3f}, "
+                    "lane length on one-way SD roads running the legal way "
+                    f"{'-' if legal is None else f'{legal:.3f}'}")
     return "\n".join(rows)

@@ -167,7 +167,7 @@ def train(stage: Stage, run_dir: Path, resume: bool = False, progress: bool = Tr
     if point is not None:
         last, config = point
         _load_state(model, opt, ckpt.load_tensors(last / ckpt.STATE), read_json(last / ckpt.STATE_META))
-        ckpt.load_weights(ema.module, last / ckpt.WEIGHTS)
+        ckpt.load_weights(ema.module, last)
         ema.n_averaged.fill_(config["step"])
         start, record = config["step"], config["training"]
         if config.get("complete") and start >= t.steps:

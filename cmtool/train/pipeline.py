@@ -29,6 +29,7 @@ from __future__ import annotations
 import dataclasses
 import hashlib
 import json
+import math
 import os
 import sys
 import time
@@ -246,8 +247,9 @@ class Pipeline:
         report = run_eval(gen, settings, self.folder("eval"), extractor, rrd_samples=e.rrd_samples,
                           progress=self.progress)
         cm = report["methods"]["controlmap"]
-        out = {k: round(cm["geometry"][k]["mean"], 4) for k in ("validity", "lane_f1", "sd_coverage")
-               if cm["geometry"].get(k, {}).get("mean") is not None}
+        keys = ("validity", "dangling", "crossings", "lane_f1", "sd_coverage", "legal_oneway")
+        out = {k: round(cm["geometry"][k]["mean"], 4) for k in keys
+               if math.isfinite(cm["geometry"].get(k, {}).get("mean", math.nan))}
         if "gt_recall" in cm:
             out["gt_recall"] = round(cm["gt_recall"]["recall"], 4)
         return out

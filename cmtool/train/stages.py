@@ -165,7 +165,7 @@ class DecoderStage(RVAEStage):
                 "encoder_from": str(ckpt.resolve(self.parent_run))}
 
     def finish(self, model, run_dir):
-        if not same_encoder(model.state_dict(), ckpt.load_tensors(ckpt.resolve(self.parent_run) / ckpt.WEIGHTS)):
+        if not same_encoder(model.state_dict(), ckpt.read_weights(ckpt.resolve(self.parent_run))):
             raise CmtoolError(f"{run_dir}: the encoder changed during decoder training (it must stay frozen)")
         recon = reconstruction_scores(model, self.data_dir, _preview_split(self.data_dir), self.device, RECON_EVAL)
         before = self.parent_config.get("reconstruction", {}).get("f1", float("nan"))
@@ -284,7 +284,7 @@ class DiTStage(_DiffusionStage):
         if config.get("latent_scale") != self.scale:
             print(f"warning: {path} was trained on other latents (latent scale {config.get('latent_scale')}, this "
                   f"RVAE's {self.scale}); its weights are only a starting point", file=sys.stderr)
-        tensors = ckpt.load_tensors(path / ckpt.WEIGHTS)
+        tensors = ckpt.read_weights(path)
         if config["kind"] == "controlmap":
             tensors = {k[len("base."):]: v for k, v in tensors.items() if k.startswith("base.")}
         return {k: v.float() for k, v in tensors.items()}
@@ -366,7 +366,7 @@ class ControlNetStage(_DiffusionStage):
         if config["kind"] != "controlmap" or {k: config.get(k) for k in wanted} != wanted:
             raise CmtoolError(f"{path}: train.branch_from needs a ControlMap with this recipe's [control] and "
                               f"DiT size")
-        branch = {k: v for k, v in ckpt.load_tensors(path / ckpt.WEIGHTS).items() if not k.startswith("base.")}
+        branch = {k: v for k, v in ckpt.read_weights(path).items() if not k.startswith("base.")}
         own = {k: v for k, v in model.state_dict().items() if not k.startswith("base.")}
         if set(branch) != set(own):
             raise CmtoolError(f"{path}: its control branch does not match the model this recipe builds")
