@@ -48,6 +48,13 @@ def test_eval_writes_reports_and_resumes(sampling_ckpt, tiny_data, tmp_path, cap
             rows.setdefault(chunk.entity_path, set()).update(batch.column("sample").to_pylist())
     assert rows["/metrics/controlmap/lane_f1"] == set(range(8)) == rows["/metrics/unguided/lane_f1"]
     assert "/sample_1/controlmap/hd/lanes" in rows and "/sample_2/controlmap/hd/lanes" not in rows
+    # a run in one go scores exactly what the resumed one did
+    code, _, err = in_process(capsys, *args[:-5], tmp_path / "whole", "--no-features", "--rrd-samples", 2, "--quiet",
+                              "--n", 8)
+    assert code == 0, err
+    scores = [{m: {k: v for k, v in r.items() if k != "topology_seconds"} for m, r in
+               json.loads((d / "metrics.json").read_text())["methods"].items()} for d in (tmp_path / "whole", out)]
+    assert scores[0] == scores[1]
     # the cache refuses to mix settings
     code, _, err = in_process(capsys, *args, "--n", 8, "--cfg", 0.5)
     assert code == 1 and "made with other settings (cfg)" in err

@@ -51,3 +51,34 @@ def test_empty_sets():
     assert lane_scores([], []) == {"precision": 1.0, "recall": 1.0, "f1": 1.0}
     assert lane_scores([], [STRAIGHT]) == {"precision": 1.0, "recall": 0.0, "f1": 0.0}
     assert lane_scores([STRAIGHT], []) == {"precision": 0.0, "recall": 1.0, "f1": 0.0}
+
+
+def brute_force_distance(points, polylines):
+    """The reference: every point against every segment (what the package did before its STR-tree)."""
+    start = np.concatenate([p[:-1] for p in polylines])
+    vec = np.concatenate([np.diff(p, axis=0) for p in polylines])
+    rel = points[:, None] - start
+    t = np.clip((rel * vec).sum(-1) / np.maximum((vec ** 2).sum(-1), 1e-12), 0.0, 1.0)
+    return np.linalg.norm(rel - t[..., None] * vec, axis=-1).min(axis=1)
+
+
+def random_lanes(rng, n):
+    """Wandering lanes over the frame, some with repeated points or a single segment."""
+    lanes = []
+    for _ in range(n):
+        k = int(rng.integers(2, 25))
+        lane = rng.uniform(-32, 32, 2) + np.cumsum(rng.normal(scale=rng.uniform(0.5, 4.0), size=(k, 2)), axis=0)
+        if k > 3 and rng.random() < 0.2:
+            lane[2] = lane[1]  # a zero-length segment
+        lanes.append(lane)
+    return lanes
+
+
+def test_distances_equal_the_brute_force_reference_on_varied_scenes():
+    rng = np.random.default_rng(0)
+    for _ in range(300):
+        lanes = random_lanes(rng, int(rng.integers(1, 40)))
+        points = rng.uniform(-40, 40, (int(rng.integers(1, 200)), 2))
+        np.testing.assert_allclose(distance_to_polylines(points, lanes), brute_force_distance(points, lanes),
+                                   rtol=0, atol=1e-9)
+    assert distance_to_polylines(np.zeros((0, 2)), [STRAIGHT]).shape == (0,)

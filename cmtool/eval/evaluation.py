@@ -123,9 +123,11 @@ def _generate(gen: Generator, scenes, settings: EvalSettings, cache: Path, progr
                                generator=step_generator(scene_seed(settings.seed, b0), gen.device))
                 graphs = [gen.lane_graph(el, gen.city_name(y), {"method": m, "scene": b0 + k, "seed": settings.seed})
                           for k, (el, y) in enumerate(zip(gen.decode(z), labels))]
-                done[m] += graphs
+                lines = [json.dumps(g.to_json(), separators=(",", ":")) for g in graphs]
                 with (cache / f"{m}.jsonl").open("a", encoding="utf-8") as f:
-                    f.write("".join(json.dumps(g.to_json(), separators=(",", ":")) + "\n" for g in graphs))
+                    f.write("".join(line + "\n" for line in lines))
+                # scored as cached (coordinates to the millimetre), so a resumed run scores what a whole one does
+                done[m] += [LaneGraph.from_json(json.loads(line)) for line in lines]
             bar.update(len(batch))
     return done
 
