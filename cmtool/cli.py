@@ -575,7 +575,8 @@ def metrics(generated, reference, control, json_out, backbone, weights, no_featu
     extractor = None if no_features else FeatureExtractor(backbone, weights, _device(device))
     result = evaluate(gen, ref, controls, extractor, features=not no_features)
     click.echo(summary_table({generated.name: result}))
-    click.echo(f"topology FDs of {result['scenes']} scene pairs in {result['topology_seconds']:.2f} s"
+    click.echo(f"{result['scenes']} scene pairs in {sum(result['seconds'].values()):.1f} s ("
+               + ", ".join(f"{k} {v:.1f} s" for k, v in result["seconds"].items()) + ")"
                + ("" if no_features else f"; features: {result['backbone']['name']}"))
     if json_out is not None:
         write_json(json_out, {"generated": str(generated), "reference": str(reference),
@@ -941,6 +942,26 @@ def bench_sample_cmd(ckpt, sd_path, steps, cfg, batch, repeats, device):
     click.echo(f"full logging / --no-log at batch 1: {r['log_ratio']:.3f} ({verdict} the {LOG_LIMIT:.2f} limit)")
     click.echo(f"batch {batch} / batch 1, time per map: {1 / r['batch_speedup']:.3f} "
                f"({r['batch_speedup']:.1f}x faster per map)")
+
+
+@bench.command("metrics")
+@click.option("--eval", "eval_dir", required=True, type=click.Path(file_okay=False, path_type=Path),
+              help="A `cmtool eval --out` folder: its cached maps and the scenes they were made for.")
+@click.option("--method", default="controlmap", show_default=True, type=click.Choice(["controlmap", "unguided"]))
+@click.option("--tile", default=1, show_default=True, type=click.IntRange(min=1),
+              help="Repeat the set this many times (512 x 8 = 4,096 is the paper's test-set size).")
+@click.option("--repeats", default=3, show_default=True, type=click.IntRange(min=1), help="Timed runs.")
+@click.option("--no-features", is_flag=True, help="Leave out the ResNet-50 metrics.")
+@click.option("--device", help="torch device [default: cuda when available, else cpu].")
+def bench_metrics_cmd(eval_dir, method, tile, repeats, no_features, device):
+    """Time each family of metrics (topology, lane distances, validity, SD adherence, driving side, legal
+    one-way, features, recall) on an evaluation's maps: minimum and median over the repeats."""
+    from cmtool.eval.bench import bench_metrics, eval_set, report_table
+    from cmtool.eval.features import FeatureExtractor
+
+    generated, reference, controls = eval_set(eval_dir, method, tile)
+    extractor = None if no_features else FeatureExtractor("resnet50-seeded", None, _device(device))
+    click.echo(report_table(bench_metrics(generated, reference, controls, extractor, repeats)))
 
 
 @cli.command()

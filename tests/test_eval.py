@@ -52,9 +52,16 @@ def test_eval_writes_reports_and_resumes(sampling_ckpt, tiny_data, tmp_path, cap
     code, _, err = in_process(capsys, *args[:-5], tmp_path / "whole", "--no-features", "--rrd-samples", 2, "--quiet",
                               "--n", 8)
     assert code == 0, err
-    scores = [{m: {k: v for k, v in r.items() if k != "topology_seconds"} for m, r in
+    scores = [{m: {k: v for k, v in r.items() if k != "seconds"} for m, r in
                json.loads((d / "metrics.json").read_text())["methods"].items()} for d in (tmp_path / "whole", out)]
     assert scores[0] == scores[1]
+    # the metrics' timing on those maps, tiled
+    code, stdout, err = in_process(capsys, "bench", "metrics", "--eval", tmp_path / "whole", "--tile", 2,
+                                   "--repeats", 1, "--no-features")
+    assert code == 0, err
+    assert "16 scene pairs, 1 repeats" in stdout and "| validity |" in stdout and "| all of `evaluate` |" in stdout
+    code, _, err = in_process(capsys, "bench", "metrics", "--eval", tmp_path)
+    assert code == 1 and "no eval cache here" in err
     # the cache refuses to mix settings
     code, _, err = in_process(capsys, *args, "--n", 8, "--cfg", 0.5)
     assert code == 1 and "made with other settings (cfg)" in err

@@ -44,7 +44,9 @@ def test_metrics_end_to_end(tmp_path, capsys):
     assert m["gt_recall"]["recall"] == 1.0 and m["gt_recall"]["n"] == 64
     assert m["precision_recall"]["precision"] == 1.0 and m["geometry"]["lane_f1"]["mean"] == 1.0
     assert m["geometry"]["driving_side"]["mean"] == 1.0 and m["geometry"]["sd_coverage"]["mean"] > 0.9  # corners
-    assert "| GT Recall ↑ (p) | 1.000 (" in out and "topology FDs of 64 scene pairs in" in out
+    assert "| GT Recall ↑ (p) | 1.000 (" in out and "64 scene pairs in" in out
+    assert set(m["seconds"]) == {"topology", "lane distances", "validity", "SD adherence", "driving side",
+                                 "legal one-way", "features", "recall"} and all(v >= 0 for v in m["seconds"].values())
 
 
 def test_metrics_without_features_on_a_different_set(tmp_path, capsys):

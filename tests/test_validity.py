@@ -141,3 +141,26 @@ def test_procedural_cities_are_valid(city):
                       frame_m=500.0)
     report = check(graph)
     assert report.lanes > 100 and report.problems == [] and report.score == 1.0
+
+
+def test_routability_equals_an_all_pairs_path_search():
+    from scipy.sparse import csr_matrix
+    from scipy.sparse.csgraph import shortest_path
+
+    from cmtool.eval.validity import _routability
+
+    def reference(n, succ):  # every pair by breadth-first search, as the check did before
+        adj = csr_matrix((np.ones(len(succ)), ([i for i, _ in succ], [j for _, j in succ])), shape=(n, n))
+        reach = np.isfinite(shortest_path(adj, directed=True, unweighted=True))
+        np.fill_diagonal(reach, False)
+        return reach.sum() / (n * (n - 1))
+
+    rng = np.random.default_rng(0)
+    for _ in range(300):
+        n = int(rng.integers(2, 60))
+        succ = [(int(i), int(j)) for i, j in rng.integers(0, n, (int(rng.integers(0, 2 * n)), 2))]  # cycles, loops
+        pairs, largest = _routability(n, succ)
+        assert pairs == pytest.approx(reference(n, succ), abs=1e-12) and 1 <= largest <= n
+    chain = [(i, i + 1) for i in range(9999)]  # 10,000 lanes in a row: half of all ordered pairs
+    assert _routability(10000, chain) == (pytest.approx(0.5), 1)
+    assert _routability(10000, chain + [(9999, 0)]) == (1.0, 10000)

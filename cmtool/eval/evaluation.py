@@ -100,7 +100,7 @@ def _generate(gen: Generator, scenes, settings: EvalSettings, cache: Path, progr
                               "use another --out")
     else:
         write_json(meta, mine)
-    done = {m: _read_cache(cache / f"{m}.jsonl") for m in METHODS}
+    done = {m: read_cache(cache / f"{m}.jsonl") for m in METHODS}
     start = min(len(v) for v in done.values()) // settings.batch * settings.batch
     done = {m: v[:start] for m, v in done.items()}
     for m in METHODS:  # keep whole batches of both methods only
@@ -132,7 +132,7 @@ def _generate(gen: Generator, scenes, settings: EvalSettings, cache: Path, progr
     return done
 
 
-def _read_cache(path: Path) -> list[LaneGraph]:
+def read_cache(path: Path) -> list[LaneGraph]:
     """The maps of a cache file, up to the first line a crash left incomplete."""
     graphs = []
     if path.is_file():

@@ -23,7 +23,7 @@ import numpy as np
 from scipy.spatial import cKDTree
 
 from cmtool.data.sd_raster import decode_direction
-from cmtool.eval.lanes import distance_to_polylines, sample_points
+from cmtool.eval.lanes import distance_to_polylines, pair_distances, sample_points
 from cmtool.geometry import as_polyline, resample_step
 
 STEP_M = 0.5  # lane resampling step for all point-based scores
@@ -31,10 +31,13 @@ STEP_M = 0.5  # lane resampling step for all point-based scores
 
 def chamfer(pred: Sequence[np.ndarray], gt: Sequence[np.ndarray], step: float = STEP_M) -> float:
     """Mean of the two directed mean nearest distances (metres); NaN when either set is empty."""
-    a, b = sample_points(pred, step), sample_points(gt, step)
-    if len(a) == 0 or len(b) == 0:
-        return math.nan
-    return 0.5 * float(distance_to_polylines(a, gt).mean() + distance_to_polylines(b, pred).mean())
+    return chamfer_of(pair_distances(pred, gt, step))
+
+
+def chamfer_of(distances: tuple[np.ndarray, np.ndarray]) -> float:
+    """:func:`chamfer` from the distances of :func:`cmtool.eval.lanes.pair_distances`."""
+    a, b = distances
+    return math.nan if len(a) == 0 or len(b) == 0 else 0.5 * float(a.mean() + b.mean())
 
 
 def pixel_centres(mask: np.ndarray, frame_m: float = 64.0) -> np.ndarray:

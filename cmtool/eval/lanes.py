@@ -38,11 +38,19 @@ def distance_to_polylines(points: np.ndarray, polylines: Sequence[np.ndarray]) -
     return out
 
 
-def covered_share(points: np.ndarray, polylines: Sequence[np.ndarray], tol: float) -> float:
-    """Share of ``points`` within ``tol`` of ``polylines``; 1.0 when there are no points."""
-    if len(points) == 0:
-        return 1.0
-    return float(np.mean(distance_to_polylines(points, polylines) <= tol))
+def pair_distances(pred: Sequence[np.ndarray], gt: Sequence[np.ndarray],
+                   step: float = 0.5) -> tuple[np.ndarray, np.ndarray]:
+    """The distances of ``pred``'s sample points (every ``step`` m) to ``gt``, and of ``gt``'s to ``pred``:
+    what the lane scores and the Chamfer distance are made of."""
+    return (distance_to_polylines(sample_points(pred, step), gt),
+            distance_to_polylines(sample_points(gt, step), pred))
+
+
+def scores_at(distances: tuple[np.ndarray, np.ndarray], tol: float) -> dict:
+    """Precision / recall / F1 at ``tol`` m from :func:`pair_distances` (a score over no points is 1)."""
+    precision, recall = (float(np.mean(d <= tol)) if len(d) else 1.0 for d in distances)
+    f1 = 2.0 * precision * recall / (precision + recall) if precision + recall > 0 else 0.0
+    return {"precision": precision, "recall": recall, "f1": f1}
 
 
 def lane_scores(pred: Sequence[np.ndarray], gt: Sequence[np.ndarray], tol: float = 1.0, step: float = 0.5) -> dict:
@@ -52,7 +60,4 @@ def lane_scores(pred: Sequence[np.ndarray], gt: Sequence[np.ndarray], tol: float
     of reference sample points within ``tol`` of a predicted polyline (see the module docstring for
     empty sets). Returns ``{"precision", "recall", "f1"}`` floats.
     """
-    precision = covered_share(sample_points(pred, step), gt, tol)
-    recall = covered_share(sample_points(gt, step), pred, tol)
-    f1 = 2.0 * precision * recall / (precision + recall) if precision + recall > 0 else 0.0
-    return {"precision": precision, "recall": recall, "f1": f1}
+    return scores_at(pair_distances(pred, gt, step), tol)

@@ -14,13 +14,14 @@ from __future__ import annotations
 
 import math
 import time
+from contextlib import contextmanager
 
 import numpy as np
 
 from cmtool.errors import CmtoolError
 from cmtool.eval.features import FeatureExtractor, lanes_image, sd_image
-from cmtool.eval.geometric import chamfer, driving_side, legal_oneway, sd_adherence
-from cmtool.eval.lanes import lane_scores
+from cmtool.eval.geometric import chamfer_of, driving_side, legal_oneway, sd_adherence
+from cmtool.eval.lanes import pair_distances, scores_at
 from cmtool.eval.retrieval import batch_recall, improved_precision_recall
 from cmtool.eval.topology import topology_fd
 from cmtool.eval.validity import check
@@ -69,24 +70,37 @@ def evaluate(generated, reference, controls: np.ndarray | None = None, extractor
     if not generated:
         raise CmtoolError("no scenes to evaluate")
     out: dict = {"scenes": len(generated)}
-    began = time.perf_counter()
-    out["topology_fd"] = topology_fd(generated, reference)
-    out["topology_seconds"] = time.perf_counter() - began
-    out["geometry"] = geometry(generated, reference, controls)
+    seconds: dict[str, float] = {}
+    with _timed(seconds, "topology"):
+        out["topology_fd"] = topology_fd(generated, reference)
+    out["geometry"] = geometry(generated, reference, controls, seconds)
     if features:
         extractor = extractor or FeatureExtractor()
-        gen = extractor(np.stack([lanes_image(g.lanes, g.frame_m) for g in generated]))
-        ref = reference_features if reference_features is not None else reference_image_features(reference, extractor)
+        with _timed(seconds, "features"):  # the rasters and their ResNet-50 passes
+            gen = extractor(np.stack([lanes_image(g.lanes, g.frame_m) for g in generated]))
+            ref = reference_features if reference_features is not None else \
+                reference_image_features(reference, extractor)
+            if controls is not None and control_features is None:
+                control_features = extractor(np.stack([sd_image(sd) for sd in controls]))
         out["backbone"] = {"name": extractor.backbone, "weights": extractor.source}
-        out["precision_recall"] = (improved_precision_recall(ref, gen, PR_K) if len(gen) > PR_K else
-                                   {"precision": math.nan, "recall": math.nan, "k": PR_K})
-        out["gt_recall"] = batch_recall(gen, ref, RECALL_BATCH, RECALL_K)
-        if controls is not None:
-            ctrl = control_features
-            if ctrl is None:
-                ctrl = extractor(np.stack([sd_image(sd) for sd in controls]))
-            out["control_recall"] = batch_recall(gen, ctrl, RECALL_BATCH, RECALL_K)
+        with _timed(seconds, "recall"):
+            out["precision_recall"] = (improved_precision_recall(ref, gen, PR_K) if len(gen) > PR_K else
+                                       {"precision": math.nan, "recall": math.nan, "k": PR_K})
+            out["gt_recall"] = batch_recall(gen, ref, RECALL_BATCH, RECALL_K)
+            if controls is not None:
+                out["control_recall"] = batch_recall(gen, control_features, RECALL_BATCH, RECALL_K)
+    out["seconds"] = seconds
     return out
+
+
+@contextmanager
+def _timed(seconds: dict[str, float], family: str):
+    """Add the time the block takes to ``seconds[family]``."""
+    began = time.perf_counter()
+    try:
+        yield
+    finally:
+        seconds[family] = seconds.get(family, 0.0) + time.perf_counter() - began
 
 
 def reference_image_features(graphs, extractor: FeatureExtractor) -> np.ndarray:
@@ -94,31 +108,39 @@ def reference_image_features(graphs, extractor: FeatureExtractor) -> np.ndarray:
     return extractor(np.stack([lanes_image(g.lanes, g.frame_m) for g in graphs]))
 
 
-def geometry(generated, reference, controls: np.ndarray | None) -> dict:
+def geometry(generated, reference, controls: np.ndarray | None, seconds: dict[str, float] | None = None) -> dict:
     """Per-scene geometric scores (``per_scene``, None where undefined) and their averages (with the
-    number of scenes each average covers); ``legal_oneway`` is averaged by the lane length judged."""
+    number of scenes each average covers); ``legal_oneway`` is averaged by the lane length judged.
+    ``seconds`` collects the time of each family of scores."""
+    seconds = {} if seconds is None else seconds
     rows: dict[str, list] = {k: [] for k in ("chamfer_m", "lane_precision", "lane_recall", "lane_f1", "validity",
                                              "dangling", "crossings")}
     if controls is not None:
         rows.update({"sd_coverage": [], "lane_on_sd": [], "driving_side": [], "legal_oneway": []})
     judged = []
     for i, (g, r) in enumerate(zip(generated, reference)):
-        rows["chamfer_m"].append(chamfer(g.lanes, r.lanes))
-        scores = lane_scores(g.lanes, r.lanes, tol=1.0)
-        for k in ("precision", "recall", "f1"):
-            rows[f"lane_{k}"].append(scores[k])
-        report = check(g)
-        counts = report.counts()
-        rows["validity"].append(report.score)
-        rows["dangling"].append(counts.get("dangling", 0))
-        rows["crossings"].append(counts.get("crossing", 0))
+        with _timed(seconds, "lane distances"):
+            distances = pair_distances(g.lanes, r.lanes)
+            rows["chamfer_m"].append(chamfer_of(distances))
+            scores = scores_at(distances, 1.0)
+            for k in ("precision", "recall", "f1"):
+                rows[f"lane_{k}"].append(scores[k])
+        with _timed(seconds, "validity"):
+            report = check(g)
+            counts = report.counts()
+            rows["validity"].append(report.score)
+            rows["dangling"].append(counts.get("dangling", 0))
+            rows["crossings"].append(counts.get("crossing", 0))
         if controls is not None:
-            for k, v in sd_adherence(g.lanes, controls[i]).items():
-                rows[k].append(v)
-            rows["driving_side"].append(driving_side(g.lanes, controls[i], drives_on(g.city or r.city))[0])
-            share, length = legal_oneway(g.lanes, controls[i])
-            rows["legal_oneway"].append(share)
-            judged.append(length)
+            with _timed(seconds, "SD adherence"):
+                for k, v in sd_adherence(g.lanes, controls[i]).items():
+                    rows[k].append(v)
+            with _timed(seconds, "driving side"):
+                rows["driving_side"].append(driving_side(g.lanes, controls[i], drives_on(g.city or r.city))[0])
+            with _timed(seconds, "legal one-way"):
+                share, length = legal_oneway(g.lanes, controls[i])
+                rows["legal_oneway"].append(share)
+                judged.append(length)
     out = {}
     for k, values in rows.items():
         v = np.asarray(values, float)

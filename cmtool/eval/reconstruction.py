@@ -21,7 +21,7 @@ from cmtool.data.jsonio import write_json, write_text_atomic
 from cmtool.data.lanegraph import LaneGraph, infer_successors, join_successors
 from cmtool.errors import CmtoolError
 from cmtool.eval.geometric import driving_side, oncoming_side
-from cmtool.eval.lanes import lane_scores
+from cmtool.eval.lanes import lane_scores, pair_distances, scores_at
 from cmtool.eval.metrics import drives_on, markdown_table, weighted_mean
 from cmtool.eval.validity import check
 from cmtool.model.rvae import RVAE, decoded_elements
@@ -87,8 +87,9 @@ def reconstruction_report(encoder: RVAE, decoder: RVAE, data_dir, device, n: int
             recon = [np.array(g.lanes).reshape(-1, scenes.arrays["lines"].shape[2], 2) for g in graphs]
             truth = [_truth(scenes, i) for i in idx]
             sds = [scenes.arrays["sd"][i] for i in idx]
-            f1 = [lane_scores(list(r), list(t), tol=tol)["f1"] for r, t in zip(recon, truth)]
-            fine = [lane_scores(list(r), list(t), tol=FINE_M)["f1"] for r, t in zip(recon, truth)]
+            distances = [pair_distances(list(r), list(t)) for r, t in zip(recon, truth)]
+            f1 = [scores_at(d, tol)["f1"] for d in distances]
+            fine = [scores_at(d, FINE_M)["f1"] for d in distances]
             links = np.sum([successor_counts(g, t, _edges(scenes, i), tol)
                             for g, t, i in zip(graphs, truth, idx)], axis=0)
             rows.append({"split": split, "city": city, "drives_on": drives_on(city), "scenes": len(idx),
