@@ -79,7 +79,7 @@ def test_timesteps():
             SCHEDULE.timesteps(bad)
 
 
-@pytest.mark.parametrize("sampler, eta", [("ddpm", 0.0), ("ddim", 0.5)])
+@pytest.mark.parametrize("sampler, eta", [("ddpm", 0.0), ("ddim", 0.5), ("dpm++2m-sde", 0.0)])
 def test_same_seed_same_samples(models, sampler, eta):
     dit, _ = models
     run = lambda seed: sample(dit, SCHEDULE, Y, steps=6, sampler=sampler, eta=eta, generator=gen(seed))
@@ -114,7 +114,7 @@ def test_ddim_eta1_matches_ddpm(models):
     assert torch.allclose(a, b, atol=1e-3, rtol=1e-3)
 
 
-@pytest.mark.parametrize("sampler", ["ddim", "ddpm"])
+@pytest.mark.parametrize("sampler", ["ddim", "ddpm", "dpm++2m", "dpm++2m-sde"])
 def test_cfg_zero_reproduces_the_base_model_exactly(models, sampler):
     dit, cm = models
     kw = dict(steps=6, sampler=sampler, eta=0.7)
@@ -206,6 +206,27 @@ def test_exact_predictor_recovers_a_gaussian(sampler):
     assert torch.allclose(per_channel.std(1), s, rtol=0.06)
 
 
+@pytest.mark.parametrize("sampler, steps", [("dpm++2m", 10), ("dpm++2m-sde", 20)])
+def test_dpm_solvers_recover_a_gaussian_in_few_steps(sampler, steps):
+    mu, s = torch.linspace(-1.0, 2.0, 64), torch.linspace(0.2, 1.5, 64)
+    y = torch.zeros(64, dtype=torch.long)
+    out = sample(GaussianEps(SCHEDULE, mu, s), SCHEDULE, y, steps=steps, sampler=sampler, generator=gen(7))
+    per_channel = out.transpose(0, 1).reshape(64, -1)
+    assert torch.allclose(per_channel.mean(1), mu, atol=0.08)
+    assert torch.allclose(per_channel.std(1), s, rtol=0.08)
+
+
+def test_dpm_solver_follows_the_ode_closer_than_ddim_in_as_many_steps():
+    """The deterministic samplers solve one ODE from the same x_T: DDIM in 1,000 steps is its solution."""
+    mu, s = torch.linspace(-1.0, 2.0, 64), torch.linspace(0.2, 1.5, 64)
+    model, y = GaussianEps(SCHEDULE, mu, s), torch.zeros(16, dtype=torch.long)
+    noise = torch.randn(16, 64, 8, 8, generator=gen(9))
+    ode = sample(model, SCHEDULE, y, steps=1000, sampler="ddim", noise=noise)
+    error = {name: float((sample(model, SCHEDULE, y, steps=10, sampler=name, noise=noise) - ode).abs().mean())
+             for name in ("ddim", "dpm++2m")}
+    assert error["dpm++2m"] < 0.5 * error["ddim"]
+
+
 class CityGaussianEps(GaussianEps):
     """The exact predictor when label 0's data is N(mu, s^2) and, without a city (label 1), N(0, s^2)."""
 
@@ -225,3 +246,11 @@ def test_city_guidance_of_gaussians_moves_the_mean_by_its_weight():
     city, none = (part.transpose(0, 1).reshape(64, -1) for part in (out[:64], out[64:]))
     assert torch.allclose(city.mean(1), 2 * mu, atol=0.08) and torch.allclose(city.std(1), s, rtol=0.06)
     assert torch.allclose(none.mean(1), torch.zeros(64), atol=0.08)
+
+
+def test_logsnr_timesteps_are_distinct_and_denser_near_the_data():
+    for n in (2, 5, 10, 20, 999, 1000):
+        ts = SCHEDULE.timesteps(n, "logsnr")
+        assert len(ts) == n and ts[0] == 999 and ts[-1] == 0 and all(a > b for a, b in zip(ts, ts[1:]))
+    assert SCHEDULE.timesteps(1, "logsnr") == [999]
+    assert SCHEDULE.timesteps(10, "logsnr")[-2] < SCHEDULE.timesteps(10)[-2] / 10

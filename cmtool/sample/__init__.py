@@ -1,6 +1,7 @@
-"""Diffusion sampling: noise schedules and DDPM/DDIM samplers with classifier-free guidance."""
+"""Diffusion sampling: noise schedules and DDPM, DDIM and DPM-Solver++ samplers with classifier-free
+guidance."""
 
-SAMPLERS = ("ddpm", "ddim")
+SAMPLERS = ("ddpm", "ddim", "dpm++2m", "dpm++2m-sde")
 # DDPM by default: with the small shipped models, deterministic DDIM turns about one map in nine
 # into a zig-zag tangle, and the fresh noise of every ancestral step keeps the trajectory near the
 # data (README: Shipped weights).

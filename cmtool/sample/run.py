@@ -62,7 +62,7 @@ class SampleSettings:
         if not (math.isfinite(self.city_cfg) and self.city_cfg >= 0):
             raise SamplingError(f"--city-cfg: guidance weight must be a finite number >= 0, got {self.city_cfg}")
         if self.sampler not in SAMPLERS:
-            raise SamplingError(f"--sampler: choose {' or '.join(SAMPLERS)}, got {self.sampler!r}")
+            raise SamplingError(f"--sampler: choose {', '.join(SAMPLERS)}, got {self.sampler!r}")
         for name in ("num", "steps", "batch"):
             if getattr(self, name) < 1:
                 raise SamplingError(f"--{name}: must be at least 1, got {getattr(self, name)}")
