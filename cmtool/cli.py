@@ -916,11 +916,12 @@ def bench():
               help="ControlMap (or DiT) checkpoint or run folder [default: the weights shipped with cmtool].")
 @click.option("--sd", "sd_path", type=click.Path(path_type=Path), help="SD input [default: a procedural crossing].")
 @click.option("--steps", default=50, show_default=True, type=click.IntRange(min=1), help="Denoising steps.")
+@click.option("--sampler", default=DEFAULT_SAMPLER, show_default=True, type=click.Choice(SAMPLERS))
 @click.option("--cfg", default=1.0, show_default=True, help="Guidance weight.")
 @click.option("--batch", default=64, show_default=True, type=click.IntRange(min=2), help="The large batch to compare.")
 @click.option("--repeats", default=3, show_default=True, type=click.IntRange(min=1), help="Timed runs per setting.")
 @click.option("--device", help="torch device [default: cuda when available, else cpu].")
-def bench_sample_cmd(ckpt, sd_path, steps, cfg, batch, repeats, device):
+def bench_sample_cmd(ckpt, sd_path, steps, sampler, cfg, batch, repeats, device):
     """Time sampling: per-step logging against --no-log at batch 1, and batch 1 against a large batch."""
     import torch
 
@@ -929,7 +930,7 @@ def bench_sample_cmd(ckpt, sd_path, steps, cfg, batch, repeats, device):
     from cmtool.sample.inputs import image_inputs
     from cmtool.sample.run import SampleSettings
 
-    settings = SampleSettings(steps=steps, cfg=cfg)
+    settings = SampleSettings(steps=steps, cfg=cfg, sampler=sampler)
     settings.check()
     sd = image_inputs([sd_path])[0].sd if sd_path else default_sd()
     dev = _device(device)

@@ -283,9 +283,9 @@ def test_hand_built_columns_match_rerun_s_own_encoding():
 
 def test_bench_sample_prints_both_times_and_the_ratio(sampling_ckpt, capsys):
     code, out, err = in_process(capsys, "bench", "sample", "--ckpt", sampling_ckpt["controlmap"], "--steps", 3,
-                            "--batch", 4, "--repeats", 1)
+                            "--batch", 4, "--repeats", 1, "--sampler", "dpm++2m-sde")
     assert code == 0, err
-    assert "batch1_nolog" in out and "batch1_log" in out and "batch4_nolog" in out
+    assert "batch1_nolog" in out and "batch1_log" in out and "batch4_nolog" in out and "3 dpm++2m-sde steps" in out
     ratio = float(out.split("full logging / --no-log at batch 1: ")[1].split()[0])
     assert ratio > 0
 

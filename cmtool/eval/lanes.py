@@ -31,7 +31,8 @@ def distance_to_polylines(points: np.ndarray, polylines: Sequence[np.ndarray]) -
     out = np.full(len(points), np.inf)
     if not lines or not len(points):
         return out
-    geoms = shapely.linestrings(np.concatenate(lines), indices=np.repeat(np.arange(len(lines)), [len(l) for l in lines]))
+    owner = np.repeat(np.arange(len(lines)), [len(l) for l in lines])
+    geoms = shapely.linestrings(np.concatenate(lines), indices=owner)
     (which, _), dist = shapely.STRtree(geoms).query_nearest(shapely.points(points), return_distance=True,
                                                             all_matches=False)
     out[which] = dist

@@ -172,7 +172,8 @@ def summary_table(results: dict[str, dict]) -> str:
                  ("lane length on one-way SD roads running the legal way ↑",
                   lambda r: _num(r["geometry"].get("legal_oneway", {}).get("mean"))),
                  ("validity score ↑", lambda r: _num(r["geometry"].get("validity", {}).get("mean"))),
-                 ("lanes joined to nothing, per map ↓", lambda r: _num(r["geometry"].get("dangling", {}).get("mean"))),
+                 ("lanes joined to nothing, per map ↓",
+                  lambda r: _num(r["geometry"].get("dangling", {}).get("mean"))),
                  ("lane crossings outside junctions, per map ↓",
                   lambda r: _num(r["geometry"].get("crossings", {}).get("mean")))]
     names = list(results)
