@@ -3,7 +3,7 @@
 import numpy as np
 import pytest
 
-from cmtool.eval.lanes import distance_to_polylines, lane_scores
+from cmtool.eval.lanes import distance_to_polylines, lane_scores, near_polylines
 
 STRAIGHT = np.array([[0.0, 0.0], [20.0, 0.0]])
 BEND = np.array([[0.0, 5.0], [10.0, 5.0], [10.0, 20.0]])
@@ -81,4 +81,8 @@ def test_distances_equal_the_brute_force_reference_on_varied_scenes():
         points = rng.uniform(-40, 40, (int(rng.integers(1, 200)), 2))
         np.testing.assert_allclose(distance_to_polylines(points, lanes), brute_force_distance(points, lanes),
                                    rtol=0, atol=1e-9)
+        tol = float(rng.uniform(0.5, 5.0))
+        np.testing.assert_array_equal(near_polylines(points, lanes, tol), brute_force_distance(points, lanes) <= tol)
     assert distance_to_polylines(np.zeros((0, 2)), [STRAIGHT]).shape == (0,)
+    assert not near_polylines(np.zeros((3, 2)), [], 1.0).any()
+    assert near_polylines(np.zeros((0, 2)), [STRAIGHT], 1.0).shape == (0,)

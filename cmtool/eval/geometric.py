@@ -23,7 +23,7 @@ import numpy as np
 from scipy.spatial import cKDTree
 
 from cmtool.data.sd_raster import decode_direction
-from cmtool.eval.lanes import distance_to_polylines, pair_distances, sample_points
+from cmtool.eval.lanes import near_polylines, pair_distances, sample_points
 from cmtool.geometry import as_polyline, resample_step
 
 STEP_M = 0.5  # lane resampling step for all point-based scores
@@ -55,7 +55,7 @@ def sd_adherence(lanes: Sequence[np.ndarray], sd: np.ndarray, road_tol: float = 
     road = sd[..., 0] > 0
     coverage = math.nan
     if road.any():
-        coverage = float(np.mean(distance_to_polylines(pixel_centres(road, frame_m), lanes) <= road_tol)) \
+        coverage = float(np.mean(near_polylines(pixel_centres(road, frame_m), lanes, road_tol))) \
             if len(lanes) else 0.0
     points = sample_points(lanes, step)
     on_sd = math.nan

@@ -27,16 +27,28 @@ def distance_to_polylines(points: np.ndarray, polylines: Sequence[np.ndarray]) -
     """Distance (N,) from each point (N, 2) to the nearest of ``polylines`` (inf if none): GEOS's
     nearest-neighbour search over an STR-tree of the polylines (exact point-to-segment distances)."""
     points = np.asarray(points, dtype=np.float64).reshape(-1, 2)
-    lines = [as_polyline(p) for p in polylines]
     out = np.full(len(points), np.inf)
-    if not lines or not len(points):
-        return out
-    owner = np.repeat(np.arange(len(lines)), [len(l) for l in lines])
-    geoms = shapely.linestrings(np.concatenate(lines), indices=owner)
-    (which, _), dist = shapely.STRtree(geoms).query_nearest(shapely.points(points), return_distance=True,
-                                                            all_matches=False)
-    out[which] = dist
+    if len(polylines) and len(points):
+        (which, _), dist = _tree(polylines).query_nearest(shapely.points(points), return_distance=True,
+                                                          all_matches=False)
+        out[which] = dist
     return out
+
+
+def near_polylines(points: np.ndarray, polylines: Sequence[np.ndarray], tol: float) -> np.ndarray:
+    """Whether each point (N, 2) lies within ``tol`` of one of ``polylines``: ``distance_to_polylines <=
+    tol``, by GEOS's ``dwithin`` over the STR-tree, about 3x faster when the distances are not needed."""
+    points = np.asarray(points, dtype=np.float64).reshape(-1, 2)
+    out = np.zeros(len(points), bool)
+    if len(polylines) and len(points):
+        out[_tree(polylines).query(shapely.points(points), predicate="dwithin", distance=tol)[0]] = True
+    return out
+
+
+def _tree(polylines: Sequence[np.ndarray]) -> shapely.STRtree:
+    lines = [as_polyline(p) for p in polylines]
+    owner = np.repeat(np.arange(len(lines)), [len(l) for l in lines])
+    return shapely.STRtree(shapely.linestrings(np.concatenate(lines), indices=owner))
 
 
 def pair_distances(pred: Sequence[np.ndarray], gt: Sequence[np.ndarray],
