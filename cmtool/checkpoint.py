@@ -80,7 +80,7 @@ def _write_shards(folder: Path, tensors: dict[str, torch.Tensor], max_bytes: int
     size = 0
     for name in sorted(tensors):
         t = tensors[name]
-        nbytes = t.numel() * t.element_size()
+        nbytes = t.nbytes
         if nbytes + 4096 > max_bytes:  # room for the file's header
             raise CmtoolError(f"weight {name} alone ({nbytes / 2**20:.1f} MiB) exceeds the file limit of "
                               f"{max_bytes / 2**20:.1f} MiB")
@@ -94,8 +94,8 @@ def _write_shards(folder: Path, tensors: dict[str, torch.Tensor], max_bytes: int
         name = f"model-{k:05d}-of-{len(groups):05d}.safetensors"
         _write_tensors(folder / name, group)
         weight_map.update({t: name for t in group})
-    total = sum(t.numel() * t.element_size() for t in tensors.values())
-    _write_json(folder / INDEX, {"metadata": {"total_size": total}, "weight_map": weight_map})
+    _write_json(folder / INDEX, {"metadata": {"total_size": sum(t.nbytes for t in tensors.values())},
+                                 "weight_map": weight_map})
 
 
 def save_checkpoint(target: Path, config: dict, weights: dict[str, torch.Tensor],
@@ -108,7 +108,7 @@ def save_checkpoint(target: Path, config: dict, weights: dict[str, torch.Tensor]
     tmp = target.with_name(f".{target.name}.tmp-{os.getpid()}")
     shutil.rmtree(tmp, ignore_errors=True)
     tmp.mkdir()
-    if max_file_bytes and sum(t.numel() * t.element_size() for t in weights.values()) + 4096 > max_file_bytes:
+    if max_file_bytes and sum(t.nbytes for t in weights.values()) + 4096 > max_file_bytes:
         _write_shards(tmp, weights, max_file_bytes)
     else:
         _write_tensors(tmp / WEIGHTS, weights)

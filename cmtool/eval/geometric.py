@@ -85,13 +85,10 @@ def driving_side(lanes: Sequence[np.ndarray], sd: np.ndarray, drives_on: str, re
     if drives_on not in ("right", "left"):
         raise ValueError(f"drives_on must be 'right' or 'left', got {drives_on!r}")
     two_way = (sd[..., 0] > 0) & (sd[..., 2] == 0)
-    pieces = [resample_step(as_polyline(l), step) for l in lanes]
-    pieces = [p for p in pieces if len(p) >= 2]
+    pieces = _resampled(lanes, step)
     if not two_way.any() or not pieces:
         return math.nan, 0
-    points = np.concatenate(pieces)
-    dirs = np.concatenate([np.gradient(p, axis=0) for p in pieces])
-    dirs /= np.maximum(np.linalg.norm(dirs, axis=1, keepdims=True), 1e-9)
+    points, dirs = _headings(pieces)
     left = np.stack([-dirs[:, 1], dirs[:, 0]], axis=-1)
     offsets = np.arange(-reach, reach + 1e-9, 0.25)
     probes = points[:, None, :] + offsets[None, :, None] * left[:, None, :]  # (N, K, 2)
@@ -120,14 +117,11 @@ def oncoming_side(lanes: Sequence[np.ndarray], drives_on: str, reach: tuple[floa
     """
     if drives_on not in ("right", "left"):
         raise ValueError(f"drives_on must be 'right' or 'left', got {drives_on!r}")
-    pieces = [resample_step(as_polyline(l), step) for l in lanes]
-    pieces = [p for p in pieces if len(p) >= 2]
+    pieces = _resampled(lanes, step)
     if len(pieces) < 2:
         return math.nan, 0
-    points = np.concatenate(pieces)
+    points, dirs = _headings(pieces)
     owner = np.concatenate([np.full(len(p), i) for i, p in enumerate(pieces)])
-    dirs = np.concatenate([np.gradient(p, axis=0) for p in pieces])
-    dirs /= np.maximum(np.linalg.norm(dirs, axis=1, keepdims=True), 1e-9)
     k = min(neighbours, len(points))
     dist, idx = cKDTree(points).query(points, k=k, distance_upper_bound=reach[1])
     found = np.isfinite(dist)
@@ -155,13 +149,10 @@ def legal_oneway(lanes: Sequence[np.ndarray], sd: np.ndarray, reach: float = 4.0
     judged); it is legal when it heads within 90 degrees of the road's travel heading.
     """
     road = sd[..., 0] > 0
-    pieces = [resample_step(as_polyline(l), step) for l in lanes]
-    pieces = [p for p in pieces if len(p) >= 2]
+    pieces = _resampled(lanes, step)
     if not (road & (sd[..., 2] > 0)).any() or not pieces:
         return math.nan, 0.0
-    points = np.concatenate(pieces)
-    dirs = np.concatenate([np.gradient(p, axis=0) for p in pieces])
-    dirs /= np.maximum(np.linalg.norm(dirs, axis=1, keepdims=True), 1e-9)
+    points, dirs = _headings(pieces)
     rows, cols = np.nonzero(road)
     _, nearest = cKDTree(pixel_centres(road, frame_m)).query(points, distance_upper_bound=reach)
     found = nearest < len(rows)
@@ -173,6 +164,18 @@ def legal_oneway(lanes: Sequence[np.ndarray], sd: np.ndarray, reach: float = 4.0
     if not judged.any():
         return math.nan, 0.0
     return float(np.mean(cos[judged] > 0)), float(judged.sum() * step)
+
+
+def _resampled(lanes: Sequence[np.ndarray], step: float) -> list[np.ndarray]:
+    """The lanes resampled every ``step`` metres (those of at least 2 points)."""
+    return [p for p in (resample_step(as_polyline(l), step) for l in lanes) if len(p) >= 2]
+
+
+def _headings(pieces: list[np.ndarray]) -> tuple[np.ndarray, np.ndarray]:
+    """All points of the resampled lanes (N, 2) and their unit travel directions (N, 2)."""
+    points = np.concatenate(pieces)
+    dirs = np.concatenate([np.gradient(p, axis=0) for p in pieces])
+    return points, dirs / np.maximum(np.linalg.norm(dirs, axis=1, keepdims=True), 1e-9)
 
 
 def _pixel_of(points: np.ndarray, size: int, frame_m: float) -> tuple[np.ndarray, np.ndarray]:
