@@ -665,10 +665,11 @@ def validate(maps, json_out, repair, out):
     for r in reports:
         for k, v in r.counts().items():
             totals[k] = totals.get(k, 0) + v
-    click.echo(f"{'scene':>5} {'score':>6} {'lanes':>5} {'routable':>8} {'scc':>4}  problems")
+    click.echo(f"{'scene':>5} {'score':>6} {'lanes':>5} {'routable':>8} {'+changes':>8} {'scc':>4}  problems")
     for i, r in enumerate(reports):
         problems = ", ".join(f"{k} {v}" for k, v in sorted(r.counts().items())) or "none"
-        click.echo(f"{i:>5} {r.score:>6.3f} {r.lanes:>5} {r.routable_pairs:>8.3f} {r.largest_scc:>4}  {problems}")
+        click.echo(f"{i:>5} {r.score:>6.3f} {r.lanes:>5} {r.routable_pairs:>8.3f} {r.routable_with_changes:>8.3f} "
+                   f"{r.largest_scc:>4}  {problems}")
     summary = {"scenes": len(reports), "mean_score": float(np.mean([r.score for r in reports])), "problems": totals}
     click.echo(f"{len(reports)} scenes, mean validity score {summary['mean_score']:.3f}; problems: "
                + (", ".join(f"{k} {v}" for k, v in sorted(totals.items())) or "none"))
@@ -678,41 +679,70 @@ def validate(maps, json_out, repair, out):
 
 
 @cli.command()
-@click.option("--format", "fmt", required=True, type=click.Choice(["lanelet2", "geojson"]),
-              help="lanelet2: a Lanelet2 OSM map (.osm); geojson: GeoJSON features.")
+@click.option("--format", "fmt", required=True, type=click.Choice(["lanelet2", "opendrive", "geojson"]),
+              help="lanelet2: a Lanelet2 OSM map (.osm); opendrive: an OpenDRIVE 1.6 map (.xodr); "
+                   "geojson: GeoJSON features.")
 @click.argument("map_path", metavar="MAP", type=click.Path(dir_okay=False, path_type=Path))
-@click.option("--origin", required=True, help="LAT,LON where the scene's origin (the ego) lies.")
-@click.option("--heading", default=0.0, show_default=True, help="Compass heading of the scene's forward axis, degrees.")
+@click.option("--origin", help="LAT,LON where the scene's origin (the ego) lies [default: what the map's meta.geo "
+                               "records, as maps from `sample --osm` do].")
+@click.option("--heading", type=float, help="Compass heading of the scene's forward axis, degrees [default: meta.geo's, "
+                                            "else 0].")
 @click.option("--scene", default=0, show_default=True, type=click.IntRange(min=0), help="Scene of a .jsonl file.")
 @click.option("--lane-width", default=3.5, show_default=True, type=click.FloatRange(min=0.5, max=10.0),
-              help="Lane width for the boundaries, metres.")
+              help="Lane width where the map records none and no neighbours give one, metres.")
 @click.option("--out", required=True, type=click.Path(dir_okay=False, path_type=Path), help="File to write.")
 def export(fmt, map_path, origin, heading, scene, lane_width, out):
     """Export a lane graph (a generated or ground-truth scene) for simulators and GIS tools."""
+    import math
+
+    import numpy as np
+
     from cmtool.data.geojson import to_geojson
     from cmtool.data.jsonio import write_json
     from cmtool.data.lanegraph import read_jsonl
-    from cmtool.data.lanelet2_export import write_lanelet2
+    from cmtool.data.neighbours import graph_neighbours
     from cmtool.eval.validity import check
 
     graphs = read_jsonl(map_path)
     if scene >= len(graphs):
         raise CmtoolError(f"{map_path}: no scene {scene} ({len(graphs)} scene{'s' if len(graphs) != 1 else ''})")
-    lat0, lon0 = _origin(origin)
-    if fmt == "lanelet2":
-        graph = graphs[scene]
-        write_lanelet2(graph, out, lat0, lon0, heading, lane_width)
-        click.echo(f"{out}: {len(graph.lanes)} lanelets, {len(graph.successors)} successor joins, "
-                   f"{len(graph.green_lights) + len(graph.red_lights)} light lines")
+    graph = graphs[scene]
+    if not graph.lanes:
+        raise CmtoolError(f"{map_path}: scene {scene} has no lanes to export")
+    short = [k for k, lane in enumerate(graph.lanes) if np.linalg.norm(np.diff(lane, axis=0), axis=1).sum() < 0.01]
+    if short:
+        raise CmtoolError(f"{map_path}: scene {scene}: lane {short[0]} has no length (all its points coincide)")
+    geo = graph.geo
+    if origin is not None:
+        lat0, lon0 = _origin(origin)
+    elif geo is not None:
+        lat0, lon0 = geo[0], geo[1]
+    else:
+        raise CmtoolError(f"{map_path}: scene {scene} records no place on the globe (meta.geo); "
+                          "give --origin LAT,LON (and --heading)")
+    if heading is None:
+        heading = geo[2] if geo is not None and origin is None else 0.0
+    if not math.isfinite(heading):
+        raise CmtoolError(f"--heading {heading}: expected a finite number of degrees")
+    if fmt in ("lanelet2", "opendrive"):
+        if fmt == "lanelet2":
+            from cmtool.data.lanelet2_export import write_lanelet2 as write
+        else:
+            from cmtool.data.opendrive_export import write_opendrive as write
+        write(graph, out, lat0, lon0, heading, lane_width)
+        left, oncoming = graph_neighbours(graph)
+        click.echo(f"{out}: {len(graph.lanes)} lanes, {len(graph.successors)} successor joins, {len(left)} lane-change "
+                   f"neighbours, {len(oncoming)} oncoming pairs, {len(graph.green_lights) + len(graph.red_lights)} "
+                   f"light lines; origin {lat0:.7f},{lon0:.7f}, heading {heading:g}")
         report = check(graph)
         bad = {i for p in report.problems for i in p.lanes}
         if bad:
             click.echo(f"warning: {len(bad)} of {len(graph.lanes)} lanes have validity problems ("
                        + ", ".join(f"{k} {v}" for k, v in sorted(report.counts().items()))
-                       + "); Lanelet2 may orient the bounds of sharply turning lanes the wrong way and then "
-                         "not route through them (see cmtool validate)", err=True)
+                       + "); simulators may not route through sharply turning or crossing lanes "
+                         "(see cmtool validate)", err=True)
         return
-    collection = to_geojson(graphs[scene], lat0, lon0, heading, lane_width)
+    collection = to_geojson(graph, lat0, lon0, heading, lane_width)
     write_json(out, collection)
     kinds: dict[str, int] = {}
     for f in collection["features"]:

@@ -6,11 +6,12 @@ import math
 
 import numpy as np
 import pytest
+import shapely
 
 from cmtool.data.geo import LocalProjection
 from cmtool.data.lanegraph import LaneGraph, write_jsonl
 from cmtool.geometry import resample
-from tests.conftest import in_process
+from tests.conftest import SHARED_DATA, in_process
 
 
 def scene():
@@ -69,7 +70,7 @@ def test_lanelet2_export_loads_back_with_our_importer(tmp_path, capsys):
     code, out, err = in_process(capsys, "export", "--format", "lanelet2", tmp_path / "s.jsonl", "--origin", "49.0,8.4",
                                 "--out", tmp_path / "s.osm")
     assert code == 0, err
-    assert "5 lanelets, 2 successor joins, 1 light lines" in out
+    assert "5 lanes, 2 successor joins, 2 lane-change neighbours, 0 oncoming pairs, 1 light lines" in out
     hd = import_hd_map("lanelet2", tmp_path / "s.osm")
     assert len(hd.lanes) == 5
     # the importer centres its projection on the nodes' mean: compare shapes relative to lane 0's start
@@ -89,31 +90,54 @@ def test_lanelet2_export_warns_about_lanes_that_fail_validation(tmp_path, capsys
     write_jsonl(tmp_path / "s.jsonl", [LaneGraph(lanes=[hairpin, np.array([[-32.0, -5.0], [32.0, -5.0]])])])
     code, out, err = in_process(capsys, "export", "--format", "lanelet2", tmp_path / "s.jsonl", "--origin", "49,8",
                                 "--out", tmp_path / "s.osm")
-    assert code == 0 and "2 lanelets" in out
+    assert code == 0 and "2 lanes" in out
     assert "warning: 1 of 2 lanes have validity problems (kink 1)" in err
 
 
 def test_lanelet2_package_routes_the_exported_map(tmp_path):
-    lanelet2 = pytest.importorskip("lanelet2")
-    from lanelet2.io import Origin
-    from lanelet2.projection import UtmProjector
-
     from cmtool.data.lanelet2_export import write_lanelet2
 
     write_lanelet2(neighbours_scene(), tmp_path / "s.osm", 49.0, 8.4)
-    lanelet_map, errors = lanelet2.io.loadRobust(str(tmp_path / "s.osm"), UtmProjector(Origin(49.0, 8.4)))
-    assert errors == [] and len(lanelet_map.laneletLayer) == 5 and len(lanelet_map.regulatoryElementLayer) == 1
-    rules = lanelet2.traffic_rules.create(lanelet2.traffic_rules.Locations.Germany,
-                                          lanelet2.traffic_rules.Participants.Vehicle)
-    graph = lanelet2.routing.RoutingGraph(lanelet_map, rules)
+    lanelet_map, graph = lanelet2_routing(tmp_path / "s.osm", 49.0, 8.4)
+    assert len(lanelet_map.laneletLayer) == 5 and len(lanelet_map.regulatoryElementLayer) == 1
     lane = {int(ll.attributes["cmtool:lane"]): ll for ll in lanelet_map.laneletLayer}
     following = {(i, int(f.attributes["cmtool:lane"])) for i, ll in lane.items() for f in graph.following(ll)}
     assert following == {(0, 1), (2, 3)}  # the lane graph's successor pairs
     assert graph.right(lane[0]) is not None and int(graph.right(lane[0]).attributes["cmtool:lane"]) == 2
 
 
-def lanelet2_successors(path, lat0, lon0):
-    """(lanelet count, successor pairs by cmtool:lane) as the `lanelet2` package's routing graph sees them."""
+def test_export_takes_the_origin_from_meta_geo_and_refuses_bad_inputs(tmp_path, capsys):
+    graph = scene()
+    graph.meta["geo"] = {"lat": 60.5, "lon": 26.9, "heading": 90.0}
+    write_jsonl(tmp_path / "s.jsonl", [graph, scene(), LaneGraph(lanes=[]),
+                                       LaneGraph(lanes=[np.array([[1.0, 1.0], [1.0, 1.0]])])])
+    code, out, err = in_process(capsys, "export", "--format", "geojson", tmp_path / "s.jsonl",
+                                "--out", tmp_path / "s.geojson")
+    assert code == 0, err
+    lane = json.loads((tmp_path / "s.geojson").read_text())["features"][0]["geometry"]["coordinates"]
+    en = LocalProjection(60.5, 26.9).to_metres(*np.array(lane)[:, ::-1].T)
+    np.testing.assert_allclose(en[[0, -1]], [[-30.0, -1.75], [0.0, -1.75]], atol=0.01)  # heading 90: forward is east
+    for scene_no, message in ((1, "records no place on the globe (meta.geo); give --origin"),
+                              (2, "scene 2 has no lanes to export"), (3, "lane 0 has no length")):
+        code, _, err = in_process(capsys, "export", "--format", "lanelet2", tmp_path / "s.jsonl", "--scene", scene_no,
+                                  "--out", tmp_path / "x.osm")
+        assert code == 1 and message in err and len(err.strip().splitlines()) == 1, err
+    for origin in ("91,8", "49,200"):
+        code, _, err = in_process(capsys, "export", "--format", "lanelet2", tmp_path / "s.jsonl", "--origin", origin,
+                                  "--out", tmp_path / "x.osm")
+        assert code == 1 and "latitude must be within" in err
+    code, _, err = in_process(capsys, "export", "--format", "lanelet2", tmp_path / "s.jsonl", "--heading", "nan",
+                              "--out", tmp_path / "x.osm")
+    assert code == 1 and "expected a finite number" in err
+    (tmp_path / "one.jsonl").write_text('{"version": 1, "lanes": [[[0, 0]]]}\n')
+    code, _, err = in_process(capsys, "export", "--format", "opendrive", tmp_path / "one.jsonl", "--origin", "49,8",
+                              "--out", tmp_path / "x.osm")
+    assert code == 1 and "lanes[0]: expected at least 2 points" in err
+    assert not (tmp_path / "x.osm").exists()
+
+
+def lanelet2_routing(path, lat0, lon0):
+    """(map, routing graph) of an exported file as the `lanelet2` package loads it, for a vehicle in Germany."""
     lanelet2 = pytest.importorskip("lanelet2")
     from lanelet2.io import Origin
     from lanelet2.projection import UtmProjector
@@ -122,7 +146,76 @@ def lanelet2_successors(path, lat0, lon0):
     assert errors == []
     rules = lanelet2.traffic_rules.create(lanelet2.traffic_rules.Locations.Germany,
                                           lanelet2.traffic_rules.Participants.Vehicle)
-    graph = lanelet2.routing.RoutingGraph(lanelet_map, rules)
+    return lanelet_map, lanelet2.routing.RoutingGraph(lanelet_map, rules)
+
+
+def lanelet2_routes(path, lat0, lon0):
+    """Ordered lanelet pairs (by cmtool:lane) joined by a route with lane changes, as the `lanelet2` package's
+    routing graph finds them."""
+    lanelet_map, graph = lanelet2_routing(path, lat0, lon0)
+    lane = {ll.id: int(ll.attributes["cmtool:lane"]) for ll in lanelet_map.laneletLayer}
+    return {(lane[ll.id], lane[r.id]) for ll in lanelet_map.laneletLayer
+            for r in graph.reachableSet(ll, 1e9, 0, True) if r.id != ll.id}
+
+
+def source_routes(graph):
+    """Ordered lane pairs joined by successor edges and lane changes of the lane graph (a plain search)."""
+    from cmtool.eval.validity import lane_changes
+
+    adj = {i: set() for i in range(len(graph.lanes))}
+    for i, j in list(graph.successors) + lane_changes(graph):
+        adj[i].add(j)
+    routes = set()
+    for start in adj:
+        seen, stack = {start}, [start]
+        while stack:
+            for k in adj[stack.pop()] - seen:
+                seen.add(k)
+                stack.append(k)
+        routes |= {(start, k) for k in seen - {start}}
+    return routes
+
+
+def real_and_procedural_maps():
+    from cmtool.data.importers import import_hd_map
+    from cmtool.data.synth import generate_city
+
+    for path in sorted((SHARED_DATA / "av2").glob("*.json")):
+        yield "av2", import_hd_map("av2", path)
+    yield "lanelet2", import_hd_map("lanelet2", SHARED_DATA / "lanelet2" / "mapping_example.osm")
+    for city in ("BOS", "SGP"):
+        yield city, generate_city(city, seed=3, extent=400.0)
+
+
+def test_lanelet2_routes_lane_changes_and_junctions_as_the_source_allows(tmp_path):
+    """Ground-truth crops of real Argoverse 2 and Lanelet2 maps and procedural cities, exported: the `lanelet2`
+    routing graph routes what the lane graph allows (successors and lane changes between the source's
+    neighbours). It never routes more; it may route a little less where a short piece at the frame border does not
+    start abreast of its neighbour, or a lane turns tighter than half its width."""
+    pytest.importorskip("lanelet2")
+    from cmtool.data.frames import hd_poses
+    from cmtool.data.lanelet2_export import write_lanelet2
+    from cmtool.data.scene import SceneCropper
+    from cmtool.eval.validity import lane_changes
+
+    totals = {}
+    for name, hd in real_and_procedural_maps():
+        cropper = SceneCropper(hd)
+        for pose in hd_poses(hd, 4, np.random.default_rng(0)):
+            graph = cropper.extract(pose, num_lines=300, num_lights=50).to_lanegraph()
+            write_lanelet2(graph, tmp_path / "rt.osm", 49.0, 8.4)
+            routed, allowed = lanelet2_routes(tmp_path / "rt.osm", 49.0, 8.4), source_routes(graph)
+            assert routed <= allowed
+            t = totals.setdefault(name, [0, 0, 0])
+            t[0], t[1], t[2] = t[0] + len(routed), t[1] + len(allowed), t[2] + len(lane_changes(graph))
+    for name, (routed, allowed, changes) in totals.items():
+        assert changes > 0, f"{name}: no lane changes in the crops"
+        assert routed >= (1.0 if name in ("BOS", "SGP") else 0.97) * allowed, (name, routed, allowed)
+
+
+def lanelet2_successors(path, lat0, lon0):
+    """(lanelet count, successor pairs by cmtool:lane) as the `lanelet2` package's routing graph sees them."""
+    lanelet_map, graph = lanelet2_routing(path, lat0, lon0)
     lane = {int(ll.attributes["cmtool:lane"]): ll for ll in lanelet_map.laneletLayer}
     return len(lane), {(i, int(f.attributes["cmtool:lane"])) for i, ll in lane.items() for f in graph.following(ll)}
 
@@ -162,3 +255,29 @@ def test_procedural_scenes_keep_every_lane_and_successor_through_lanelet2(tmp_pa
             assert len(back.lanes) == len(graph.lanes)
             got = {(int(a) - 1, int(b) - 1) for a, lane in back.lanes.items() for b in lane.successors}
             assert got == {(int(i), int(j)) for i, j in graph.successors}
+
+
+def test_ground_truth_of_a_lanelet2_map_exports_back_where_it_lies(tmp_path, capsys):
+    """`sample --from-hd` of an imported Lanelet2 map knows where its frame lies: exported without --origin,
+    the ground truth's lanes land on the source map's own lat/lon."""
+    from cmtool.data.importers import import_hd_map
+    from cmtool.sample.inputs import hd_inputs
+
+    hd = import_hd_map("lanelet2", SHARED_DATA / "lanelet2" / "mapping_example.osm")
+    hd.save(tmp_path / "kar.json")
+    lane = next(iter(hd.lanes.values()))
+    x, y = lane.centerline[0]
+    truth = hd_inputs(tmp_path / "kar.json", [(x, y, 30.0)])[0].truth
+    assert truth.meta["geo"]["heading"] == 60.0
+    write_jsonl(tmp_path / "gt.jsonl", [truth])
+    code, _, err = in_process(capsys, "export", "--format", "geojson", tmp_path / "gt.jsonl", "--out",
+                              tmp_path / "gt.geojson")
+    assert code == 0, err
+    proj = LocalProjection(hd.meta["lat0"], hd.meta["lon0"])
+    source = shapely.MultiLineString([l.centerline for l in hd.lanes.values()])
+    lanes = [f for f in json.loads((tmp_path / "gt.geojson").read_text())["features"] if f["properties"]["kind"] == "lane"]
+    assert len(lanes) == len(truth.lanes) > 5
+    for f in lanes:
+        lonlat = np.array(f["geometry"]["coordinates"])
+        xy = proj.to_metres(lonlat[:, 1], lonlat[:, 0])
+        assert shapely.distance(shapely.points(xy), source).max() < 0.05

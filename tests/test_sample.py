@@ -172,8 +172,17 @@ def test_osm_and_hd_inputs(sampling_ckpt, tmp_path, capsys):
     code, _, err = in_process(capsys, "sample", "--ckpt", cm, "--osm", OSM, "--center", "40.4410,-79.9900", "--heading", 30,
                           "--steps", 2, "--out", tmp_path / "osm", "--rrd", tmp_path / "osm.rrd", "--quiet")
     assert code == 0, err
-    assert json.loads((tmp_path / "osm" / "small.json").read_text())["meta"]["source"].startswith("osm:small.osm@40.441")
+    generated = json.loads((tmp_path / "osm" / "small.json").read_text())
+    assert generated["meta"]["source"].startswith("osm:small.osm@40.441")
+    assert generated["meta"]["geo"] == {"lat": 40.441, "lon": -79.99, "heading": 30.0}
+    assert len(generated["widths"]) == len(generated["lanes"]) and "left_neighbors" in generated
     assert (tmp_path / "osm.rrd").stat().st_size > 0 and not (tmp_path / "osm" / "sample.rrd").exists()
+    for fmt in ("lanelet2", "opendrive", "geojson"):  # placed where it was generated, without retyping the origin
+        code, out, err = in_process(capsys, "export", "--format", fmt, tmp_path / "osm" / "small.json", "--out",
+                                    tmp_path / f"small.{fmt}")
+        assert code == 0, err
+        if fmt == "lanelet2":
+            assert "origin 40.4410000,-79.9900000, heading 30" in out
 
     assert in_process(capsys, "data", "synth", "--city", "SGP", "--seed", 2, "--extent", 300, "--out",
                   tmp_path / "sgp.json")[0] == 0

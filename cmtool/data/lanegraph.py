@@ -6,16 +6,24 @@ scenes is JSON Lines (``.jsonl``), one object per line::
     {"version": 1, "city": "SGP", "frame_m": 64.0,
      "lanes": [[[x, y], ...], ...], "successors": [[i, j], ...],
      "green_lights": [[[x, y], ...], ...], "red_lights": [[[x, y], ...], ...],
-     "meta": {"source": "...", "seed": 0, "cfg": 0.7}}
+     "left_neighbors": [[i, j], ...], "oncoming": [[i, j], ...], "widths": [3.5, ...],
+     "meta": {"source": "...", "seed": 0, "cfg": 0.7, "geo": {"lat": 60.53, "lon": 26.95, "heading": 90.0}}}
 
 Lanes are centerlines in driving direction (any number of points >= 2); ``successors`` are index
-pairs (lane i flows into lane j). Reading validates everything and names the line and field of the
-first problem; NaN and infinite coordinates are rejected.
+pairs (lane i flows into lane j). ``left_neighbors`` (optional) are index pairs: lane j is lane i's
+left neighbour, the same way (a lane change); ``oncoming`` (optional) pairs i < j are lanes that run
+the other way across a shared centre line (see :mod:`cmtool.data.neighbours`); files without them
+(older ones) get them from the geometry where they are needed. ``widths`` (optional) are lane
+widths in metres.
+``meta.geo`` (optional) places the frame on the globe: the latitude and longitude of its origin and
+the compass heading of its forward axis. Reading validates everything and names the line and field
+of the first problem; NaN and infinite coordinates are rejected.
 """
 
 from __future__ import annotations
 
 import json
+import math
 import os
 from dataclasses import dataclass, field
 from pathlib import Path
@@ -34,6 +42,9 @@ class LaneGraph:
     successors: list[tuple[int, int]] = field(default_factory=list)
     green_lights: list[np.ndarray] = field(default_factory=list)
     red_lights: list[np.ndarray] = field(default_factory=list)
+    left_neighbors: list[tuple[int, int]] | None = None  # None: not recorded (inferred where needed)
+    oncoming: list[tuple[int, int]] | None = None  # the same
+    widths: list[float] | None = None
     city: str | None = None
     frame_m: float = 64.0
     meta: dict = field(default_factory=dict)
@@ -50,6 +61,9 @@ class LaneGraph:
             "successors": [[int(i), int(j)] for i, j in self.successors],
             "green_lights": lines(self.green_lights),
             "red_lights": lines(self.red_lights),
+            **{k: [[int(i), int(j)] for i, j in v] for k, v in (("left_neighbors", self.left_neighbors),
+                                                                ("oncoming", self.oncoming)) if v is not None},
+            **({} if self.widths is None else {"widths": [round(float(w), 3) for w in self.widths]}),
             "meta": self.meta,
         }
 
@@ -68,15 +82,52 @@ class LaneGraph:
             frame_m=frame_m,
             meta=f.get("meta", dict, {}),
         )
-        n = len(graph.lanes)
-        for k, pair in enumerate(f.get("successors", list, [])):
-            ok = isinstance(pair, list) and len(pair) == 2 and all(type(v) is int for v in pair)
-            if not ok:
-                f.fail(f"successors[{k}]", f"expected [i, j] lane indices, got {pair!r}")
-            if not all(0 <= v < n for v in pair):
-                f.fail(f"successors[{k}]", f"lane index out of range in {pair} ({n} lanes)")
-            graph.successors.append((pair[0], pair[1]))
+        graph.successors = _pairs(f, "successors", len(graph.lanes))
+        for key in ("left_neighbors", "oncoming"):
+            if f.get(key, list, None, allow_none=True) is not None:
+                setattr(graph, key, _pairs(f, key, len(graph.lanes)))
+        widths = f.get("widths", list, None, allow_none=True)
+        if widths is not None:
+            if len(widths) != len(graph.lanes):
+                f.fail("widths", f"expected one width per lane ({len(graph.lanes)}), got {len(widths)}")
+            for k, w in enumerate(widths):
+                if type(w) not in (int, float) or not 0.5 <= w <= 20.0:
+                    f.fail(f"widths[{k}]", f"expected a lane width in metres (0.5 to 20), got {w!r}")
+            graph.widths = [float(w) for w in widths]
+        geo = graph.meta.get("geo")
+        if geo is not None:
+            geo_origin(geo, f"{where}: meta.geo")
         return graph
+
+    @property
+    def geo(self) -> tuple[float, float, float] | None:
+        """(lat, lon, compass heading) of the frame's origin and forward axis, when recorded."""
+        geo = self.meta.get("geo")
+        return None if geo is None else geo_origin(geo, "meta.geo")
+
+
+def geo_origin(geo, where: str) -> tuple[float, float, float]:
+    """``{"lat":, "lon":, "heading":}`` checked: a latitude, a longitude and a finite heading."""
+    try:
+        lat, lon, heading = (float(geo[k]) for k in ("lat", "lon", "heading"))
+    except (KeyError, TypeError, ValueError, OverflowError):
+        raise CmtoolError(f"{where}: expected {{\"lat\": ..., \"lon\": ..., \"heading\": ...}}, got {geo!r}") from None
+    if not (-90.0 <= lat <= 90.0 and -180.0 <= lon <= 180.0 and math.isfinite(heading)):
+        raise CmtoolError(f"{where}: latitude must be in [-90, 90], longitude in [-180, 180] and the heading "
+                          f"finite, got {lat}, {lon}, {heading}")
+    return lat, lon, heading
+
+
+def _pairs(f: Fields, key: str, n: int) -> list[tuple[int, int]]:
+    out = []
+    for k, pair in enumerate(f.get(key, list, [])):
+        ok = isinstance(pair, list) and len(pair) == 2 and all(type(v) is int for v in pair)
+        if not ok:
+            f.fail(f"{key}[{k}]", f"expected [i, j] lane indices, got {pair!r}")
+        if not all(0 <= v < n for v in pair):
+            f.fail(f"{key}[{k}]", f"lane index out of range in {pair} ({n} lanes)")
+        out.append((pair[0], pair[1]))
+    return out
 
 
 def read_jsonl(path: str | os.PathLike) -> list[LaneGraph]:

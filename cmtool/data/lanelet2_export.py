@@ -1,13 +1,15 @@
 """Lane graphs as Lanelet2 maps (OSM XML, WGS84), loadable by Lanelet2 and by our own importer.
 
 Every lane becomes a lanelet (``type=lanelet``, ``subtype=road``, ``one_way=yes``) whose left and
-right bounds are ways half a lane width either side of the centerline. Lane ends and starts joined
-by successor edges (forks and merges included) get one shared left and one shared right bound
-node, which is how Lanelet2 routing finds successors.
-Bounds of neighbouring lanes that coincide (within ``SHARE_M`` on average and ``SHARE_ENDS_M`` at
-both ends, in either direction) become one way, so routing sees lane changes. Each traffic-light line becomes a
-``regulatory_element`` (``subtype=traffic_light``) with a light way and a stop line across the
-lane it starts on, referenced by that lanelet. The scene frame's origin is placed at
+right bounds are ways half its width either side of the centerline (widths from the lane graph, else
+from the spacing of neighbours, else ``lane_width``). Lane ends and starts joined by successor edges
+(forks and merges included) get one shared left and one shared right bound node, which is how
+Lanelet2 routing finds successors. Neighbours (the lane graph's ``left_neighbors`` and ``oncoming``,
+found from the geometry when it has none) that start and end abreast share one bound way: dashed
+between lane-change neighbours, so Lanelet2 routes lane changes; solid as the centre line of
+oncoming lanes (their left bounds in right-hand traffic, their right bounds in left-hand traffic).
+Each traffic-light line becomes a ``regulatory_element`` (``subtype=traffic_light``) with a light
+way and a stop line across the lane it starts on, referenced by that lanelet. The scene frame's origin is placed at
 ``(lat0, lon0)`` with its forward axis pointing to the compass ``heading``.
 """
 
@@ -20,13 +22,13 @@ import numpy as np
 
 from cmtool.data.geo import scene_to_latlon
 from cmtool.data.jsonio import write_text_atomic
+from cmtool.data.neighbours import LANE_WIDTH_M, abreast, graph_neighbours, lane_widths, side_of
 from cmtool.geometry import offset, resample, unit
 from cmtool.unionfind import UnionFind
 
-LANE_WIDTH_M = 3.5
-SHARE_M = 0.3  # mean distance under which two bounds become one way ...
-SHARE_ENDS_M = 0.05  # ... when their end points are this close
 LIGHT_REACH_M = 3.0  # a light line controls the lane starting this close to its start
+LEFT, RIGHT = 0, 1
+START, END = 0, 1
 
 
 class _Ways:
@@ -36,29 +38,14 @@ class _Ways:
         self.node_ids: dict[tuple[int, int], int] = {}
         self.nodes: list[np.ndarray] = []
         self.ways: list[tuple[list[int], dict]] = []
-        self.aliases: dict[tuple[int, int], tuple[int, int]] = {}
 
     @staticmethod
     def _key(p: np.ndarray) -> tuple[int, int]:
         return round(float(p[0]) * 1000), round(float(p[1]) * 1000)
 
-    def alias(self, p: np.ndarray, q: np.ndarray) -> None:
-        """Make point ``p`` the same node as ``q`` (a shared bound's end, within ``SHARE_ENDS_M``)."""
-        key, target = self._key(p), self._key(q)
-        seen = {key}
-        while target in self.aliases and target not in seen:
-            seen.add(target)
-            target = self.aliases[target]
-        if target not in seen and key not in self.aliases:
-            self.aliases[key] = target
-
     def node(self, p: np.ndarray) -> int:
         key = self._key(p)
-        if key in self.aliases:
-            key, p = self.aliases[key], None
         if key not in self.node_ids:
-            if p is None:
-                p = np.array(key, np.float64) / 1000.0
             self.node_ids[key] = len(self.nodes) + 1
             self.nodes.append(np.asarray(p, np.float64))
         return self.node_ids[key]
@@ -76,30 +63,39 @@ class _Ways:
 def to_lanelet2(graph, lat0: float, lon0: float, heading: float = 0.0, lane_width: float = LANE_WIDTH_M) -> str:
     """The OSM XML text of ``graph`` (a LaneGraph) as a Lanelet2 map."""
     lanes = [np.asarray(l, np.float64) for l in graph.lanes]
-    bounds = [[offset(l, lane_width / 2.0), offset(l, -lane_width / 2.0)] for l in lanes]  # [left, right]
-    _join_ends(bounds, graph.successors)
-    ways = _Ways()
-    owner: dict[tuple[int, int], tuple[int, int]] = {}  # bound -> the first bound it coincides with
-    firsts: list[tuple[int, int]] = []  # bounds that coincide with no earlier one: one way each
-    for i in range(len(lanes)):
-        for side in (0, 1):
-            b = bounds[i][side]
-            owner[(i, side)] = (i, side)
-            for key in firsts:
-                other = bounds[key[0]][key[1]]
-                flip = _coincide(b, other)
-                if flip is not None:
-                    owner[(i, side)] = key
-                    ways.alias(b[0], other[-1] if flip else other[0])  # joints this bound ends at
-                    ways.alias(b[-1], other[0] if flip else other[-1])  # become the shared way's ends
-                    break
-            else:
-                firsts.append((i, side))
-    made = {key: ways.way(bounds[key[0]][key[1]], type="line_thin", subtype="dashed") for key in firsts}
-    way_of = {bound: made[key] for bound, key in owner.items()}
+    left, oncoming = graph_neighbours(graph)
+    widths = lane_widths(lanes, left, graph.widths, lane_width)
+    bounds = {(i, side): offset(l, (0.5 if side == LEFT else -0.5) * w)
+              for i, (l, w) in enumerate(zip(lanes, widths)) for side in (LEFT, RIGHT)}
+    corners = _Corners(len(lanes))
+    for i, j in graph.successors:
+        corners.join([((i, LEFT, END), (j, LEFT, START)), ((i, RIGHT, END), (j, RIGHT, START))])
+    shared = {}  # bound -> (the bound it shares a way with, whether that one runs against it)
+    beside = [((i, LEFT), (j, RIGHT), True) for i, j in left]  # lane-change neighbours: i's left bound is j's right
+    for i, j in oncoming:  # the centre line: the bound on the side where the other lane lies, for both
+        side = LEFT if side_of(lanes, i, j) > 0 else RIGHT
+        beside.append(((i, side), (j, side), False))
+    for mine, other, same in beside:
+        if mine in shared or other in shared or not abreast(lanes[mine[0]], lanes[other[0]], same):
+            continue
+        ends = ((START, START), (END, END)) if same else ((START, END), (END, START))
+        if corners.join([((*mine, a), (*other, b)) for a, b in ends]):
+            shared[mine], shared[other] = (other, not same), (mine, not same)
+    ways, way_of = _Ways(), {}
+    for key, line in bounds.items():
+        if key in way_of:
+            continue
+        partner = shared.get(key)
+        if partner is not None:
+            twin = resample(bounds[partner[0]], len(line))
+            line = 0.5 * (line + (twin[::-1] if partner[1] else twin))
+        line = _pin_ends(line, corners.position(bounds, (*key, START)), corners.position(bounds, (*key, END)))
+        way_of[key] = ways.way(line, type="line_thin", subtype="dashed" if partner and not partner[1] else "solid")
+        if partner is not None:
+            way_of[partner[0]] = way_of[key]
     relations = []
     for i in range(len(lanes)):
-        relations.append(([("way", way_of[(i, 0)], "left"), ("way", way_of[(i, 1)], "right")],
+        relations.append(([("way", way_of[(i, LEFT)], "left"), ("way", way_of[(i, RIGHT)], "right")],
                           {"type": "lanelet", "subtype": "road", "location": "urban", "one_way": "yes",
                            "cmtool:lane": str(i)}))
     starts = np.array([l[0] for l in lanes]).reshape(-1, 2)
@@ -110,7 +106,7 @@ def to_lanelet2(graph, lat0: float, lon0: float, heading: float = 0.0, lane_widt
             if np.linalg.norm(starts[k] - line[0]) > LIGHT_REACH_M:
                 continue
             across = np.array([-1.0, 1.0]) * unit(lanes[k][1] - lanes[k][0])[::-1]
-            stop = np.array([line[0] + across * lane_width / 2.0, line[0] - across * lane_width / 2.0])
+            stop = np.array([line[0] + across * widths[k] / 2.0, line[0] - across * widths[k] / 2.0])
             stop_way = ways.way(stop, type="stop_line")
             light_way = ways.way(line[:2], type="traffic_light", subtype="red_yellow_green")
             relations.append(([("way", light_way, "refers"), ("way", stop_way, "ref_line")],
@@ -124,33 +120,42 @@ def write_lanelet2(graph, path: str | os.PathLike, lat0: float, lon0: float, hea
     write_text_atomic(path, to_lanelet2(graph, lat0, lon0, heading, lane_width))
 
 
-def _join_ends(bounds: list[list[np.ndarray]], successors) -> None:
-    """Give every joint of the successor graph one left and one right bound point: lane ends and
-    starts joined by successor edges (transitively, so forks and merges share one joint) move to
-    the mean of their bound points."""
-    ends = UnionFind(range(2 * len(bounds)))  # 2i: start of lane i, 2i + 1: its end
-    for i, j in successors:
-        ends.union(2 * int(i) + 1, 2 * int(j))
-    for members in ends.groups():
-        if len(members) < 2:
-            continue
-        for side in (0, 1):
-            points = [(bounds[k // 2][side], 0 if k % 2 == 0 else -1) for k in members]
-            mean = np.mean([b[e] for b, e in points], axis=0)
-            for b, e in points:
-                b[e] = mean
+class _Corners:
+    """The four corners of every lane's bounds, ``(lane, side, end)``, joined into shared nodes: lane
+    ends with their successors' starts, neighbours' shared bound ends. A join that would make one
+    lane's left and right corner at the same end one node (a lanelet of no width) is refused."""
+
+    def __init__(self, n: int):
+        keys = [(i, side, end) for i in range(n) for side in (LEFT, RIGHT) for end in (START, END)]
+        self.sets = UnionFind(keys)
+        self.members = {k: {k} for k in keys}
+
+    def join(self, pairs) -> bool:
+        """Join each pair of corners, all or none; whether they were joined."""
+        trial = UnionFind(self.sets.find(k) for pair in pairs for k in pair)
+        for a, b in pairs:
+            trial.union(self.sets.find(a), self.sets.find(b))
+        for group in trial.groups():
+            merged = set().union(*(self.members[r] for r in group))
+            if any((i, 1 - side, end) in merged for i, side, end in merged):
+                return False
+        for a, b in pairs:
+            ra, rb = self.sets.find(a), self.sets.find(b)
+            if ra != rb:
+                self.sets.union(ra, rb)
+                self.members[ra] |= self.members.pop(rb)
+        return True
+
+    def position(self, bounds, key) -> np.ndarray:
+        """Where a corner's node lies: the mean of the bound ends joined to it."""
+        members = self.members[self.sets.find(key)]
+        return np.mean([bounds[(i, side)][0 if end == START else -1] for i, side, end in members], axis=0)
 
 
-def _coincide(a: np.ndarray, b: np.ndarray) -> bool | None:
-    """Whether two bounds run along each other and end at the same points, so that sharing one way
-    moves no joint by more than ``SHARE_ENDS_M``: False when in the same direction, True when in
-    opposite directions, None when they do not coincide."""
-    ra, rb = resample(a, 10), resample(b, 10)
-    for flip, other in ((False, rb), (True, rb[::-1])):
-        ends = max(np.linalg.norm(ra[0] - other[0]), np.linalg.norm(ra[-1] - other[-1]))
-        if ends < SHARE_ENDS_M and np.linalg.norm(ra - other, axis=1).mean() < SHARE_M:
-            return flip
-    return None
+def _pin_ends(line: np.ndarray, start: np.ndarray, end: np.ndarray) -> np.ndarray:
+    """``line`` with its ends moved to ``start`` and ``end``, each move fading linearly along it."""
+    t = np.linspace(0.0, 1.0, len(line))[:, None]
+    return line + (1.0 - t) * (start - line[0]) + t * (end - line[-1])
 
 
 def _xml(ways: _Ways, relations, lat0: float, lon0: float, heading: float) -> str:

@@ -12,6 +12,7 @@ lanes that green / red stop lines control, nearest first, up to ``num_lights`` p
 
 from __future__ import annotations
 
+from collections import defaultdict
 from dataclasses import dataclass
 
 import numpy as np
@@ -19,6 +20,7 @@ import shapely
 
 from cmtool.data.hdmap import HDMap
 from cmtool.data.lanegraph import LaneGraph
+from cmtool.data.neighbours import find_neighbours
 from cmtool.geometry import from_frame, resample, to_frame
 
 DRIVABLE = ("vehicle", "bus")
@@ -54,12 +56,22 @@ class Scene:
     cut: int = 0  # lane pieces beyond num_lines, dropped by the cap
     kind: str = ""  # what the frame shows (cmtool.data.frames: "junction T", "straight", ...), when known
     tags: str = ""  # comma-separated frame tags (oneway, divided, multilane)
+    widths: np.ndarray | None = None  # (L,) lane widths of the source, when cropped from an HD map
+    neighbors: np.ndarray | None = None  # (E, 2) line pairs the source records as neighbours (either order)
 
     def to_lanegraph(self) -> LaneGraph:
-        """The scene in the lane graph interchange format (cmtool.data.lanegraph)."""
+        """The scene in the lane graph interchange format (cmtool.data.lanegraph), with the source's
+        lane neighbours and widths when it was cropped from an HD map, else neighbours from geometry."""
+        lanes = [l.astype(np.float64) for l in self.lines[self.line_mask]]
+        widths = None if self.widths is None else self.widths[self.line_mask]
+        recorded = None if self.neighbors is None else self.neighbors.tolist()
+        left, oncoming = find_neighbours(lanes, widths, recorded)
         return LaneGraph(
-            lanes=[l.astype(np.float64) for l in self.lines[self.line_mask]],
+            lanes=lanes,
             successors=[(int(i), int(j)) for i, j in self.edges],
+            left_neighbors=left,
+            oncoming=oncoming,
+            widths=None if widths is None else [float(w) for w in widths],
             green_lights=[l.astype(np.float64) for l in self.green[self.green_mask]],
             red_lights=[l.astype(np.float64) for l in self.red[self.red_mask]],
             city=self.city,
@@ -83,6 +95,9 @@ class SceneCropper:
         self.lengths = shapely.length(self.geoms)
         self.bounds = np.array([(*l.centerline.min(0), *l.centerline.max(0)) for l in self.lanes]).reshape(-1, 4)
         self.successors = [[self.index[s] for s in lane.successors if s in self.index] for lane in self.lanes]
+        self.neighbors = [{self.index[n] for n in (lane.left_neighbor, lane.right_neighbor) if n in self.index}
+                          for lane in self.lanes]
+        self.widths = np.array([lane.width for lane in self.lanes], np.float32)
         self.lights = {
             state: {self.index[i] for sl in hd.stop_lines if sl.state == state for i in sl.lane_ids if i in self.index}
             for state in ("green", "red")
@@ -114,8 +129,15 @@ class SceneCropper:
                 m[row] = True
             lights[state] = (arr, m)
 
+        widths = np.full(num_lines, 3.5, np.float32)
+        widths[list(kept)] = self.widths[[lane_of[k] for k in kept]]
+        pieces = defaultdict(list)  # lane -> its kept pieces
+        for k in kept:
+            pieces[lane_of[k]].append(k)
+        beside = sorted({(min(k, l), max(k, l)) for k in kept for n in self.neighbors[lane_of[k]] for l in pieces[n]})
         return Scene(
             lines=out, line_mask=mask, edges=np.array(edges, np.int64).reshape(-1, 2),
+            widths=widths, neighbors=np.array(beside, np.int64).reshape(-1, 2) if any(self.neighbors) else None,
             green=lights["green"][0], green_mask=lights["green"][1],
             red=lights["red"][0], red_mask=lights["red"][1],
             city=self.hd.city, source=self.hd.source, pose=pose, frame_m=frame_m, cut=len(lines) - len(kept),

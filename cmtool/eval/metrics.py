@@ -5,9 +5,10 @@ controls when known; scene i of one set is paired with scene i of the other.
 - improved precision / recall and Ground-Truth Recall on ResNet-50 features of the map rasters,
   Control Recall against the SD rasters (:mod:`cmtool.eval.features`, :mod:`cmtool.eval.retrieval`);
 - lane Chamfer distance, lane precision / recall / F1 at 1 m, SD adherence, driving side and legal
-  one-way direction (:mod:`cmtool.eval.geometric`), the validity score and the dangling lanes and
-  crossings per map (:mod:`cmtool.eval.validity`), averaged over scenes (scenes where a score is
-  undefined, e.g. an empty map's Chamfer distance, are left out of that average and counted).
+  one-way direction (:mod:`cmtool.eval.geometric`), the validity score, the dangling lanes and
+  crossings per map and the lane pairs routable with lane changes (:mod:`cmtool.eval.validity`),
+  averaged over scenes (scenes where a score is undefined, e.g. an empty map's Chamfer distance,
+  are left out of that average and counted).
 """
 
 from __future__ import annotations
@@ -114,7 +115,7 @@ def geometry(generated, reference, controls: np.ndarray | None, seconds: dict[st
     ``seconds`` collects the time of each family of scores."""
     seconds = {} if seconds is None else seconds
     rows: dict[str, list] = {k: [] for k in ("chamfer_m", "lane_precision", "lane_recall", "lane_f1", "validity",
-                                             "dangling", "crossings")}
+                                             "dangling", "crossings", "routable")}
     if controls is not None:
         rows.update({"sd_coverage": [], "lane_on_sd": [], "driving_side": [], "legal_oneway": []})
     judged = []
@@ -131,6 +132,7 @@ def geometry(generated, reference, controls: np.ndarray | None, seconds: dict[st
             rows["validity"].append(report.score)
             rows["dangling"].append(counts.get("dangling", 0))
             rows["crossings"].append(counts.get("crossing", 0))
+            rows["routable"].append(report.routable_with_changes)
         if controls is not None:
             with _timed(seconds, "SD adherence"):
                 for k, v in sd_adherence(g.lanes, controls[i]).items():
@@ -175,7 +177,9 @@ def summary_table(results: dict[str, dict]) -> str:
                  ("lanes joined to nothing, per map ↓",
                   lambda r: _num(r["geometry"].get("dangling", {}).get("mean"))),
                  ("lane crossings outside junctions, per map ↓",
-                  lambda r: _num(r["geometry"].get("crossings", {}).get("mean")))]
+                  lambda r: _num(r["geometry"].get("crossings", {}).get("mean"))),
+                 ("lane pairs routable, lane changes allowed ↑",
+                  lambda r: _num(r["geometry"].get("routable", {}).get("mean")))]
     names = list(results)
     scenes = ", ".join(f"{n}: {results[n]['scenes']}" for n in names)
     parts = [f"Scenes: {scenes}."]

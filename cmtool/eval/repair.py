@@ -63,7 +63,14 @@ def repair(graph: LaneGraph) -> tuple[LaneGraph, list[str]]:
     for a, b in sorted(near - old_edges):
         changes.append(f"linked lane {keep[a]} to lane {keep[b]} as its successor")
     new_edges = old_edges | near
-    return replace(graph, lanes=kept, successors=sorted(new_edges)), changes
+
+    def pairs(found, order=lambda p: p):  # neighbour pairs in the kept lanes' numbering
+        return None if found is None else sorted({order((index[alias[i]], index[alias[j]])) for i, j in found
+                                                  if alias[i] in index and alias[j] in index and alias[i] != alias[j]})
+
+    widths = None if graph.widths is None else [graph.widths[i] for i in keep]
+    return replace(graph, lanes=kept, successors=sorted(new_edges), left_neighbors=pairs(graph.left_neighbors),
+                   oncoming=pairs(graph.oncoming, order=lambda p: tuple(sorted(p))), widths=widths), changes
 
 
 def _duplicates(a: np.ndarray, b: np.ndarray) -> bool:

@@ -13,9 +13,11 @@ Problems (each names its lanes and a position, ego-frame metres):
   the angle it turns, on vertices thinned to at least 2 m apart, corners always kept).
 
 Routability: the share of ordered lane pairs (i, j), i != j, with a path from i to j along
-successor edges, and the size of the largest strongly connected set of lanes (scipy's csgraph for
-the strongly connected sets, reachable lanes as bitsets over their condensation).
-Crops of a city are mostly not routable end to end, so routability is reported, not scored.
+successor edges, the same share when lane changes between same-direction neighbours are allowed
+(as a simulator routes; see :mod:`cmtool.data.neighbours`), and the size of the largest strongly
+connected set of lanes (scipy's csgraph for the strongly connected sets, reachable lanes as bitsets
+over their condensation). Crops of a city are mostly not routable end to end, so routability is
+reported against the ground truth's, not scored.
 
 Score: the share of lanes free of problems (a bad successor edge or a crossing counts against
 both its lanes); 1.0 for a map without problems, and for an empty map.
@@ -31,6 +33,7 @@ from scipy.sparse.csgraph import connected_components
 from shapely import STRtree
 from shapely.geometry import LineString
 
+from cmtool.data.neighbours import infer_neighbours, same_direction
 from cmtool.geometry import polyline_length, unit
 
 MAX_GAP_M, MAX_TURN_DEG = 1.5, 60.0
@@ -55,6 +58,7 @@ class Validity:
     lanes: int
     problems: list[Problem] = field(default_factory=list)
     routable_pairs: float = 1.0
+    routable_with_changes: float = 1.0
     largest_scc: int = 0
 
     @property
@@ -72,7 +76,8 @@ class Validity:
 
     def to_json(self) -> dict:
         return {"score": round(self.score, 6), "lanes": self.lanes, "counts": self.counts(),
-                "routable_pairs": round(self.routable_pairs, 6), "largest_scc": self.largest_scc,
+                "routable_pairs": round(self.routable_pairs, 6),
+                "routable_with_changes": round(self.routable_with_changes, 6), "largest_scc": self.largest_scc,
                 "problems": [p.to_json() for p in self.problems]}
 
 
@@ -109,7 +114,18 @@ def check(graph) -> Validity:
                                            f"gap {gap:.2f} m, turn {turn:.0f} deg"))
     report.problems += _crossings(lanes, succ)
     report.routable_pairs, report.largest_scc = _routability(n, succ)
+    report.routable_with_changes = _routability(n, succ + lane_changes(graph))[0]
     return report
+
+
+def lane_changes(graph) -> list[tuple[int, int]]:
+    """Lane-change edges, both ways between lane-change neighbours (the graph's ``left_neighbors``,
+    found from the geometry when it records none)."""
+    pairs = graph.left_neighbors
+    if pairs is None:
+        lanes = [np.asarray(l, np.float64) for l in graph.lanes]
+        pairs = [(i, j) for i, j in infer_neighbours(lanes, graph.widths) if same_direction(lanes, i, j)]
+    return [(int(i), int(j)) for i, j in pairs] + [(int(j), int(i)) for i, j in pairs]
 
 
 def _min_radius(lane: np.ndarray) -> tuple[float, np.ndarray]:

@@ -16,6 +16,7 @@ import torch
 
 from cmtool import checkpoint as ckpt
 from cmtool.data.lanegraph import LaneGraph, infer_successors, join_successors
+from cmtool.data.neighbours import find_neighbours, lane_widths
 from cmtool.errors import CmtoolError
 from cmtool.geometry import bezier_fit_matrix
 from cmtool.model.config import ScheduleConfig
@@ -129,7 +130,9 @@ class Generator:
         predicted = "successors" in elements
         successors = [(int(i), int(j)) for i, j in elements["successors"]] if predicted else infer_successors(lanes)
         meta = meta | {"successors": "predicted" if predicted else "endpoint proximity"}
-        return LaneGraph(lanes=lanes, successors=successors,
+        left, oncoming = find_neighbours(lanes)
+        return LaneGraph(lanes=lanes, successors=successors, left_neighbors=left, oncoming=oncoming,
+                         widths=lane_widths(lanes, left).round(2).tolist(),
                          green_lights=[np.asarray(l, np.float64) for l in elements["green"]],
                          red_lights=[np.asarray(l, np.float64) for l in elements["red"]],
                          city=city, frame_m=float(self.rvae.cfg.frame_m), meta=meta)

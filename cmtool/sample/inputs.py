@@ -31,6 +31,7 @@ class ControlInput:
     truth: LaneGraph | None = None
     city: str | None = None  # the city of the source map, when it has one
     note: str | None = None  # what was converted on reading, for the user
+    geo: dict | None = None  # {"lat", "lon", "heading"} of the frame (see cmtool.data.lanegraph), when known
 
 
 def image_inputs(paths) -> list[ControlInput]:
@@ -73,7 +74,8 @@ def osm_inputs(path, centers: list[tuple[float, float, float]]) -> list[ControlI
             raise CmtoolError(f"{path}: no roads within the {FRAME_M:.0f} m frame around {lat:.6f},{lon:.6f} "
                               f"(nearest road {_nearest_road(sd_map, x, y):.0f} m away)")
         name = f"{Path(path).name.split('.')[0]}_{k}" if len(centers) > 1 else Path(path).name.split(".")[0]
-        inputs.append(ControlInput(name, sd, f"osm:{Path(path).name}@{lat:.6f},{lon:.6f},heading {heading:g}"))
+        inputs.append(ControlInput(name, sd, f"osm:{Path(path).name}@{lat:.6f},{lon:.6f},heading {heading:g}",
+                                   geo=_geo(lat, lon, heading)))
     return inputs
 
 
@@ -81,6 +83,7 @@ def hd_inputs(path, poses: list[tuple[float, float, float]] | None, seed: int = 
     """SD rasters derived from an HD map JSON at ego poses ``(x, y, yaw degrees)``, each with the
     ground-truth lane graph of the same frame; ``poses`` None picks one drivable pose at random."""
     from cmtool.data.frames import FrameSampler
+    from cmtool.data.geo import LocalProjection
     from cmtool.data.hdmap import HDMap
     from cmtool.data.scene import Pose, SceneCropper
     from cmtool.data.sd_derive import derive_sd
@@ -103,9 +106,17 @@ def hd_inputs(path, poses: list[tuple[float, float, float]] | None, seed: int = 
             raise CmtoolError(f"{path}: no roads within the {FRAME_M:.0f} m frame at pose {x:g},{y:g},{yaw:g}; "
                               f"pick a pose on a road (the map spans {_bounds(hd)})")
         name = f"{stem}_{k}" if len(poses) > 1 else stem
+        geo = None
+        if "lat0" in hd.meta and "lon0" in hd.meta:  # a map imported from lat/lon (Lanelet2)
+            lat, lon = LocalProjection(hd.meta["lat0"], hd.meta["lon0"]).to_latlon([x, y])
+            geo = truth.meta["geo"] = _geo(lat, lon, 90.0 - yaw)
         inputs.append(ControlInput(name, sd, f"hd:{Path(path).name}@{x:.2f},{y:.2f},{yaw:.1f}deg",
-                                   truth=truth, city=hd.city))
+                                   truth=truth, city=hd.city, geo=geo))
     return inputs
+
+
+def _geo(lat: float, lon: float, heading: float) -> dict:
+    return {"lat": round(float(lat), 8), "lon": round(float(lon), 8), "heading": round(float(heading) % 360.0, 4)}
 
 
 def parse_points(value: str, keys: tuple[str, ...], defaults: dict, option: str) -> list[tuple[float, ...]]:

@@ -180,9 +180,10 @@ def generate_maps(gen: Generator, jobs: list[Job], settings: SampleSettings, rec
 
 
 def _meta(gen: Generator, job: Job, settings: SampleSettings) -> dict:
+    geo = {} if job.source.geo is None else {"geo": job.source.geo}
     return {"source": job.source.source, "checkpoint": str(gen.path), "seed": settings.seed, "index": job.index,
             "cfg": settings.cfg, "city_cfg": settings.city_cfg, "steps": settings.steps, "sampler": settings.sampler,
-            "eta": settings.eta, "smooth": gen.smooth}
+            "eta": settings.eta, "smooth": gen.smooth, **geo}
 
 
 def _partial(rrd: Path) -> Path:

@@ -16,7 +16,7 @@
 * Traffic lights: each ``regulatory_element`` of subtype ``traffic_light`` with a ``ref_line`` gives
   a stop line (state ``unknown``) controlling the lanes whose lanelet references it.
 * Coordinates: transverse Mercator (:class:`~cmtool.data.geo.LocalProjection`) centred on the mean
-  latitude/longitude of all nodes in the file.
+  latitude/longitude of all nodes in the file, recorded as ``meta.lat0`` / ``meta.lon0``.
 """
 
 from __future__ import annotations
@@ -70,8 +70,9 @@ def import_lanelet2(path: str | os.PathLike, city: str | None = None) -> HDMap:
         raise CmtoolError(f"{path}: not a Lanelet2 map (no relations with type=lanelet)")
     if not osm.nodes:
         raise CmtoolError(f"{path}: no nodes")
-    xy = _project(osm)
-    hd = HDMap(city=city or "KAR", drives_on="right", source=f"lanelet2:{path.name}")
+    xy, (lat0, lon0) = _project(osm)
+    hd = HDMap(city=city or "KAR", drives_on="right", source=f"lanelet2:{path.name}",
+               meta={"lat0": lat0, "lon0": lon0})
 
     lanes: list[_Lanelet] = []
     for rid, rel in sorted(lanelets.items()):
@@ -96,12 +97,13 @@ def import_lanelet2(path: str | os.PathLike, city: str | None = None) -> HDMap:
     return tidy_references(hd)
 
 
-def _project(osm: OsmData) -> dict[int, np.ndarray]:
+def _project(osm: OsmData) -> tuple[dict[int, np.ndarray], tuple[float, float]]:
+    """Node metres, and the latitude and longitude of the projection's origin."""
     ids = list(osm.nodes)
     lat = np.array([osm.nodes[i].lat for i in ids])
     lon = np.array([osm.nodes[i].lon for i in ids])
     metres = LocalProjection(lat.mean(), lon.mean()).to_metres(lat, lon)
-    return dict(zip(ids, metres))
+    return dict(zip(ids, metres)), (float(lat.mean()), float(lon.mean()))
 
 
 def _way_xy(osm: OsmData, xy: dict, way_id: int, where: str, path: Path) -> np.ndarray:
