@@ -46,8 +46,8 @@ def test_eval_writes_reports_and_resumes(sampling_ckpt, tiny_data, tmp_path, cap
         batch = chunk.to_record_batch()
         if "sample" in batch.schema.names:
             rows.setdefault(chunk.entity_path, set()).update(batch.column("sample").to_pylist())
-    assert rows["/metrics/controlmap/lane_f1"] == set(range(8)) == rows["/metrics/unguided/lane_f1"]
-    assert "/sample_1/controlmap/hd/lanes" in rows and "/sample_2/controlmap/hd/lanes" not in rows
+    assert rows["/metrics/lane_f1/controlmap"] == set(range(8)) == rows["/metrics/lane_f1/unguided"]
+    assert rows["/scene/controlmap/hd/lanes"] == {0, 1} == rows["/scene/truth/hd/lanes"]  # --rrd-samples 2
     # a run in one go scores exactly what the resumed one did
     code, _, err = in_process(capsys, *args[:-5], tmp_path / "whole", "--no-features", "--rrd-samples", 2, "--quiet",
                               "--n", 8)

@@ -93,7 +93,7 @@ def cfg_sweep(gen: Generator, scenes, weights: list[float], seeds: int, steps: i
     write_text_atomic(out / "ablate_cfg.md", markdown_table(rows, ["w", "sd_coverage", "lane_on_sd", "gt_recall",
                                                                     "diversity_m"]))
     write_png(out / "ablate_cfg.png", _plot(rows))
-    rec = open_recording(out / "ablate_cfg.rrd")
+    rec = open_recording(out / "ablate_cfg.rrd", "ablate")
     for k, scene in enumerate(scenes[:PICTURE_SCENES]):
         log_sd(rec, f"sample_{k}/", scene.sd, static=True)
         log_lanes(rec, f"sample_{k}/truth/", truth[k].lanes, static=True)

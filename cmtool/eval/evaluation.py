@@ -8,8 +8,8 @@ Both use the same initial noise per scene. Generated maps go to a cache, ``<out>
 controlmap}.jsonl``, one batch at a time, so an interrupted run continues where it stopped (the
 cache remembers its settings and refuses to mix runs). Then ``metrics.json``, ``summary.md``
 (tables shaped like the paper's Tables 1 and 2 plus our geometric metrics) and ``eval.rrd``
-(SD | unguided | ControlMap | ground truth for the first ``rrd_samples`` scenes and per-scene
-scores for all, on the ``sample`` timeline).
+(on the ``sample`` timeline: SD | unguided | ControlMap | ground truth of the first ``rrd_samples``
+scenes with their scores, and per-scene scores of all scenes).
 """
 
 from __future__ import annotations
@@ -164,8 +164,8 @@ def summary_markdown(report: dict) -> str:
             f"- lanes: {_smoothing(s['smooth'])}",
             "- unguided: the frozen DiT without SD control or city label (the paper's SLEDGE rows)",
             f"- features: {backbone}; recall metrics in batches of 64, top 3, p = P(chance >= observed)",
-            f"- validity score of the ground truth itself: {report['ground_truth_validity']:.3f}; its lane pairs "
-            f"routable with lane changes: {report.get('ground_truth_routable', float('nan')):.3f}", "", ""]
+            (f"- validity score of the ground truth itself: {report['ground_truth_validity']:.3f}; its lane pairs "
+             f"routable with lane changes: {report.get('ground_truth_routable', float('nan')):.3f}"), "", ""]
     return "\n".join(head) + summary_table({("unguided" if k == "unguided" else "ControlMap"): v
                                             for k, v in methods.items()}) + "\n"
 
@@ -176,27 +176,52 @@ def _smoothing(control_points: int) -> str:
     return "the decoder's raw points (--smooth 0)"
 
 
+RECORDED_SCORES = {"lane_f1": "lane F1 at 1 m", "chamfer_m": "lane Chamfer, m", "validity": "validity"}
+PANELS = {"unguided": "unguided DiT", "controlmap": "ControlMap", "truth": "ground truth"}
+SHORT = {"unguided": "unguided", "controlmap": "ControlMap"}
+SERIES_COLOURS = {"unguided": [230, 140, 40], "controlmap": [60, 150, 255]}
+
+
 def _write_recording(path: Path, scenes, reference, generated, results: dict, rrd_samples: int) -> None:
-    rec = open_recording(path)
+    """eval.rrd: on the ``sample`` timeline, scene k's SD | unguided | ControlMap | ground truth (the first
+    ``rrd_samples`` scenes) beside its scores, and each score of every scene as a plot per score."""
+    rec = open_recording(path, "eval")
+    rec.send_blueprint(_eval_blueprint())
+    for key in RECORDED_SCORES:
+        for m in METHODS:
+            rec.log(f"metrics/{key}/{m}", rr.SeriesLines(colors=SERIES_COLOURS[m], names=PANELS[m]), static=True)
     shown = min(rrd_samples, len(scenes))
-    views = [rrb.Spatial2DView(origin=f"/sample_{k}", name=f"#{k} {scenes[k].city}",
-                               contents=[f"/sample_{k}/control/sd", f"/sample_{k}/{m}/**"])
-             for k in range(min(shown, 4)) for m in ("unguided", "controlmap", "truth")]
-    rec.send_blueprint(rrb.Blueprint(rrb.Vertical(rrb.Grid(*views, grid_columns=3),
-                                                  rrb.TimeSeriesView(origin="/metrics", name="per-scene scores")),
-                                     collapse_panels=True))
     for k, (scene, truth) in enumerate(zip(scenes, reference)):
         rec.set_time("sample", sequence=k)
+        values = {m: {key: results[m]["geometry"][key]["per_scene"][k] for key in RECORDED_SCORES} for m in METHODS}
         for m in METHODS:
-            for key in ("lane_f1", "chamfer_m"):
-                value = results[m]["geometry"][key]["per_scene"][k]
+            for key, value in values[m].items():
                 if value is not None:
-                    rec.log(f"metrics/{m}/{key}", rr.Scalars(value))
+                    rec.log(f"metrics/{key}/{m}", rr.Scalars(value))
             if k < shown:
                 g = generated[m][k]
-                log_lanes(rec, f"sample_{k}/{m}/", g.lanes, g.green_lights, g.red_lights, g.successors)
+                log_lanes(rec, f"scene/{m}/", g.lanes, g.green_lights, g.red_lights, g.successors)
         if k < shown:
-            log_sd(rec, f"sample_{k}/", scene.sd, scene.frame_m)
-            log_lanes(rec, f"sample_{k}/truth/", truth.lanes, truth.green_lights, truth.red_lights, truth.successors)
+            log_sd(rec, "scene/", scene.sd, scene.frame_m)
+            log_lanes(rec, "scene/truth/", truth.lanes, truth.green_lights, truth.red_lights, truth.successors)
+            table = [f"### scene {k}: {scene.city}" + (f", {scene.kind}" if scene.kind else ""), "",
+                     "| | " + " | ".join(SHORT[m] for m in METHODS) + " |", "|---|" + "---|" * len(METHODS)]
+            table += [f"| {title} | " + " | ".join("-" if values[m][key] is None else f"{values[m][key]:.3f}"
+                                                    for m in METHODS) + " |" for key, title in RECORDED_SCORES.items()]
+            rec.log("scene/scores", rr.TextDocument("\n".join(table), media_type="text/markdown"))
     rec.flush()
     rec.disconnect()
+
+
+def _eval_blueprint() -> rrb.Blueprint:
+    bounds = rrb.VisualBounds2D(x_range=[-32.0, 32.0], y_range=[-32.0, 32.0])
+    maps = [rrb.Spatial2DView(origin="/scene", name="SD input", contents=["/scene/control/sd"], visual_bounds=bounds)]
+    maps += [rrb.Spatial2DView(origin="/scene", name=title, contents=["/scene/control/sd", f"/scene/{m}/**"],
+                               visual_bounds=bounds) for m, title in PANELS.items()]
+    plots = [rrb.TimeSeriesView(origin=f"/metrics/{key}", name=title, plot_legend=rrb.PlotLegend(corner="LeftTop"))
+             for key, title in RECORDED_SCORES.items()]
+    top = rrb.Horizontal(*maps, rrb.TextDocumentView(origin="/scene/scores", name="scores of this scene"),
+                         column_shares=[2, 2, 2, 2, 2])
+    return rrb.Blueprint(rrb.Vertical(top, rrb.Horizontal(*plots), row_shares=[3, 2]),
+                         rrb.BlueprintPanel(expanded=False), rrb.SelectionPanel(expanded=False),
+                         rrb.TimePanel(expanded=True, timeline="sample"))

@@ -36,7 +36,7 @@ from cmtool.sample.diffusion import SamplingError
 from cmtool.sample.generator import Generator
 from cmtool.sample.inputs import ControlInput
 from cmtool.viz.draw import graph_panel, legend, sd_panel, title_strip
-from cmtool.viz.recording import log_lanes, log_sd
+from cmtool.viz.recording import APP_IDS, log_lanes, log_sd
 from cmtool.viz.trajectory import TrajectoryLogger, sampling_blueprint
 
 AUTO = "auto"  # --city default: the source map's city when the checkpoint knows it, else none
@@ -192,7 +192,7 @@ def _partial(rrd: Path) -> Path:
 
 def sampling_recording(rrd: Path | None, viewer: str | None, written: list[Path]) -> rr.RecordingStream:
     """A recording that writes to ``rrd`` (renamed into place at the end) and/or streams to a viewer."""
-    rec = rr.RecordingStream("cmtool")
+    rec = rr.RecordingStream(APP_IDS["sample"])
     sinks = [] if viewer is None else [_viewer_sink(rec, viewer)]
     if rrd is not None:
         rrd.parent.mkdir(parents=True, exist_ok=True)

@@ -30,6 +30,7 @@ from cmtool.progress import Progress
 from cmtool.recipe import Recipe, TrainRecipe
 from cmtool.train import dist as D
 from cmtool.train.data import StepBatches
+from cmtool.viz.recording import APP_IDS, training_blueprint
 
 
 class Stage(ABC):
@@ -60,6 +61,10 @@ class Stage(ABC):
 
     def preview(self, model, rec: rr.RecordingStream) -> None:
         """Log a few decoded samples of the (EMA) model at the current ``train_step``."""
+
+    def preview_views(self) -> list[tuple[str, str, list[str]]]:
+        """What :meth:`preview` logs, as (title, origin, contents) of one 2D view each, under ``train/preview``."""
+        return []
 
     def finish(self, model, run_dir: Path) -> dict:
         """Work after the last step (e.g. the latent cache); returns extra config entries."""
@@ -192,8 +197,9 @@ def train(stage: Stage, run_dir: Path, resume: bool = False, progress: bool = Tr
     rec = None
     if info.main:
         run_dir.mkdir(parents=True, exist_ok=True)
-        rec = rr.RecordingStream("cmtool")
+        rec = rr.RecordingStream(APP_IDS["train"])
         rec.save(str(run_dir / ("train.rrd" if start == 0 else f"train_from_{start:08d}.rrd")))
+        rec.send_blueprint(training_blueprint(stage.name or stage.kind, stage.preview_views()))
 
     def save(step: int, complete: bool = False, extra: dict | None = None) -> Path:
         fingerprints = _check_replicas(model, info)

@@ -4,10 +4,10 @@ A pipeline recipe names a recipe per stage, paths relative to it (``recipes/tiny
 
     [pipeline]
     data = "../data_cpu.toml"        # cmtool data build
-    rvae = "rvae-graph.toml"         # stage 1
+    rvae = "pipeline/rvae.toml"      # stage 1
     decoder = ""                     # optional: the RVAE's decoder trained further on its latents
-    dit = "dit.toml"                 # stage 2
-    controlnet = "controlnet.toml"   # stage 3
+    dit = "pipeline/dit.toml"        # stage 2
+    controlnet = "pipeline/controlnet.toml"   # stage 3
     precision = "bf16"               # of every training stage ("": each recipe's own)
     [pipeline.eval]                  # cmtool eval of the packed weights
     n = 512

@@ -109,6 +109,10 @@ class RVAEStage(Stage):
             log_lanes(rec, f"train/preview/sample_{k}/truth/", truth)
             log_lanes(rec, f"train/preview/sample_{k}/decoded/", el["lines"], el["green"], el["red"])
 
+    def preview_views(self):
+        return [(f"scene {k}: {title}", f"sample_{k}", [f"{part}/**"]) for k in range(PREVIEWS)
+                for title, part in (("ground truth", "truth"), ("decoded", "decoded"))]
+
     def finish(self, model, run_dir):
         scale = write_latents(model, self.data_dir, run_dir / "latents", self.device)
         recon = reconstruction_scores(model, self.data_dir, _preview_split(self.data_dir), self.device, RECON_EVAL)
@@ -318,8 +322,11 @@ class DiTStage(_DiffusionStage):
         gen = torch.Generator(self.device).manual_seed(0)
         z = sample(model, self.schedule, y, steps=self.recipe.train.preview_steps, generator=gen)
         for k, el in enumerate(self.decode(z)):
-            name = self.cities[y[k]] if y[k] < len(self.cities) else "none"
-            log_lanes(rec, f"train/preview/sample_{k}_{name}/", el["lines"], el["green"], el["red"])
+            log_lanes(rec, f"train/preview/sample_{k}/", el["lines"], el["green"], el["red"])
+
+    def preview_views(self):
+        names = [*self.cities, "no city"]
+        return [(f"sample {k}: {names[k % len(names)]}", f"sample_{k}", ["**"]) for k in range(PREVIEWS)]
 
 
 class ControlNetStage(_DiffusionStage):
@@ -398,6 +405,9 @@ class ControlNetStage(_DiffusionStage):
         for k, (scene, el) in enumerate(zip(self._preview, self.decode(z))):
             log_sd(rec, f"train/preview/sample_{k}/", scene.sd, scene.frame_m)
             log_lanes(rec, f"train/preview/sample_{k}/generated/", el["lines"], el["green"], el["red"])
+
+    def preview_views(self):
+        return [(f"scene {k}: SD and generated", f"sample_{k}", ["**"]) for k in range(PREVIEWS)]
 
 
 STAGES = {"rvae": RVAEStage, "decoder": DecoderStage, "dit": DiTStage, "controlnet": ControlNetStage}

@@ -15,11 +15,15 @@ from cmtool.viz.draw import GREEN, RED, heading_colours, sd_panel
 
 # ego (x forward, y left) -> screen (u right, v down): u = -y, v = -x
 _EGO_TO_SCREEN = [[0.0, -1.0, 0.0], [-1.0, 0.0, 0.0], [0.0, 0.0, 1.0]]
+# one application id per kind of recording: a viewer keeps a layout per application id, so a second kind of
+# recording opened in a running viewer shows its own layout, not the first one's
+APP_IDS = {kind: f"cmtool_{kind}" for kind in ("data", "train", "sample", "eval", "ablate")}
+LANE_RADIUS_M, LIGHT_RADIUS_M = 0.2, 0.3  # thin enough to see the junction through
 
 
-def open_recording(path, application_id: str = "cmtool") -> rr.RecordingStream:
-    """A recording stream that writes to ``path`` (an ``.rrd`` file)."""
-    rec = rr.RecordingStream(application_id)
+def open_recording(path, kind: str) -> rr.RecordingStream:
+    """A recording stream of one ``kind`` (a key of :data:`APP_IDS`) that writes to ``path`` (an ``.rrd`` file)."""
+    rec = rr.RecordingStream(APP_IDS[kind])
     rec.save(str(path))
     return rec
 
@@ -39,14 +43,15 @@ def log_lanes(rec: rr.RecordingStream, prefix: str, lines, green=(), red=(), edg
     """Log lane polylines (heading-coloured), successor arrows and light lines under ``<prefix>hd``."""
     log_ego_frame(rec, f"{prefix}hd")
     lines = [np.asarray(l) for l in lines]
-    rec.log(f"{prefix}hd/lanes", rr.LineStrips2D(lines, radii=0.25, colors=lane_colours(lines)), static=static)
-    if len(edges):
-        origins = np.array([lines[i][max(-3, -len(lines[i]))] for i, _ in edges]).reshape(-1, 2)
-        targets = np.array([lines[j][min(2, len(lines[j]) - 1)] for _, j in edges]).reshape(-1, 2)
-        rec.log(f"{prefix}hd/successors", rr.Arrows2D(origins=origins, vectors=targets - origins, radii=0.15,
-                                                      colors=[255, 255, 255]), static=static)
+    rec.log(f"{prefix}hd/lanes", rr.LineStrips2D(lines, radii=LANE_RADIUS_M, colors=lane_colours(lines)),
+            static=static)
+    # logged even when empty, so that a scene without successors on a timeline does not keep the last one's
+    origins = np.array([lines[i][max(-3, -len(lines[i]))] for i, _ in edges]).reshape(-1, 2)
+    targets = np.array([lines[j][min(2, len(lines[j]) - 1)] for _, j in edges]).reshape(-1, 2)
+    rec.log(f"{prefix}hd/successors", rr.Arrows2D(origins=origins, vectors=targets - origins, radii=0.15,
+                                                  colors=[255, 255, 255]), static=static)
     for state, colour, vecs in (("green", GREEN, green), ("red", RED, red)):
-        rec.log(f"{prefix}hd/lights/{state}", rr.LineStrips2D([np.asarray(v) for v in vecs], radii=0.8,
+        rec.log(f"{prefix}hd/lights/{state}", rr.LineStrips2D([np.asarray(v) for v in vecs], radii=LIGHT_RADIUS_M,
                                                               colors=colour, draw_order=20.0), static=static)
 
 
@@ -76,3 +81,19 @@ def scenes_blueprint(names: list[str], half: float = 32.0, info: bool = True) ->
         return rrb.Blueprint(grid, collapse_panels=True)
     return rrb.Blueprint(rrb.Horizontal(grid, rrb.TextDocumentView(origin="/info", name="info"),
                                         column_shares=[5, 1]), collapse_panels=True)
+
+
+def training_blueprint(stage: str, previews: list[tuple[str, str, list[str]]]) -> rrb.Blueprint:
+    """Loss, learning rate, gradient norm and the stage's other scores over ``train_step``, above the
+    decoded previews (``previews``: (title, origin, contents) under ``train/preview``)."""
+    plots = [rrb.TimeSeriesView(origin=f"/train/{key}", name=f"{stage}: {title}")
+             for key, title in (("loss", "loss"), ("lr", "learning rate"), ("grad_norm", "gradient norm"))]
+    plots.append(rrb.TimeSeriesView(origin="/train", name=f"{stage}: other scores", contents=[
+        "/train/**", "- /train/loss", "- /train/lr", "- /train/grad_norm", "- /train/preview/**"]))
+    bounds = rrb.VisualBounds2D(x_range=[-32.0, 32.0], y_range=[-32.0, 32.0])
+    views = [rrb.Spatial2DView(origin=f"/train/preview/{origin}", name=title, visual_bounds=bounds,
+                               contents=[f"/train/preview/{origin}/{c}" for c in contents])
+             for title, origin, contents in previews]
+    rows = [rrb.Grid(*plots, grid_columns=4)] + ([rrb.Grid(*views, grid_columns=4)] if views else [])
+    return rrb.Blueprint(rrb.Vertical(*rows), rrb.BlueprintPanel(expanded=False),
+                         rrb.SelectionPanel(expanded=False), rrb.TimePanel(expanded=True, timeline="train_step"))

@@ -55,7 +55,7 @@ def show_dataset(data_dir, n: int = 16, png=None, rrd=None, split: str | None = 
         write_png(png, np.concatenate([picture, legend(picture.shape[1])], axis=0))
     if rrd is not None:
         Path(rrd).parent.mkdir(parents=True, exist_ok=True)
-        rec = open_recording(rrd)
+        rec = open_recording(rrd, "data")
         rec.send_blueprint(scenes_blueprint(titles, data.frame_m / 2.0))
         rec.log("info", rr.TextDocument(
             f"# cmtool data show\n\ndataset: `{data_dir}`\n\nsplit: {split or 'all'}, seed {seed}\n\n"

@@ -6,13 +6,15 @@ of logging row by row; pending steps go out every ``flush_s`` seconds, so a live
 the run. Per map, under ``<prefix>`` (``sample_{k}/`` when a recording holds several maps) and on
 the ``diffusion_step`` (0 = pure noise) and ``timestep`` timelines:
 
-- ``diffusion/latent``: the latent x_t (Tensor channel x row x col);
+- ``diffusion/latent``: the latent x_t (Tensor channel x row x col, shown as one channel's 8 x 8
+  grid with a channel slider; each step's value range spans its own values);
 - ``diffusion/x0/lanes``, ``diffusion/x0/lights/{green,red}``: the predicted clean latent decoded by
   the RVAE (all steps' latents decoded in one batch per flush);
 - ``diffusion/eps/{cond,uncond,guided}``: L2 norms of the noise predictions, and
   ``diffusion/eps/delta``, the norm of the guidance term ``w (eps_cond - eps_uncond)``;
 - ``control/residual/block_{m}``: per-token L2 norm of the residual added to DiT block m (8 x 8
-  Tensor, rows = latent rows), and ``control/residual/block_{m}/norm``, its total L2 norm.
+  Tensor, rows = latent rows, each step's value range spanning its own values, so the heatmap shows
+  where the control acts at every step), and ``control/residual/block_{m}/norm``, its total L2 norm.
 """
 
 from __future__ import annotations
@@ -25,10 +27,11 @@ import pyarrow as pa
 import rerun as rr
 import rerun.blueprint as rrb
 from rerun._baseclasses import ComponentColumn, ComponentColumnList
+from rerun.encodings import TensorDimensionIndexSelection, TensorDimensionSelection
 
 from cmtool.sample.diffusion import StepInfo
 from cmtool.viz.draw import GREEN, RED
-from cmtool.viz.recording import lane_colours, log_ego_frame
+from cmtool.viz.recording import LANE_RADIUS_M, LIGHT_RADIUS_M, lane_colours, log_ego_frame
 
 LATENT_DIMS = ("channel", "row", "col")
 MAX_TABS = 16  # maps that get their own tab in the default layout
@@ -72,6 +75,16 @@ def tensor_column(arrays: np.ndarray, dim_names) -> ComponentColumnList:
                                         buffer], fields=list(dtype))
     descriptor = next(iter(rr.Tensor.columns(data=arrays[0]))).descriptor
     return ComponentColumnList([ComponentColumn(descriptor, _Column(batch))])
+
+
+def tensor_columns(arrays: np.ndarray, dim_names) -> ComponentColumnList:
+    """:func:`tensor_column` with each tensor's own [min, max] as its value range (a colour map over the
+    values of that step, not over a fixed range that flattens steps of small values)."""
+    arrays = np.asarray(arrays, np.float32)
+    flat = arrays.reshape(len(arrays), -1)
+    lo, hi = flat.min(axis=1), flat.max(axis=1)
+    ranges = np.stack([lo, np.maximum(hi, lo + 1e-6)], axis=1).astype(np.float64)
+    return ComponentColumnList([*tensor_column(arrays, dim_names), *rr.Tensor.columns(value_range=ranges)])
 
 
 def strips_column(strips: np.ndarray) -> ComponentColumn:
@@ -130,19 +143,20 @@ class TrajectoryLogger:
         latents = np.stack([s["latent"].numpy() for s in steps], axis=1)  # (B, n, C, H, W)
         for k, prefix in enumerate(self.prefixes):
             send = self.rec.send_columns
-            send(f"{prefix}diffusion/latent", indexes=times, columns=tensor_column(latents[k], LATENT_DIMS))
+            send(f"{prefix}diffusion/latent", indexes=times, columns=tensor_columns(latents[k], LATENT_DIMS))
             mine = [decoded[i * b + k] for i in range(n)]
-            self._send_lines(f"{prefix}diffusion/x0/lanes", times, [d["lines"] for d in mine], None, 0.25)
-            self._send_lines(f"{prefix}diffusion/x0/lights/green", times, [d["green"] for d in mine], GREEN, 0.8)
-            self._send_lines(f"{prefix}diffusion/x0/lights/red", times, [d["red"] for d in mine], RED, 0.8)
+            self._send_lines(f"{prefix}diffusion/x0/lanes", times, [d["lines"] for d in mine], None, LANE_RADIUS_M)
+            for state, colour in (("green", GREEN), ("red", RED)):
+                self._send_lines(f"{prefix}diffusion/x0/lights/{state}", times, [d[state] for d in mine], colour,
+                                 LIGHT_RADIUS_M)
             for key in ("cond", "uncond", "guided", "delta"):
                 if key in steps[0]:
                     send(f"{prefix}diffusion/eps/{key}", indexes=times,
                          columns=rr.Scalars.columns(scalars=[float(s[key][k]) for s in steps]))
             for m in range(len(steps[0].get("heatmaps", []))):
                 path = f"{prefix}control/residual/block_{m}"
-                send(path, indexes=times, columns=tensor_column(np.stack([s["heatmaps"][m][k] for s in steps]),
-                                                                HEATMAP_DIMS))
+                send(path, indexes=times, columns=tensor_columns(np.stack([s["heatmaps"][m][k] for s in steps]),
+                                                                 HEATMAP_DIMS))
                 send(f"{path}/norm", indexes=times,
                      columns=rr.Scalars.columns(scalars=[float(s["residual_norms"][m][k]) for s in steps]))
         self.last_flush = time.perf_counter()
@@ -172,14 +186,22 @@ def sample_view(prefix: str, name: str, blocks: int, truth: bool) -> rrb.Contain
            spatial("generated", "control/sd", "hd/**")]
     if truth:
         top.append(spatial("ground truth", "control/sd", "truth/**"))
-    bottom = [rrb.TensorView(origin=f"{root}diffusion/latent", name="latent x_t")]
+    grid = rrb.TensorSliceSelection(width=TensorDimensionSelection(2), height=TensorDimensionSelection(1),
+                                    indices=[TensorDimensionIndexSelection(0, 0)], slider=[0])  # (channel, row, col)
+    bottom = [rrb.TensorView(origin=f"{root}diffusion/latent", name="latent x_t, one channel", slice_selection=grid,
+                             view_fit="Fill")]
     if blocks:
         bottom.append(rrb.Grid(*[rrb.TensorView(origin=f"{root}control/residual/block_{m}", contents="$origin",
-                                                name=f"residual block {m}") for m in range(blocks)],
-                               name="control residuals"))
-    bottom.append(rrb.TimeSeriesView(name="noise and residual norms", origin=root or "/",
-                                     contents=[f"{root}diffusion/eps/**", f"{root}control/residual/**"]))
-    return rrb.Vertical(rrb.Horizontal(*top), rrb.Horizontal(*bottom), name=name)
+                                                name=f"block {m}", view_fit="Fill") for m in range(blocks)],
+                               grid_columns=3, name="control residuals"))
+    legend = rrb.PlotLegend(corner="LeftTop")
+    plots = [rrb.TimeSeriesView(name="noise prediction norms", origin=f"{root}diffusion/eps", plot_legend=legend)]
+    if blocks:
+        plots.append(rrb.TimeSeriesView(name="control residual norms", origin=f"{root}control/residual",
+                                        plot_legend=legend))
+    bottom.append(rrb.Vertical(*plots))
+    return rrb.Vertical(rrb.Horizontal(*top), rrb.Horizontal(*bottom, column_shares=[1, 2, 2][:len(bottom)]),
+                        row_shares=[1, 1], name=name)
 
 
 def sampling_blueprint(prefixes: list[str], names: list[str], blocks: int, truth: bool) -> rrb.Blueprint:

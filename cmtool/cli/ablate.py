@@ -1,0 +1,196 @@
+"""``cmtool ablate``: the guidance weight, the city label, DiTs side by side, what the RVAE keeps."""
+
+from __future__ import annotations
+
+from pathlib import Path
+
+import click
+
+from cmtool.cli.common import CITY_CFG_HELP, SMOOTH_OPTION, _checkpoint, _device
+from cmtool.errors import CmtoolError
+from cmtool.sample import DEFAULT_SAMPLER, SAMPLERS
+
+
+@click.group()
+def ablate():
+    """Ablations on fixed SD maps and seeds: the guidance weight, the city label; what the RVAE keeps."""
+
+
+def _ablation_setup(ckpt, data_dir, split, n, device, smooth, dit_ok=False):
+    from cmtool.data.cache import load_dataset
+    from cmtool.sample.generator import Generator
+
+    gen = Generator.load(_checkpoint(ckpt), _device(device), smooth)
+    if not gen.has_control and not dit_ok:
+        raise CmtoolError(f"{gen.path}: the guidance sweep needs a ControlMap checkpoint")
+    data = load_dataset(data_dir, split)
+    return gen, [data.scene(i) for i in range(min(n, len(data)))]
+
+
+def _floats(value: str, option: str) -> list[float]:
+    import math
+
+    try:
+        out = [float(v) for v in value.split(",") if v.strip()]
+    except ValueError:
+        raise CmtoolError(f"{option} {value!r}: expected numbers separated by commas") from None
+    if not out or any(not math.isfinite(v) or v < 0 for v in out):
+        raise CmtoolError(f"{option} {value!r}: expected finite numbers >= 0")
+    return out
+
+
+_ABLATE_COMMON = [
+    click.option("--ckpt", type=click.Path(path_type=Path),
+                 help="ControlMap checkpoint or run folder [default: the weights shipped with cmtool]."),
+    click.option("--data", "data_dir", required=True, type=click.Path(file_okay=False, path_type=Path),
+                 help="Dataset cache whose scenes give the SD maps."),
+    click.option("--split", default="test", show_default=True),
+    click.option("--n", default=64, show_default=True, type=click.IntRange(min=1), help="Scenes (the first N)."),
+    click.option("--steps", default=50, show_default=True, type=click.IntRange(min=1), help="Denoising steps."),
+    click.option("--sampler", default=DEFAULT_SAMPLER, show_default=True, type=click.Choice(SAMPLERS)),
+    SMOOTH_OPTION,
+    click.option("--out", required=True, type=click.Path(file_okay=False, path_type=Path), help="Output folder."),
+    click.option("--device", help="torch device [default: cuda when available, else cpu]."),
+    click.option("--quiet", is_flag=True, help="No progress line."),
+]
+
+
+def _ablate_options(fn):
+    for option in reversed(_ABLATE_COMMON):
+        fn = option(fn)
+    return fn
+
+
+@ablate.command("cfg")
+@_ablate_options
+@click.option("--w", "weights", default="0,0.3,0.5,0.7,1.0", show_default=True, help="Guidance weights to sweep.")
+@click.option("--seeds", default=2, show_default=True, type=click.IntRange(min=1), help="Maps per scene (diversity).")
+@click.option("--backbone", default="resnet50-seeded", show_default=True,
+              type=click.Choice(["resnet50-seeded", "resnet50-imagenet"]), help="Feature network of GT Recall.")
+@click.option("--weights-file", type=click.Path(dir_okay=False, path_type=Path), help="ImageNet ResNet-50 weights.")
+@click.option("--no-features", is_flag=True, help="Skip GT Recall.")
+def ablate_cfg(ckpt, data_dir, split, n, steps, sampler, smooth, out, device, quiet, weights, seeds, backbone,
+               weights_file, no_features):
+    """Sweep the guidance weight w: SD adherence, GT Recall and diversity against w."""
+    from cmtool.eval.ablations import cfg_sweep
+    from cmtool.eval.features import FeatureExtractor
+
+    ws = _floats(weights, "--w")
+    gen, scenes = _ablation_setup(ckpt, data_dir, split, n, device, smooth)
+    extractor = None if no_features else FeatureExtractor(backbone, weights_file, gen.device)
+    cfg_sweep(gen, scenes, ws, seeds, steps, extractor, out, progress=not quiet, sampler=sampler)
+    click.echo((out / "ablate_cfg.md").read_text().rstrip())
+    click.echo(f"wrote {out / 'ablate_cfg.md'}, {out / 'ablate_cfg.png'}, {out / 'ablate_cfg.rrd'}")
+
+
+@ablate.command("city-swap")
+@_ablate_options
+@click.option("--labels", default="SGP,LAV", show_default=True, help="City labels to compare (or none).")
+@click.option("--cfg", default=1.0, show_default=True, help="Guidance weight.")
+@click.option("--city-cfg", default=1.0, show_default=True, help=CITY_CFG_HELP)
+@click.option("--seed", default=0, show_default=True, help="Random seed (the same noise for every label).")
+def ablate_city_swap(ckpt, data_dir, split, n, steps, sampler, smooth, out, device, quiet, labels, cfg, city_cfg, seed):
+    """Swap the city label on the same SD maps: the driving side per label (SGP drives on the left).
+
+    --ckpt may also name a DiT: its maps ignore the SD maps, whose two-way roads still judge them
+    where they happen to meet (the oncoming-lane columns judge every map)."""
+    from cmtool.eval.ablations import city_swap
+
+    names = [v.strip() for v in labels.split(",") if v.strip()]
+    gen, scenes = _ablation_setup(ckpt, data_dir, split, n, device, smooth, dit_ok=True)
+    for name in names:
+        gen.label(name)  # unknown labels fail before any work
+    city_swap(gen, scenes, names, steps, cfg, seed, out, progress=not quiet, sampler=sampler, city_cfg=city_cfg)
+    click.echo((out / "ablate_city_swap.md").read_text().rstrip())
+    click.echo(f"wrote {out / 'ablate_city_swap.md'}, {out / 'ablate_city_swap.png'}")
+
+
+@ablate.command("dit")
+@click.option("--ckpt", "ckpts", multiple=True, required=True, type=click.Path(path_type=Path),
+              help="DiT (or ControlMap, sampled without control) checkpoint or run folder (repeatable).")
+@click.option("--data", "data_dir", required=True, type=click.Path(file_okay=False, path_type=Path),
+              help="Dataset cache whose scenes give the city labels and the reference maps.")
+@click.option("--split", default="test", show_default=True)
+@click.option("--n", default=128, show_default=True, type=click.IntRange(min=2), help="Scenes (the first N).")
+@click.option("--steps", default=50, show_default=True, type=click.IntRange(min=1), help="Denoising steps.")
+@click.option("--sampler", default=DEFAULT_SAMPLER, show_default=True, type=click.Choice(SAMPLERS))
+@click.option("--seed", default=0, show_default=True, help="Random seed (the same noise for every checkpoint).")
+@SMOOTH_OPTION
+@click.option("--out", required=True, type=click.Path(file_okay=False, path_type=Path), help="Output folder.")
+@click.option("--device", help="torch device [default: cuda when available, else cpu].")
+@click.option("--quiet", is_flag=True, help="No progress line.")
+def ablate_dit(ckpts, data_dir, split, n, steps, sampler, seed, smooth, out, device, quiet):
+    """Compare DiTs on the same city labels and noise: topology Fréchet distances to the scenes' ground
+    truth, validity, lanes joined to nothing and crossings per map, driving side by oncoming lanes."""
+    from cmtool.data.cache import load_dataset
+    from cmtool.eval.ablations import dit_compare
+    from cmtool.sample.generator import Generator
+
+    gens = {}
+    for path in ckpts:
+        gen = Generator.load(_checkpoint(path), _device(device), smooth)
+        name = gen.path.parent.parent.name if gen.path.parent.name == "checkpoints" else gen.path.name
+        gens[name if name not in gens else str(path)] = gen
+    data = load_dataset(data_dir, split)
+    dit_compare(gens, [data.scene(i) for i in range(min(n, len(data)))], steps, seed, out, progress=not quiet,
+                sampler=sampler)
+    click.echo((out / "ablate_dit.md").read_text().rstrip())
+    click.echo(f"wrote {out / 'ablate_dit.md'}, {out / 'ablate_dit.png'}")
+
+
+@ablate.command("rvae")
+@click.option("--rvae", "rvae_path", type=click.Path(path_type=Path),
+              help="RVAE checkpoint or run folder [default: the decoder shipped with cmtool].")
+@click.option("--encoder", "encoder_path", type=click.Path(path_type=Path),
+              help="RVAE run whose encoder makes the latents [default: the RVAE's own]; needed for a decoder "
+                   "without one, such as the shipped decoder (its encoder does not ship; README: \"Training the "
+                   "shipped models further\" recreates it).")
+@click.option("--data", "data_dir", required=True, type=click.Path(file_okay=False, path_type=Path),
+              help="Dataset cache.")
+@click.option("--split", "splits", multiple=True, help="Split to measure (repeatable) [default: every split].")
+@click.option("--n", default=64, show_default=True, type=click.IntRange(min=1), help="Scenes per split and city.")
+@click.option("--tol", default=1.0, show_default=True, type=click.FloatRange(min=0, min_open=True),
+              help="Lane F1 tolerance (m).")
+@click.option("--out", required=True, type=click.Path(file_okay=False, path_type=Path), help="Output folder.")
+@click.option("--device", help="torch device [default: cuda when available, else cpu].")
+@click.option("--quiet", is_flag=True, help="No progress line.")
+def ablate_rvae(rvae_path, encoder_path, data_dir, splits, n, tol, out, device, quiet):
+    """What the RVAE keeps: lane F1 (at --tol m and at 0.5 m), successor precision, recall and F1 (lanes
+    matched within --tol m) and validity of its reconstructions, and the driving side of the ground
+    truth and of the reconstructions, per split and city (the ceiling of the city swap)."""
+    from cmtool import checkpoint as ckpt
+    from cmtool.eval.reconstruction import reconstruction_report
+    from cmtool.release import BUNDLED
+
+    dev = _device(device)
+    decoder, path = _rvae(rvae_path or BUNDLED / "rvae", "--rvae", dev)
+    encoder = decoder
+    if encoder_path is not None:
+        encoder, enc_path = _rvae(encoder_path, "--encoder", dev)
+        if encoder.trunk is None:
+            raise CmtoolError(f"--encoder {enc_path}: holds no encoder (a packed decoder); give a `cmtool train "
+                              "rvae` run")
+        if (encoder.cfg.latent_channels, encoder.cfg.latent_size) != (decoder.cfg.latent_channels,
+                                                                       decoder.cfg.latent_size):
+            raise CmtoolError(f"--encoder {enc_path}: its latents do not fit the decoder {path}")
+        scales = [float(ckpt.load_config(p).get("latent_scale", "nan")) for p in (enc_path, path)]
+        if abs(scales[0] - scales[1]) > 1e-6:
+            click.echo(f"warning: the decoder was trained on other latents (latent scale {scales[1]:.4f}, the "
+                       f"encoder's {scales[0]:.4f}); the numbers measure this pair", err=True)
+    elif decoder.trunk is None:
+        raise CmtoolError(f"{path}: a decoder without its encoder (the shipped weights hold none); give --encoder "
+                          "RUN, the RVAE run it was trained on")
+    reconstruction_report(encoder, decoder, data_dir, dev, n, out, progress=not quiet, tol=tol,
+                          splits=list(splits) or None)
+    click.echo((out / "ablate_rvae.md").read_text().rstrip())
+    click.echo(f"wrote {out / 'ablate_rvae.md'}, {out / 'ablate_rvae.json'}")
+
+
+def _rvae(path: Path, option: str, device):
+    from cmtool import checkpoint as ckpt
+
+    path = ckpt.resolve(path)
+    model, config = ckpt.load_model(path, device)
+    if config["kind"] != "rvae":
+        raise CmtoolError(f"{option} {path}: a {config['kind']} checkpoint, not an RVAE")
+    return model, path

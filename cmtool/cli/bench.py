@@ -1,0 +1,69 @@
+"""``cmtool bench``: timing sampling and the metrics."""
+
+from __future__ import annotations
+
+from pathlib import Path
+
+import click
+
+from cmtool.cli.common import _checkpoint, _device
+from cmtool.sample import DEFAULT_SAMPLER, SAMPLERS
+
+
+@click.group()
+def bench():
+    """Speed measurements (timings are printed, never asserted by tests)."""
+
+
+@bench.command("sample")
+@click.option("--ckpt", type=click.Path(path_type=Path),
+              help="ControlMap (or DiT) checkpoint or run folder [default: the weights shipped with cmtool].")
+@click.option("--sd", "sd_path", type=click.Path(path_type=Path), help="SD input [default: a procedural crossing].")
+@click.option("--steps", default=50, show_default=True, type=click.IntRange(min=1), help="Denoising steps.")
+@click.option("--sampler", default=DEFAULT_SAMPLER, show_default=True, type=click.Choice(SAMPLERS))
+@click.option("--cfg", default=1.0, show_default=True, help="Guidance weight.")
+@click.option("--batch", default=64, show_default=True, type=click.IntRange(min=2), help="The large batch to compare.")
+@click.option("--repeats", default=3, show_default=True, type=click.IntRange(min=1), help="Timed runs per setting.")
+@click.option("--device", help="torch device [default: cuda when available, else cpu].")
+def bench_sample_cmd(ckpt, sd_path, steps, sampler, cfg, batch, repeats, device):
+    """Time sampling: per-step logging against --no-log at batch 1, and batch 1 against a large batch."""
+    import torch
+
+    from cmtool.sample.bench import LOG_LIMIT, bench_sample, default_sd
+    from cmtool.sample.generator import Generator
+    from cmtool.sample.inputs import image_inputs
+    from cmtool.sample.run import SampleSettings
+
+    settings = SampleSettings(steps=steps, cfg=cfg, sampler=sampler)
+    settings.check()
+    sd = image_inputs([sd_path])[0].sd if sd_path else default_sd()
+    dev = _device(device)
+    gen = Generator.load(_checkpoint(ckpt), dev)
+    params = sum(p.numel() for p in gen.model.parameters())
+    click.echo(f"{gen.path}: {gen.config['kind']}, {params / 1e6:.1f}M parameters; {dev} "
+               f"({torch.get_num_threads()} threads); {steps} {settings.sampler} steps, cfg {cfg}")
+    r = bench_sample(gen, sd, settings, batch=batch, repeats=repeats)
+    verdict = "within" if r["log_ratio"] <= LOG_LIMIT else "OVER"
+    click.echo(f"full logging / --no-log at batch 1: {r['log_ratio']:.3f} ({verdict} the {LOG_LIMIT:.2f} limit)")
+    click.echo(f"batch {batch} / batch 1, time per map: {1 / r['batch_speedup']:.3f} "
+               f"({r['batch_speedup']:.1f}x faster per map)")
+
+
+@bench.command("metrics")
+@click.option("--eval", "eval_dir", required=True, type=click.Path(file_okay=False, path_type=Path),
+              help="A `cmtool eval --out` folder: its cached maps and the scenes they were made for.")
+@click.option("--method", default="controlmap", show_default=True, type=click.Choice(["controlmap", "unguided"]))
+@click.option("--tile", default=1, show_default=True, type=click.IntRange(min=1),
+              help="Repeat the set this many times (512 x 8 = 4,096 is the paper's test-set size).")
+@click.option("--repeats", default=3, show_default=True, type=click.IntRange(min=1), help="Timed runs.")
+@click.option("--no-features", is_flag=True, help="Leave out the ResNet-50 metrics.")
+@click.option("--device", help="torch device [default: cuda when available, else cpu].")
+def bench_metrics_cmd(eval_dir, method, tile, repeats, no_features, device):
+    """Time each family of metrics (topology, lane distances, validity, SD adherence, driving side, legal
+    one-way, features, recall) on an evaluation's maps: minimum and median over the repeats."""
+    from cmtool.eval.bench import bench_metrics, eval_set, report_table
+    from cmtool.eval.features import FeatureExtractor
+
+    generated, reference, controls = eval_set(eval_dir, method, tile)
+    extractor = None if no_features else FeatureExtractor("resnet50-seeded", None, _device(device))
+    click.echo(report_table(bench_metrics(generated, reference, controls, extractor, repeats)))

@@ -1,0 +1,44 @@
+"""Helpers and options that several command modules share."""
+
+from __future__ import annotations
+
+from pathlib import Path
+
+import click
+
+from cmtool.errors import CmtoolError
+from cmtool.sample import DEFAULT_SMOOTH
+
+CITY_CFG_HELP = ("Guidance weight on the city label (1: the label as trained; > 1 strengthens the city's style, "
+                 "such as its driving side, at one more model pass per step).")
+
+SMOOTH_OPTION = click.option(
+    "--smooth", default=DEFAULT_SMOOTH, show_default=True, type=click.IntRange(min=0),
+    help="Replace each decoded lane and light line by its least-squares Bezier curve with this many control points "
+         "(0: the decoder's raw points).")
+
+
+def _origin(value: str) -> tuple[float, float]:
+    """``--origin LAT,LON`` as numbers within the range the local projection serves."""
+    from cmtool.sample.inputs import parse_points
+
+    lat0, lon0 = parse_points(value, ("lat", "lon"), {}, "--origin")[0]
+    if not (-80.0 <= lat0 <= 80.0 and -180.0 <= lon0 <= 180.0):
+        raise CmtoolError(f"--origin {value}: latitude must be within [-80, 80], longitude within [-180, 180]")
+    return lat0, lon0
+
+
+def _device(name: str | None):
+    import torch
+
+    dev = torch.device(name) if name else torch.device("cuda" if torch.cuda.is_available() else "cpu")
+    if dev.type == "cuda" and not torch.cuda.is_available():
+        raise CmtoolError(f"--device {name}: CUDA is not available on this machine")
+    return dev
+
+
+def _checkpoint(path: Path | None) -> Path:
+    """``--ckpt``, or the ControlMap shipped with the package when it is not given."""
+    from cmtool.release import bundled_checkpoint
+
+    return bundled_checkpoint() if path is None else path

@@ -1,0 +1,95 @@
+"""``cmtool metrics`` and ``cmtool eval``: scoring generated lane graphs, evaluating a checkpoint."""
+
+from __future__ import annotations
+
+from pathlib import Path
+
+import click
+
+from cmtool.cli.common import SMOOTH_OPTION, _checkpoint, _device
+from cmtool.errors import CmtoolError
+from cmtool.sample import DEFAULT_SAMPLER, SAMPLERS
+
+
+@click.command()
+@click.option("--generated", required=True, type=click.Path(dir_okay=False, path_type=Path),
+              help="Generated lane graphs (.jsonl).")
+@click.option("--reference", required=True, type=click.Path(dir_okay=False, path_type=Path),
+              help="Reference (ground-truth) lane graphs (.jsonl), paired line by line.")
+@click.option("--control", type=click.Path(path_type=Path),
+              help="SD controls, paired in order: a folder of SD pictures or a .npy stack (N, 128, 128, 3).")
+@click.option("--json", "json_out", type=click.Path(dir_okay=False, path_type=Path), help="Write all numbers here.")
+@click.option("--backbone", default="resnet50-seeded", show_default=True,
+              type=click.Choice(["resnet50-seeded", "resnet50-imagenet"]),
+              help="Feature network of the recall metrics.")
+@click.option("--weights", type=click.Path(dir_okay=False, path_type=Path),
+              help="ImageNet ResNet-50 weights file [default: torchvision's file in the torch hub cache].")
+@click.option("--no-features", is_flag=True, help="Skip the feature metrics (precision/recall, Control/GT Recall).")
+@click.option("--device", help="torch device [default: cuda when available, else cpu].")
+def metrics(generated, reference, control, json_out, backbone, weights, no_features, device):
+    """Score generated lane graphs against a reference set (and their SD controls): topology FDs,
+    improved precision/recall, Control / GT Recall with p-values, and geometric lane metrics."""
+    from cmtool.data.jsonio import write_json
+    from cmtool.data.lanegraph import read_jsonl
+    from cmtool.eval.features import FeatureExtractor
+    from cmtool.eval.metrics import evaluate, load_controls, summary_table
+
+    gen, ref = read_jsonl(generated), read_jsonl(reference)
+    controls = load_controls(control) if control is not None else None
+    extractor = None if no_features else FeatureExtractor(backbone, weights, _device(device))
+    result = evaluate(gen, ref, controls, extractor, features=not no_features)
+    click.echo(summary_table({generated.name: result}))
+    click.echo(f"{result['scenes']} scene pairs in {sum(result['seconds'].values()):.1f} s ("
+               + ", ".join(f"{k} {v:.1f} s" for k, v in result["seconds"].items()) + ")"
+               + ("" if no_features else f"; features: {result['backbone']['name']}"))
+    if json_out is not None:
+        write_json(json_out, {"generated": str(generated), "reference": str(reference),
+                              "control": str(control) if control else None, **result})
+        click.echo(f"wrote {json_out}")
+
+
+@click.command("eval")
+@click.option("--ckpt", type=click.Path(path_type=Path),
+              help="ControlMap checkpoint or run folder [default: the weights shipped with cmtool].")
+@click.option("--data", "data_dir", required=True, type=click.Path(file_okay=False, path_type=Path),
+              help="Dataset cache (cmtool data build).")
+@click.option("--split", default="test", show_default=True, help="Split to evaluate on.")
+@click.option("--n", default=3904, show_default=True, type=click.IntRange(min=1),
+              help="Scenes (the first N of the split).")
+@click.option("--cfg", default=1.0, show_default=True, help="ControlMap's guidance weight.")
+@click.option("--steps", default=50, show_default=True, type=click.IntRange(min=1), help="Denoising steps.")
+@click.option("--sampler", default=DEFAULT_SAMPLER, show_default=True, type=click.Choice(SAMPLERS))
+@click.option("--seed", default=0, show_default=True, help="Random seed (the same noise for both methods).")
+@SMOOTH_OPTION
+@click.option("--batch", default=64, show_default=True, type=click.IntRange(min=1), help="Maps per forward pass.")
+@click.option("--out", required=True, type=click.Path(file_okay=False, path_type=Path),
+              help="Folder for metrics.json, summary.md, eval.rrd and the generation cache.")
+@click.option("--backbone", default="resnet50-seeded", show_default=True,
+              type=click.Choice(["resnet50-seeded", "resnet50-imagenet"]),
+              help="Feature network of the recall metrics.")
+@click.option("--weights", type=click.Path(dir_okay=False, path_type=Path), help="ImageNet ResNet-50 weights file.")
+@click.option("--no-features", is_flag=True, help="Skip the feature metrics.")
+@click.option("--rrd-samples", default=64, show_default=True, type=click.IntRange(min=0),
+              help="Scenes whose maps go into eval.rrd (scores go in for all).")
+@click.option("--device", help="torch device [default: cuda when available, else cpu].")
+@click.option("--quiet", is_flag=True, help="No progress line.")
+def eval_cmd(ckpt, data_dir, split, n, cfg, steps, sampler, seed, smooth, batch, out, backbone, weights, no_features,
+             rrd_samples, device, quiet):
+    """Evaluate a ControlMap checkpoint on a test split against its unguided DiT (paper Tables 1-2)."""
+    import math
+
+    from cmtool.eval.evaluation import EvalSettings, run_eval
+    from cmtool.eval.features import FeatureExtractor
+    from cmtool.sample.generator import Generator
+
+    if not (math.isfinite(cfg) and cfg >= 0):
+        raise CmtoolError(f"--cfg: guidance weight must be a finite number >= 0, got {cfg}")
+    dev = _device(device)
+    gen = Generator.load(_checkpoint(ckpt), dev, smooth)
+    gen.schedule.timesteps(steps)
+    extractor = None if no_features else FeatureExtractor(backbone, weights, dev)
+    settings = EvalSettings(data=str(data_dir.resolve()), split=split, n=n, cfg=cfg, steps=steps, sampler=sampler,
+                            seed=seed, batch=batch)
+    run_eval(gen, settings, out, extractor, rrd_samples=rrd_samples, progress=not quiet)
+    click.echo((out / "summary.md").read_text())
+    click.echo(f"wrote {out / 'metrics.json'}, {out / 'summary.md'}, {out / 'eval.rrd'}")

@@ -1,0 +1,134 @@
+"""``cmtool validate`` and ``cmtool export``: checking lane graphs and writing them for other tools."""
+
+from __future__ import annotations
+
+from pathlib import Path
+
+import click
+
+from cmtool.cli.common import _origin
+from cmtool.errors import CmtoolError
+
+
+@click.command()
+@click.argument("maps", type=click.Path(dir_okay=False, path_type=Path))
+@click.option("--json", "json_out", type=click.Path(dir_okay=False, path_type=Path), help="Write the full report here.")
+@click.option("--repair", is_flag=True, help="Snap near-miss joints, drop lanes under 2 m, merge duplicates; "
+              "report the repaired maps.")
+@click.option("--out", type=click.Path(dir_okay=False, path_type=Path),
+              help="With --repair: the repaired maps (.jsonl).")
+def validate(maps, json_out, repair, out):
+    """Check lane graphs (a .json scene or a .jsonl of scenes) for what planners need: dangling lanes,
+    bad successor joins, crossings outside intersections, self-intersections, short lanes, kinks;
+    routability; a validity score in [0, 1] per scene."""
+    import numpy as np
+
+    from cmtool.data.jsonio import write_json
+    from cmtool.data.lanegraph import read_jsonl, write_jsonl
+    from cmtool.eval.repair import repair as repair_graph
+    from cmtool.eval.validity import check
+
+    if repair != (out is not None):
+        raise CmtoolError("--repair needs --out FILE.jsonl for the repaired maps" if repair
+                          else "--out goes with --repair")
+    graphs = read_jsonl(maps)
+    if repair:
+        repaired = [repair_graph(g) for g in graphs]
+        for i, (_, changes) in enumerate(repaired):
+            for change in changes:
+                click.echo(f"scene {i}: {change}")
+        graphs = [g for g, _ in repaired]
+        write_jsonl(out, graphs)
+        click.echo(f"wrote {len(graphs)} repaired scene{'s' if len(graphs) != 1 else ''} to {out} "
+                   f"({sum(len(c) for _, c in repaired)} changes); the report below is of the repaired maps")
+    reports = [check(g) for g in graphs]
+    if not reports:
+        raise CmtoolError(f"{maps}: no scenes")
+    totals: dict[str, int] = {}
+    for r in reports:
+        for k, v in r.counts().items():
+            totals[k] = totals.get(k, 0) + v
+    click.echo(f"{'scene':>5} {'score':>6} {'lanes':>5} {'routable':>8} {'+changes':>8} {'scc':>4}  problems")
+    for i, r in enumerate(reports):
+        problems = ", ".join(f"{k} {v}" for k, v in sorted(r.counts().items())) or "none"
+        click.echo(f"{i:>5} {r.score:>6.3f} {r.lanes:>5} {r.routable_pairs:>8.3f} {r.routable_with_changes:>8.3f} "
+                   f"{r.largest_scc:>4}  {problems}")
+    summary = {"scenes": len(reports), "mean_score": float(np.mean([r.score for r in reports])), "problems": totals}
+    click.echo(f"{len(reports)} scenes, mean validity score {summary['mean_score']:.3f}; problems: "
+               + (", ".join(f"{k} {v}" for k, v in sorted(totals.items())) or "none"))
+    if json_out is not None:
+        write_json(json_out, {**summary, "reports": [r.to_json() for r in reports]})
+        click.echo(f"wrote {json_out}")
+
+
+@click.command()
+@click.option("--format", "fmt", required=True, type=click.Choice(["lanelet2", "opendrive", "geojson"]),
+              help="lanelet2: a Lanelet2 OSM map (.osm); opendrive: an OpenDRIVE 1.6 map (.xodr); "
+                   "geojson: GeoJSON features.")
+@click.argument("map_path", metavar="MAP", type=click.Path(dir_okay=False, path_type=Path))
+@click.option("--origin", help="LAT,LON where the scene's origin (the ego) lies [default: what the map's meta.geo "
+                               "records, as maps from `sample --osm` do].")
+@click.option("--heading", type=float,
+              help="Compass heading of the scene's forward axis, degrees [default: meta.geo's, else 0].")
+@click.option("--scene", default=0, show_default=True, type=click.IntRange(min=0), help="Scene of a .jsonl file.")
+@click.option("--lane-width", default=3.5, show_default=True, type=click.FloatRange(min=0.5, max=10.0),
+              help="Lane width where the map records none and no neighbours give one, metres.")
+@click.option("--out", required=True, type=click.Path(dir_okay=False, path_type=Path), help="File to write.")
+def export(fmt, map_path, origin, heading, scene, lane_width, out):
+    """Export a lane graph (a generated or ground-truth scene) for simulators and GIS tools."""
+    import math
+
+    import numpy as np
+
+    from cmtool.data.geojson import to_geojson
+    from cmtool.data.jsonio import write_json
+    from cmtool.data.lanegraph import read_jsonl
+    from cmtool.data.neighbours import graph_neighbours
+    from cmtool.eval.validity import check
+
+    graphs = read_jsonl(map_path)
+    if scene >= len(graphs):
+        raise CmtoolError(f"{map_path}: no scene {scene} ({len(graphs)} scene{'s' if len(graphs) != 1 else ''})")
+    graph = graphs[scene]
+    if not graph.lanes:
+        raise CmtoolError(f"{map_path}: scene {scene} has no lanes to export")
+    short = [k for k, lane in enumerate(graph.lanes) if np.linalg.norm(np.diff(lane, axis=0), axis=1).sum() < 0.01]
+    if short:
+        raise CmtoolError(f"{map_path}: scene {scene}: lane {short[0]} has no length (all its points coincide)")
+    geo = graph.geo
+    if origin is not None:
+        lat0, lon0 = _origin(origin)
+    elif geo is not None:
+        lat0, lon0 = geo[0], geo[1]
+    else:
+        raise CmtoolError(f"{map_path}: scene {scene} records no place on the globe (meta.geo); "
+                          "give --origin LAT,LON (and --heading)")
+    if heading is None:
+        heading = geo[2] if geo is not None and origin is None else 0.0
+    if not math.isfinite(heading):
+        raise CmtoolError(f"--heading {heading}: expected a finite number of degrees")
+    if fmt in ("lanelet2", "opendrive"):
+        if fmt == "lanelet2":
+            from cmtool.data.lanelet2_export import write_lanelet2 as write
+        else:
+            from cmtool.data.opendrive_export import write_opendrive as write
+        write(graph, out, lat0, lon0, heading, lane_width)
+        left, oncoming = graph_neighbours(graph)
+        click.echo(f"{out}: {len(graph.lanes)} lanes, {len(graph.successors)} successor joins, {len(left)} lane-change "
+                   f"neighbours, {len(oncoming)} oncoming pairs, {len(graph.green_lights) + len(graph.red_lights)} "
+                   f"light lines; origin {lat0:.7f},{lon0:.7f}, heading {heading:g}")
+        report = check(graph)
+        bad = {i for p in report.problems for i in p.lanes}
+        if bad:
+            click.echo(f"warning: {len(bad)} of {len(graph.lanes)} lanes have validity problems ("
+                       + ", ".join(f"{k} {v}" for k, v in sorted(report.counts().items()))
+                       + "); simulators may not route through sharply turning or crossing lanes "
+                         "(see cmtool validate)", err=True)
+        return
+    collection = to_geojson(graph, lat0, lon0, heading, lane_width)
+    write_json(out, collection)
+    kinds: dict[str, int] = {}
+    for f in collection["features"]:
+        kinds[f["properties"]["kind"]] = kinds.get(f["properties"]["kind"], 0) + 1
+    plural = {"lane": "lanes", "boundary": "boundaries", "light": "lights"}
+    click.echo(f"{out}: " + ", ".join(f"{v} {plural[k]}" for k, v in kinds.items()))

@@ -1,0 +1,46 @@
+"""``cmtool info`` and ``cmtool pack``: what checkpoints hold, and the weights shipped with cmtool."""
+
+from __future__ import annotations
+
+from pathlib import Path
+
+import click
+
+
+@click.command()
+@click.argument("path", required=False, type=click.Path(path_type=Path))
+@click.option("--json", "as_json", is_flag=True, help="Print the checkpoint's full config as JSON.")
+def info(path, as_json):
+    """What a checkpoint (or run folder) holds, or the model sizes a recipe defines.
+
+    Without PATH: the models shipped with cmtool.
+    """
+    from cmtool.info import describe
+    from cmtool.release import BUNDLED, bundled_checkpoint
+
+    if path is None:
+        click.echo(describe(bundled_checkpoint(), as_json=as_json))
+        click.echo("")
+        click.echo(describe(BUNDLED / "rvae", as_json=as_json))
+        return
+    click.echo(describe(path, as_json=as_json))
+
+
+@click.command()
+@click.option("--ckpt", required=True, type=click.Path(path_type=Path), help="ControlMap checkpoint or run folder.")
+@click.option("--rvae", default=None, type=click.Path(path_type=Path),
+              help="RVAE to ship instead of the one the ControlMap was trained on: a `cmtool train decoder` run "
+                   "on that RVAE (same encoder, so the same latent space), or an already packed decoder "
+                   "with the same latent scale (e.g. cmtool/weights/rvae).")
+@click.option("--out", default=None, type=click.Path(file_okay=False, path_type=Path),
+              help="Folder to write [default: the package's own cmtool/weights].")
+def pack(ckpt, rvae, out):
+    """Pack a trained ControlMap (and its RVAE's decoder) as float16 weights to ship with cmtool."""
+    from cmtool.release import BUNDLED, MANIFEST
+    from cmtool.release import pack as pack_release
+
+    out = out or BUNDLED
+    manifest = pack_release(ckpt, out, rvae=rvae)
+    for name, f in manifest["files"].items():
+        click.echo(f"{out / name}  {f['bytes'] / 1e6:.2f} MB  sha256 {f['sha256'][:16]}...")
+    click.echo(f"total {manifest['total_bytes'] / 1e6:.2f} MB; checksums in {out / MANIFEST}")

@@ -1,0 +1,105 @@
+"""``cmtool sample``: lane-level HD maps from SD maps, every denoising step recorded."""
+
+from __future__ import annotations
+
+import sys
+from pathlib import Path
+
+import click
+
+from cmtool.cli.common import CITY_CFG_HELP, SMOOTH_OPTION, _checkpoint, _device
+from cmtool.errors import CmtoolError
+from cmtool.sample import DEFAULT_SAMPLER, SAMPLERS
+
+SAMPLE_HELP = """Generate lane-level HD maps from SD maps with ControlMap, recording every denoising step.
+
+\b
+SD input (at most one kind; none: maps from the city label alone):
+  --sd PNG|DIR              control rasters, or plain road drawings (converted)
+  --osm FILE --center LAT,LON [--heading DEG]
+  --from-hd MAP.json [--pose X,Y,YAW]   (the ground truth is shown beside the map)
+--center and --pose also take a .jsonl file of points for many inputs at once.
+"""
+
+
+@click.command(help=SAMPLE_HELP)
+@click.option("--ckpt", type=click.Path(path_type=Path),
+              help="ControlMap (or DiT) checkpoint or run folder [default: the weights shipped with cmtool].")
+@click.option("--sd", "sd_paths", multiple=True, type=click.Path(path_type=Path),
+              help="SD raster / road drawing picture, or a folder of them (repeatable).")
+@click.option("--osm", type=click.Path(path_type=Path), help="OpenStreetMap .osm/.osm.pbf file.")
+@click.option("--center", help="With --osm: LAT,LON of the frame centre, or a .jsonl of {lat, lon, heading}.")
+@click.option("--heading", default=0.0, show_default=True, help="With --osm: compass heading that points up, degrees.")
+@click.option("--from-hd", "from_hd", type=click.Path(path_type=Path), help="HD map JSON (procedural or imported).")
+@click.option("--pose", help="With --from-hd: X,Y,YAW (m, m, degrees) or a .jsonl of {x, y, yaw} [default: a random "
+              "drivable pose].")
+@click.option("--num", default=1, show_default=True, type=click.IntRange(min=1), help="Maps per SD input.")
+@click.option("--seed", default=0, show_default=True, help="Random seed.")
+@click.option("--steps", default=50, show_default=True, type=click.IntRange(min=1), help="Denoising steps.")
+@click.option("--sampler", default=DEFAULT_SAMPLER, show_default=True, type=click.Choice(SAMPLERS))
+@click.option("--eta", default=0.0, show_default=True, help="DDIM noise (0 deterministic, 1 like DDPM).")
+@click.option("--city", default="auto", show_default=True,
+              help="City label of the checkpoint, or none; auto: the HD map's city, else none.")
+@click.option("--cfg", default=1.0, show_default=True, help="Guidance weight w >= 0 on the SD control (0: ignore it).")
+@click.option("--city-cfg", default=1.0, show_default=True, help=CITY_CFG_HELP)
+@SMOOTH_OPTION
+@click.option("--batch", default=16, show_default=True, type=click.IntRange(min=1), help="Maps per forward pass.")
+@click.option("--out", default=Path("samples"), show_default=True, type=click.Path(file_okay=False, path_type=Path),
+              help="Folder for the lane graphs and pictures.")
+@click.option("--rrd", type=click.Path(dir_okay=False, path_type=Path),
+              help="Recording to write [default: OUT/sample.rrd].")
+@click.option("--grid", type=click.Path(dir_okay=False, path_type=Path),
+              help="Also write all maps' pictures stacked into this PNG (a gallery).")
+@click.option("--spawn", is_flag=True, help="Also stream live to a newly started Rerun viewer.")
+@click.option("--connect", "connect_url", help="Also stream live to a running viewer at this gRPC URL.")
+@click.option("--no-log", is_flag=True, help="No recording (fastest).")
+@click.option("--device", help="torch device [default: cuda when available, else cpu].")
+@click.option("--quiet", is_flag=True, help="No progress line.")
+def sample(ckpt, sd_paths, osm, center, heading, from_hd, pose, num, seed, steps, sampler, eta, city, cfg, city_cfg,
+           smooth, batch, out, rrd, grid, spawn, connect_url, no_log, device, quiet):
+    import shlex
+
+    from cmtool.sample import inputs as src
+    from cmtool.sample.generator import Generator
+    from cmtool.sample.run import SampleSettings, plan, run_sample, summary_table
+
+    kinds = [name for name, given in (("--sd", sd_paths), ("--osm", osm), ("--from-hd", from_hd)) if given]
+    if len(kinds) > 1:
+        raise CmtoolError(f"give one kind of SD input, not {' and '.join(kinds)}")
+    if center is not None and osm is None:
+        raise CmtoolError("--center goes with --osm")
+    if pose is not None and from_hd is None:
+        raise CmtoolError("--pose goes with --from-hd")
+    if no_log and (rrd or spawn or connect_url):
+        raise CmtoolError("--no-log cannot be combined with --rrd, --spawn or --connect")
+    if spawn and connect_url:
+        raise CmtoolError("give --spawn or --connect, not both")
+    settings = SampleSettings(num=num, seed=seed, steps=steps, sampler=sampler, eta=eta, cfg=cfg, city=city,
+                              city_cfg=city_cfg, batch=batch)
+    settings.check()
+    if sd_paths:
+        inputs = src.image_inputs(sd_paths)
+    elif osm is not None:
+        if center is None:
+            raise CmtoolError("--osm needs --center LAT,LON (or a .jsonl of centres)")
+        inputs = src.osm_inputs(osm, src.parse_points(center, ("lat", "lon", "heading"), {"heading": heading},
+                                                      "--center"))
+    elif from_hd is not None:
+        poses = src.parse_points(pose, ("x", "y", "yaw"), {}, "--pose") if pose is not None else None
+        inputs = src.hd_inputs(from_hd, poses, seed)
+    else:
+        inputs = [src.ControlInput("uncond", None, "no SD input")]
+    gen = Generator.load(_checkpoint(ckpt), _device(device), smooth)
+    jobs = plan(gen, inputs, settings)
+    for item in inputs:
+        if item.note:
+            click.echo(f"note: {item.note}", err=True)
+    if not no_log and rrd is None:
+        rrd = out / "sample.rrd"
+    viewer = "spawn" if spawn else connect_url
+    command = shlex.join(["cmtool", *sys.argv[1:]])
+    maps = run_sample(gen, jobs, settings, out, None if no_log else rrd, viewer, command, progress=not quiet,
+                      grid=grid)
+    click.echo(summary_table(maps))
+    click.echo(f"wrote {len(maps)} lane graph{'s' if len(maps) > 1 else ''} and picture{'s' if len(maps) > 1 else ''} "
+               f"to {out}" + ("" if no_log or rrd is None else f"; recording {rrd}"))

@@ -1,0 +1,95 @@
+"""The recordings as the Rerun viewer draws them: each kind has its own application id and layout, and its
+screenshot (Xvfb + a software Vulkan driver; skipped where they are missing) shows every view filled, the
+control-residual heatmaps with structure, and the time panel."""
+
+import cv2
+import numpy as np
+import pytest
+
+from cmtool.viz.recording import APP_IDS
+from cmtool.viz.screenshot import missing, screenshot
+from tests.conftest import REPO
+from tests.test_train import write_recipe
+
+SD = REPO / "sample_data" / "sd_bos.png"
+
+
+@pytest.fixture(scope="module")
+def recordings(tmp_path_factory, tiny_data):
+    """One recording of each kind: data show, train (a few RVAE steps), sample and eval (the shipped weights)."""
+    import contextlib
+    import io
+
+    root = tmp_path_factory.mktemp("viewer")
+
+    def run(*args):
+        from cmtool.cli import main
+
+        err = io.StringIO()
+        with contextlib.redirect_stderr(err), contextlib.redirect_stdout(io.StringIO()):
+            try:
+                main([str(a) for a in args])
+            except SystemExit as e:
+                assert not e.code, err.getvalue()
+
+    run("data", "show", tiny_data, "--n", 4, "--rrd", root / "data.rrd")
+    recipe = write_recipe(root / "rvae.toml", "rvae", 4, data=str(tiny_data), preview_every=2)
+    run("train", "rvae", "--recipe", recipe, "--out", root / "rvae", "--quiet")
+    run("sample", "--sd", SD, "--steps", 6, "--out", root / "sample", "--quiet")
+    run("eval", "--data", tiny_data, "--n", 4, "--steps", 4, "--no-features", "--rrd-samples", 4, "--out",
+        root / "eval", "--quiet")
+    return {"data": root / "data.rrd", "train": root / "rvae" / "train.rrd", "sample": root / "sample" / "sample.rrd",
+            "eval": root / "eval" / "eval.rrd"}
+
+
+def test_each_kind_of_recording_has_its_own_application_id(recordings):
+    from rerun.chunk import RrdReader
+
+    for kind, path in recordings.items():
+        stores = RrdReader(path).recordings() + RrdReader(path).blueprints()
+        assert {s.application_id for s in stores} == {APP_IDS[kind]}, kind
+    assert len(set(APP_IDS.values())) == len(APP_IDS)
+
+
+def busy(region: np.ndarray) -> float:
+    """Share of a region's pixels that differ clearly from its most common colour (0 for an empty view)."""
+    flat = region.reshape(-1, 3).astype(int)
+    colours, counts = np.unique(flat // 8, axis=0, return_counts=True)
+    background = colours[counts.argmax()] * 8
+    return float((np.abs(flat - background).sum(axis=1) > 60).mean())
+
+
+def cell(img, x0, x1, y0, y1):
+    """The region of ``img`` between fractions x0..x1 of its width and y0..y1 of its height."""
+    h, w = img.shape[:2]
+    return img[int(y0 * h):int(y1 * h), int(x0 * w):int(x1 * w)]
+
+
+# views each layout must fill, as fractions of the window (x0, x1, y0, y1) below the 3% title bar
+VIEWS = {
+    "sample": {f"map view {k}": (0.215 * k + 0.01, 0.215 * (k + 1) - 0.01, 0.07, 0.38) for k in range(4)}
+    | {"latent": (0.01, 0.16, 0.45, 0.74), "noise norms": (0.53, 0.85, 0.43, 0.55)},
+    "eval": {f"map view {k}": (0.2 * k + 0.02, 0.2 * (k + 1) - 0.02, 0.1, 0.43) for k in range(4)}
+    | {f"score plot {k}": (0.335 * k + 0.02, 0.335 * (k + 1) - 0.02, 0.5, 0.73) for k in range(3)},
+    "train": {f"plot {k}": (0.25 * k + 0.02, 0.25 * (k + 1) - 0.02, 0.06, 0.37) for k in range(4)}
+    | {f"preview {k}": (0.25 * k + 0.02, 0.25 * (k + 1) - 0.02, 0.42, 0.56) for k in range(4)},
+    "data": {"scene grid": (0.0, 0.8, 0.05, 0.95)},
+}
+
+
+@pytest.mark.skipif(missing() is not None, reason=f"no headless viewer here: {missing()}")
+@pytest.mark.parametrize("kind", list(VIEWS))
+def test_viewer_draws_every_view(recordings, tmp_path, kind):
+    png = screenshot(recordings[kind], tmp_path / f"{kind}.png")
+    img = cv2.imread(str(png))
+    assert img is not None and img.shape[:2] == (1000, 1600)
+    for name, box in VIEWS[kind].items():
+        assert busy(cell(img, *box)) > 0.003, f"{kind}: {name} is empty ({png})"
+    if kind == "sample":
+        # the latent fills its view (an 8 x 8 grid of one channel, not a 64 x 8 strip at the edge) and the residual
+        # heatmaps show structure: many colours of a colour map (about 180), not flat squares (about 30)
+        assert busy(cell(img, *VIEWS["sample"]["latent"])) > 0.2, f"latent view not filled ({png})"
+        heatmaps = cell(img, 0.18, 0.5, 0.45, 0.74).reshape(-1, 3)
+        assert len(np.unique(heatmaps // 16, axis=0)) > 80, f"flat heatmaps ({png})"
+    if kind != "data":  # the time panel, open on the recording's timeline, lists the streams at the bottom left
+        assert busy(cell(img, 0.0, 0.1, 0.8, 0.98)) > 0.01, f"{kind}: no time panel ({png})"
