@@ -93,3 +93,30 @@ def test_viewer_draws_every_view(recordings, tmp_path, kind):
         assert len(np.unique(heatmaps // 16, axis=0)) > 80, f"flat heatmaps ({png})"
     if kind != "data":  # the time panel, open on the recording's timeline, lists the streams at the bottom left
         assert busy(cell(img, 0.0, 0.1, 0.8, 0.98)) > 0.01, f"{kind}: no time panel ({png})"
+
+
+def test_serve_serves_the_recording_and_the_web_viewer(tmp_path):
+    """`sample --serve`: Rerun's web viewer on port 9090 and the recording over gRPC on 9876, until Ctrl-C."""
+    import socket
+    import subprocess
+    import sys
+    import time
+    import urllib.request
+
+    proc = subprocess.Popen([sys.executable, "-m", "cmtool", "sample", "--sd", str(SD), "--steps", "2", "--out",
+                             str(tmp_path / "s"), "--serve", "--quiet"], stdout=subprocess.PIPE,
+                            stderr=subprocess.PIPE, text=True, cwd=REPO)
+    try:
+        lines = []
+        deadline = time.monotonic() + 300
+        while not any("serving until Ctrl-C" in line for line in lines):
+            assert proc.poll() is None and time.monotonic() < deadline, "".join(lines) + proc.stderr.read()
+            lines.append(proc.stderr.readline())
+        assert "open http://" in lines[0] and "9090/?url=rerun%2Bhttp://" in lines[0] and "ssh -L 9090" in lines[0]
+        assert urllib.request.urlopen("http://127.0.0.1:9090/", timeout=10).status == 200
+        with socket.create_connection(("127.0.0.1", 9876), timeout=10):
+            pass
+        assert (tmp_path / "s" / "sample.rrd").stat().st_size > 0  # the file is written as well
+    finally:
+        proc.terminate()
+        proc.wait(timeout=30)

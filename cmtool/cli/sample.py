@@ -52,11 +52,13 @@ SD input (at most one kind; none: maps from the city label alone):
               help="Also write all maps' pictures stacked into this PNG (a gallery).")
 @click.option("--spawn", is_flag=True, help="Also stream live to a newly started Rerun viewer.")
 @click.option("--connect", "connect_url", help="Also stream live to a running viewer at this gRPC URL.")
+@click.option("--serve", is_flag=True, help="Also serve the recording and Rerun's web viewer from this machine "
+                                            "(ports 9876 and 9090), until Ctrl-C: for a browser elsewhere.")
 @click.option("--no-log", is_flag=True, help="No recording (fastest).")
 @click.option("--device", help="torch device [default: cuda when available, else cpu].")
 @click.option("--quiet", is_flag=True, help="No progress line.")
 def sample(ckpt, sd_paths, osm, center, heading, from_hd, pose, num, seed, steps, sampler, eta, city, cfg, city_cfg,
-           smooth, batch, out, rrd, grid, spawn, connect_url, no_log, device, quiet):
+           smooth, batch, out, rrd, grid, spawn, connect_url, serve, no_log, device, quiet):
     import shlex
 
     from cmtool.sample import inputs as src
@@ -70,10 +72,10 @@ def sample(ckpt, sd_paths, osm, center, heading, from_hd, pose, num, seed, steps
         raise CmtoolError("--center goes with --osm")
     if pose is not None and from_hd is None:
         raise CmtoolError("--pose goes with --from-hd")
-    if no_log and (rrd or spawn or connect_url):
-        raise CmtoolError("--no-log cannot be combined with --rrd, --spawn or --connect")
-    if spawn and connect_url:
-        raise CmtoolError("give --spawn or --connect, not both")
+    if no_log and (rrd or spawn or connect_url or serve):
+        raise CmtoolError("--no-log cannot be combined with --rrd, --spawn, --connect or --serve")
+    if spawn + bool(connect_url) + serve > 1:
+        raise CmtoolError("give one of --spawn, --connect and --serve")
     settings = SampleSettings(num=num, seed=seed, steps=steps, sampler=sampler, eta=eta, cfg=cfg, city=city,
                               city_cfg=city_cfg, batch=batch)
     settings.check()
@@ -96,10 +98,20 @@ def sample(ckpt, sd_paths, osm, center, heading, from_hd, pose, num, seed, steps
             click.echo(f"note: {item.note}", err=True)
     if not no_log and rrd is None:
         rrd = out / "sample.rrd"
-    viewer = "spawn" if spawn else connect_url
+    viewer = "spawn" if spawn else "serve" if serve else connect_url
+    if serve:
+        from cmtool.viz.recording import serve_web_viewer
+
+        click.echo(serve_web_viewer(), err=True)
     command = shlex.join(["cmtool", *sys.argv[1:]])
     maps = run_sample(gen, jobs, settings, out, None if no_log else rrd, viewer, command, progress=not quiet,
                       grid=grid)
     click.echo(summary_table(maps))
     click.echo(f"wrote {len(maps)} lane graph{'s' if len(maps) > 1 else ''} and picture{'s' if len(maps) > 1 else ''} "
                f"to {out}" + ("" if no_log or rrd is None else f"; recording {rrd}"))
+    if serve:
+        import time
+
+        click.echo("serving until Ctrl-C", err=True)
+        while True:
+            time.sleep(3600)

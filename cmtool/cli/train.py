@@ -28,7 +28,9 @@ from cmtool.train import PRECISIONS
                    "(AVX512-BF16, AMX); fp32 elsewhere on CPU.")
 @click.option("--device", help="torch device [default: cuda when available, else cpu].")
 @click.option("--quiet", is_flag=True, help="No progress line.")
-def train_cmd(stage, recipe, out, resume, data_dir, steps, precision, device, quiet):
+@click.option("--serve", is_flag=True, help="Serve the training recording and Rerun's web viewer from this machine "
+                                            "(ports 9876 and 9090) while it trains: watch it from a browser elsewhere.")
+def train_cmd(stage, recipe, out, resume, data_dir, steps, precision, device, quiet, serve):
     """Train one stage: rvae (stage 1), dit (stage 2) or controlnet (stage 3); decoder trains a
     finished RVAE's decoder further on its frozen encoder's latents (DiTs trained on them stay valid).
     pipeline runs the whole chain of a pipeline recipe (recipes/tiny-cpu/pipeline.toml): data, RVAE,
@@ -40,8 +42,14 @@ def train_cmd(stage, recipe, out, resume, data_dir, steps, precision, device, qu
     from cmtool.recipe import load_recipe
 
     rec = load_recipe(recipe)
+    port = None
+    if serve and os.environ.get("RANK", "0") == "0":  # the main process of a torchrun launch records
+        from cmtool.viz.recording import GRPC_PORT, serve_web_viewer
+
+        click.echo(serve_web_viewer(), err=True)
+        port = GRPC_PORT
     if stage == "pipeline":
-        _train_pipeline(rec, out, resume, data_dir, steps, precision, device, quiet)
+        _train_pipeline(rec, out, resume, data_dir, steps, precision, device, quiet, port)
         return
     if rec.pipeline.rvae:
         raise CmtoolError(f"{recipe}: a pipeline recipe; run it with `cmtool train pipeline`")
@@ -60,11 +68,11 @@ def train_cmd(stage, recipe, out, resume, data_dir, steps, precision, device, qu
     from cmtool.train.loop import train
     from cmtool.train.stages import STAGES
 
-    final = train(STAGES[stage](rec, _device(device)), run_dir, resume=resume, progress=not quiet)
+    final = train(STAGES[stage](rec, _device(device)), run_dir, resume=resume, progress=not quiet, serve=port)
     click.echo(f"checkpoint: {final}")
 
 
-def _train_pipeline(rec, out, resume, data_dir, steps, precision, device, quiet):
+def _train_pipeline(rec, out, resume, data_dir, steps, precision, device, quiet, serve):
     from cmtool.train.pipeline import Pipeline, summary
 
     if not rec.pipeline.rvae:
@@ -80,7 +88,7 @@ def _train_pipeline(rec, out, resume, data_dir, steps, precision, device, quiet)
         raise CmtoolError(f"--data {data_dir}: not a dataset (no manifest.json); build one with `cmtool data build`")
     if precision is not None:
         rec.pipeline.precision = precision
-    report = Pipeline(rec, out, _device(device), progress=not quiet, data_dir=data_dir).run()
+    report = Pipeline(rec, out, _device(device), progress=not quiet, data_dir=data_dir, serve=serve).run()
     click.echo(summary(report))
     if (out / "eval" / "summary.md").is_file():
         click.echo(f"evaluation: {out / 'eval' / 'summary.md'}; weights: {out / 'weights'}")

@@ -36,9 +36,10 @@ from cmtool.sample.diffusion import SamplingError
 from cmtool.sample.generator import Generator
 from cmtool.sample.inputs import ControlInput
 from cmtool.viz.draw import graph_panel, legend, sd_panel, title_strip
-from cmtool.viz.recording import APP_IDS, log_lanes, log_sd
+from cmtool.viz.recording import APP_IDS, log_lanes, log_sd, served
 from cmtool.viz.trajectory import TrajectoryLogger, sampling_blueprint
 
+SERVING: list[rr.RecordingStream] = []  # recordings served with --serve, kept alive until the process ends
 AUTO = "auto"  # --city default: the source map's city when the checkpoint knows it, else none
 PANEL = 256
 VIEWER_PORT = 9876  # Rerun's default gRPC port
@@ -108,8 +109,8 @@ def run_sample(gen: Generator, jobs: list[Job], settings: SampleSettings, out: P
                viewer: str | None = None, command: str = "", progress: bool = True,
                grid: Path | None = None) -> list[SampledMap]:
     """Generate every job's map, write its files to ``out`` and (unless ``rrd`` and ``viewer`` are
-    None) record every step; ``viewer`` is "spawn" or a Rerun gRPC URL to stream to live; ``grid``
-    is a PNG that gets all maps' pictures stacked."""
+    None) record every step; ``viewer`` is "spawn", "serve" (the recording is served from this process until it
+    ends) or a Rerun gRPC URL to stream to live; ``grid`` is a PNG that gets all maps' pictures stacked."""
     written: list[Path] = []
     rec = None
     created = not out.exists()
@@ -127,7 +128,10 @@ def run_sample(gen: Generator, jobs: list[Job], settings: SampleSettings, out: P
             _write_png(grid, np.concatenate([stacked, legend(stacked.shape[1])], axis=0))
         if rec is not None:
             rec.flush()
-            rec.disconnect()
+            if viewer == "serve":  # the stream owns the server: keep it until the process ends
+                SERVING.append(rec)
+            else:
+                rec.disconnect()
             rec = None
             if rrd is not None:
                 rrd.parent.mkdir(parents=True, exist_ok=True)
@@ -202,8 +206,11 @@ def sampling_recording(rrd: Path | None, viewer: str | None, written: list[Path]
     return rec
 
 
-def _viewer_sink(rec: rr.RecordingStream, viewer: str) -> rr.GrpcSink:
-    """A sink to a live viewer: "spawn" starts one; otherwise a gRPC URL that must be reachable."""
+def _viewer_sink(rec: rr.RecordingStream, viewer: str) -> rr.GrpcSink | rr.GrpcServerSink:
+    """A sink to a live viewer: "serve" serves the recording from this process; "spawn" starts a viewer; otherwise
+    a gRPC URL that must be reachable."""
+    if viewer == "serve":
+        return served()
     spawn = viewer == "spawn"
     url = f"rerun+http://127.0.0.1:{VIEWER_PORT}/proxy" if spawn else viewer
     parts = urlsplit(url.removeprefix("rerun+"))

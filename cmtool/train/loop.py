@@ -30,7 +30,7 @@ from cmtool.progress import Progress
 from cmtool.recipe import Recipe, TrainRecipe
 from cmtool.train import dist as D
 from cmtool.train.data import StepBatches
-from cmtool.viz.recording import APP_IDS, training_blueprint
+from cmtool.viz.recording import APP_IDS, served, training_blueprint
 
 
 class Stage(ABC):
@@ -153,8 +153,9 @@ def _resume_point(run_dir: Path, resume: bool, kind: str, model_config: dict) ->
     return last, config
 
 
-def train(stage: Stage, run_dir: Path, resume: bool = False, progress: bool = True) -> Path:
-    """Train ``stage`` into ``run_dir``; returns the final checkpoint directory."""
+def train(stage: Stage, run_dir: Path, resume: bool = False, progress: bool = True, serve: int | None = None) -> Path:
+    """Train ``stage`` into ``run_dir``; returns the final checkpoint directory. ``serve``: a port to serve the
+    recording on (gRPC, for viewers elsewhere) while the stage trains."""
     t = stage.recipe.train
     info = D.setup(str(stage.device))
     stage.device = info.device
@@ -198,7 +199,8 @@ def train(stage: Stage, run_dir: Path, resume: bool = False, progress: bool = Tr
     if info.main:
         run_dir.mkdir(parents=True, exist_ok=True)
         rec = rr.RecordingStream(APP_IDS["train"])
-        rec.save(str(run_dir / ("train.rrd" if start == 0 else f"train_from_{start:08d}.rrd")))
+        sinks = [rr.FileSink(str(run_dir / ("train.rrd" if start == 0 else f"train_from_{start:08d}.rrd")))]
+        rec.set_sinks(*sinks, *([served(serve)] if serve else []))
         rec.send_blueprint(training_blueprint(stage.name or stage.kind, stage.preview_views()))
 
     def save(step: int, complete: bool = False, extra: dict | None = None) -> Path:
@@ -262,6 +264,8 @@ def train(stage: Stage, run_dir: Path, resume: bool = False, progress: bool = Tr
     final = save(t.steps, complete=True, extra=extra)
     if info.main:
         rec.flush()
+        if serve:
+            rec.disconnect()  # frees the port for the next stage
         print(f"{stage.name or stage.kind}: {t.steps} steps in {record['time_s']:.0f} s, last loss {record.get('last_loss', float('nan')):.4f} -> {final}",
               file=sys.stderr)
     D.cleanup()

@@ -74,8 +74,8 @@ class Pipeline:
     """Runs the stages of a pipeline recipe into ``out`` (see the module docstring)."""
 
     def __init__(self, recipe: Recipe, out: Path, device: torch.device, progress: bool = True,
-                 data_dir: Path | None = None):
-        self.recipe, self.out, self.device, self.progress = recipe, Path(out), device, progress
+                 data_dir: Path | None = None, serve: int | None = None):
+        self.recipe, self.out, self.device, self.progress, self.serve = recipe, Path(out), device, progress, serve
         self.files = stage_recipes(recipe)
         self.data_dir = data_dir  # a dataset built before: the data stage takes it instead of building
         self.rank = int(os.environ.get("RANK", "0"))
@@ -217,7 +217,7 @@ class Pipeline:
         rec = self._stage_recipe(name)
         run_dir = self.folder(name)
         final = train(TRAIN_STAGES[name](rec, self.device), run_dir, resume=bool(ckpt.run_checkpoints(run_dir)),
-                      progress=self.progress)
+                      progress=self.progress, serve=self.serve)
         config = ckpt.load_config(final)
         result = {"checkpoint": str(final), "steps": config["step"],
                   "train_seconds": round(config["training"]["time_s"], 1)}

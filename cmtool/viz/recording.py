@@ -7,10 +7,13 @@ at ``<prefix>control/sd`` is placed on the same 64 m square, so lanes draw over 
 
 from __future__ import annotations
 
+import socket
+
 import numpy as np
 import rerun as rr
 import rerun.blueprint as rrb
 
+from cmtool.errors import CmtoolError
 from cmtool.viz.draw import GREEN, RED, heading_colours, sd_panel
 
 # ego (x forward, y left) -> screen (u right, v down): u = -y, v = -x
@@ -19,6 +22,7 @@ _EGO_TO_SCREEN = [[0.0, -1.0, 0.0], [-1.0, 0.0, 0.0], [0.0, 0.0, 1.0]]
 # recording opened in a running viewer shows its own layout, not the first one's
 APP_IDS = {kind: f"cmtool_{kind}" for kind in ("data", "train", "sample", "eval", "ablate")}
 LANE_RADIUS_M, LIGHT_RADIUS_M = 0.2, 0.3  # thin enough to see the junction through
+GRPC_PORT, WEB_PORT = 9876, 9090  # where --serve serves a recording and Rerun's web viewer
 
 
 def open_recording(path, kind: str) -> rr.RecordingStream:
@@ -26,6 +30,30 @@ def open_recording(path, kind: str) -> rr.RecordingStream:
     rec = rr.RecordingStream(APP_IDS[kind])
     rec.save(str(path))
     return rec
+
+
+def served(port: int = GRPC_PORT) -> rr.GrpcServerSink:
+    """A sink that serves a recording over gRPC from this process, keeping it for viewers that connect late."""
+    _check_free(port)
+    return rr.GrpcServerSink(port=port)
+
+
+def serve_web_viewer(grpc_port: int = GRPC_PORT, web_port: int = WEB_PORT) -> str:
+    """Serve Rerun's web viewer from this process, pointed at the gRPC server on ``grpc_port``; returns what to
+    tell the user: the address to open, also through an SSH tunnel from a laptop."""
+    _check_free(web_port)
+    rr.serve_web_viewer(web_port=web_port, open_browser=False, connect_to=f"rerun+http://localhost:{grpc_port}/proxy")
+    host = socket.gethostname()
+    return (f"serving the recording: open http://{host}:{web_port}/?url=rerun%2Bhttp://{host}:{grpc_port}/proxy "
+            f"in a browser, or from a laptop: ssh -L {web_port}:localhost:{web_port} -L {grpc_port}:localhost:"
+            f"{grpc_port} {host}, then http://localhost:{web_port}/?url=rerun%2Bhttp://localhost:{grpc_port}/proxy "
+            f"(or a native viewer: rerun rerun+http://localhost:{grpc_port}/proxy)")
+
+
+def _check_free(port: int) -> None:
+    with socket.socket() as s:
+        if s.connect_ex(("127.0.0.1", port)) == 0:
+            raise CmtoolError(f"--serve: port {port} is in use (another cmtool --serve or a Rerun viewer?)")
 
 
 def log_ego_frame(rec: rr.RecordingStream, path: str) -> None:
