@@ -16,7 +16,8 @@ SD = REPO / "sample_data" / "sd_bos.png"
 
 @pytest.fixture(scope="module")
 def recordings(tmp_path_factory, tiny_data):
-    """One recording of each kind: data show, train (a few RVAE steps), sample and eval (the shipped weights)."""
+    """One recording of each kind: data show, train (a few RVAE steps), sample, eval and ablate cfg (the shipped
+    weights)."""
     import contextlib
     import io
 
@@ -38,8 +39,10 @@ def recordings(tmp_path_factory, tiny_data):
     run("sample", "--sd", SD, "--steps", 6, "--out", root / "sample", "--quiet")
     run("eval", "--data", tiny_data, "--n", 4, "--steps", 4, "--no-features", "--rrd-samples", 4, "--out",
         root / "eval", "--quiet")
+    run("ablate", "cfg", "--data", tiny_data, "--n", 2, "--w", "0,1", "--seeds", 1, "--steps", 2, "--no-features",
+        "--out", root / "ablate")
     return {"data": root / "data.rrd", "train": root / "rvae" / "train.rrd", "sample": root / "sample" / "sample.rrd",
-            "eval": root / "eval" / "eval.rrd"}
+            "eval": root / "eval" / "eval.rrd", "ablate": root / "ablate" / "ablate_cfg.rrd"}
 
 
 def test_each_kind_of_recording_has_its_own_application_id(recordings):
@@ -74,6 +77,9 @@ VIEWS = {
     "train": {f"plot {k}": (0.25 * k + 0.02, 0.25 * (k + 1) - 0.02, 0.06, 0.37) for k in range(4)}
     | {f"preview {k}": (0.25 * k + 0.02, 0.25 * (k + 1) - 0.02, 0.42, 0.56) for k in range(4)},
     "data": {"scene grid": (0.0, 0.8, 0.05, 0.95)},
+    "ablate": {f"scene {k} {part}": (0.5 * k + 0.02, 0.5 * (k + 1) - 0.02, y0, y1) for k in range(2)
+               for part, (y0, y1) in (("at w", (0.07, 0.29)), ("ground truth", (0.34, 0.56)))}
+    | {f"score plot {k}": (0.25 * k + 0.02, 0.25 * (k + 1) - 0.02, 0.61, 0.73) for k in range(2)},
 }
 
 

@@ -23,6 +23,7 @@ import math
 import cv2
 import numpy as np
 import rerun as rr
+import rerun.blueprint as rrb
 import torch
 
 from cmtool.data.jsonio import write_json, write_text_atomic
@@ -94,6 +95,7 @@ def cfg_sweep(gen: Generator, scenes, weights: list[float], seeds: int, steps: i
                                                                     "diversity_m"]))
     write_png(out / "ablate_cfg.png", _plot(rows))
     rec = open_recording(out / "ablate_cfg.rrd", "ablate")
+    rec.send_blueprint(_cfg_blueprint(min(PICTURE_SCENES, len(scenes))))
     for k, scene in enumerate(scenes[:PICTURE_SCENES]):
         log_sd(rec, f"sample_{k}/", scene.sd, static=True)
         log_lanes(rec, f"sample_{k}/truth/", truth[k].lanes, static=True)
@@ -108,6 +110,27 @@ def cfg_sweep(gen: Generator, scenes, weights: list[float], seeds: int, steps: i
     rec.flush()
     rec.disconnect()
     return rows
+
+
+CFG_SCORES = {"sd_coverage": "SD road within 3 m of a lane", "lane_on_sd": "lane length within 5 m of SD",
+              "gt_recall": "GT Recall", "diversity_m": "diversity: Chamfer between seeds, m"}
+
+
+def _cfg_blueprint(scenes: int) -> rrb.Blueprint:
+    """The guidance sweep on the ``cfg`` timeline (thousandths of w): each scene's map at that w above its
+    ground truth, over the SD control, and each score against w."""
+    bounds = rrb.VisualBounds2D(x_range=[-32.0, 32.0], y_range=[-32.0, 32.0])
+
+    def view(k: int, part: str, title: str) -> rrb.Spatial2DView:
+        return rrb.Spatial2DView(origin=f"/sample_{k}", name=f"scene {k}: {title}", visual_bounds=bounds,
+                                 contents=[f"/sample_{k}/control/sd", f"/sample_{k}/{part}/**"])
+
+    maps = rrb.Grid(*[view(k, "generated", "at this w") for k in range(scenes)],
+                    *[view(k, "truth", "ground truth") for k in range(scenes)], grid_columns=max(scenes, 1))
+    plots = rrb.Horizontal(*[rrb.TimeSeriesView(origin=f"/metrics/{key}", name=title)
+                             for key, title in CFG_SCORES.items()])
+    return rrb.Blueprint(rrb.Vertical(maps, plots, row_shares=[3, 1]), rrb.BlueprintPanel(expanded=False),
+                         rrb.SelectionPanel(expanded=False), rrb.TimePanel(expanded=True, timeline="cfg"))
 
 
 def city_swap(gen: Generator, scenes, labels: list[str], steps: int, cfg: float, seed: int, out,
