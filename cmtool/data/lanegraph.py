@@ -155,6 +155,24 @@ def write_jsonl(path: str | os.PathLike, graphs) -> None:
     write_text_atomic(path, "".join(json.dumps(g.to_json(), separators=(",", ":")) + "\n" for g in graphs))
 
 
+LIGHT_REACH_M = 3.0  # a light line controls the lane starting this close to its start
+
+
+def controlled_lanes(graph) -> list[tuple[str, np.ndarray, int]]:
+    """(state, light line, index of the lane it controls) for each green and red light line that starts
+    within ``LIGHT_REACH_M`` of a lane's start (the lane starting nearest); the others control nothing."""
+    starts = np.array([np.asarray(l, np.float64)[0] for l in graph.lanes]).reshape(-1, 2)
+    out = []
+    for state, lights in (("green", graph.green_lights), ("red", graph.red_lights)):
+        for line in lights if len(starts) else []:
+            line = np.asarray(line, np.float64)
+            distance = np.linalg.norm(starts - line[0], axis=1)
+            k = int(np.argmin(distance))
+            if distance[k] <= LIGHT_REACH_M:
+                out.append((state, line, k))
+    return out
+
+
 def infer_successors(lanes, max_gap_m: float = 1.5, max_angle_deg: float = 60.0) -> list[tuple[int, int]]:
     """Successor edges by endpoint proximity: the end of lane i lies within
     ``max_gap_m`` of the start of lane j and their headings there differ by at most

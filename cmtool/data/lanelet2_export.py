@@ -8,9 +8,10 @@ Lanelet2 routing finds successors. Neighbours (the lane graph's ``left_neighbors
 found from the geometry when it has none) that start and end abreast share one bound way: dashed
 between lane-change neighbours, so Lanelet2 routes lane changes; solid as the centre line of
 oncoming lanes (their left bounds in right-hand traffic, their right bounds in left-hand traffic).
-Each traffic-light line becomes a ``regulatory_element`` (``subtype=traffic_light``) with a light
-way and a stop line across the lane it starts on, referenced by that lanelet. The scene frame's origin is placed at
-``(lat0, lon0)`` with its forward axis pointing to the compass ``heading``.
+Each traffic-light line that controls a lane (:func:`~cmtool.data.lanegraph.controlled_lanes`)
+becomes a ``regulatory_element`` (``subtype=traffic_light``) with a light way and a stop line across
+that lane's start, referenced by its lanelet. The scene frame's origin is placed at ``(lat0, lon0)``
+with its forward axis pointing to the compass ``heading``.
 """
 
 from __future__ import annotations
@@ -22,11 +23,17 @@ import numpy as np
 
 from cmtool.data.geo import scene_to_latlon
 from cmtool.data.jsonio import write_text_atomic
-from cmtool.data.neighbours import LANE_WIDTH_M, abreast, graph_neighbours, lane_widths, side_of
+from cmtool.data.lanegraph import controlled_lanes
+from cmtool.data.neighbours import (
+    LANE_WIDTH_M,
+    abreast,
+    graph_neighbours,
+    lane_widths,
+    side_of,
+)
 from cmtool.geometry import offset, resample, unit
 from cmtool.unionfind import UnionFind
 
-LIGHT_REACH_M = 3.0  # a light line controls the lane starting this close to its start
 LEFT, RIGHT = 0, 1
 START, END = 0, 1
 
@@ -98,20 +105,14 @@ def to_lanelet2(graph, lat0: float, lon0: float, heading: float = 0.0, lane_widt
         relations.append(([("way", way_of[(i, LEFT)], "left"), ("way", way_of[(i, RIGHT)], "right")],
                           {"type": "lanelet", "subtype": "road", "location": "urban", "one_way": "yes",
                            "cmtool:lane": str(i)}))
-    starts = np.array([l[0] for l in lanes]).reshape(-1, 2)
-    for state, lights in (("green", graph.green_lights), ("red", graph.red_lights)):
-        for line in lights if len(starts) else []:
-            line = np.asarray(line, np.float64)
-            k = int(np.argmin(np.linalg.norm(starts - line[0], axis=1)))
-            if np.linalg.norm(starts[k] - line[0]) > LIGHT_REACH_M:
-                continue
-            across = np.array([-1.0, 1.0]) * unit(lanes[k][1] - lanes[k][0])[::-1]
-            stop = np.array([line[0] + across * widths[k] / 2.0, line[0] - across * widths[k] / 2.0])
-            stop_way = ways.way(stop, type="stop_line")
-            light_way = ways.way(line[:2], type="traffic_light", subtype="red_yellow_green")
-            relations.append(([("way", light_way, "refers"), ("way", stop_way, "ref_line")],
-                              {"type": "regulatory_element", "subtype": "traffic_light", "cmtool:state": state}))
-            relations[k][0].append(("relation", len(relations), "regulatory_element"))
+    for state, line, k in controlled_lanes(graph):
+        across = np.array([-1.0, 1.0]) * unit(lanes[k][1] - lanes[k][0])[::-1]
+        stop = np.array([line[0] + across * widths[k] / 2.0, line[0] - across * widths[k] / 2.0])
+        stop_way = ways.way(stop, type="stop_line")
+        light_way = ways.way(line[:2], type="traffic_light", subtype="red_yellow_green")
+        relations.append(([("way", light_way, "refers"), ("way", stop_way, "ref_line")],
+                          {"type": "regulatory_element", "subtype": "traffic_light", "cmtool:state": state}))
+        relations[k][0].append(("relation", len(relations), "regulatory_element"))
     return _xml(ways, relations, lat0, lon0, heading)
 
 

@@ -23,7 +23,7 @@ each road its links cannot name. Connecting roads at one joint or linked to each
 link to it. Where no colouring exists (an odd cycle of forks and merges), the downstream road of a normal-normal link
 becomes connecting too, and connecting roads may then link to each other within their junction.
 
-Each traffic-light line starting within ``LIGHT_REACH_M`` of a lane's start becomes a dynamic ``signal`` (type
+Each traffic-light line that controls a lane (:func:`~cmtool.data.lanegraph.controlled_lanes`) becomes a dynamic ``signal`` (type
 1000001, the German traffic light code used by esmini and CARLA) at the centre of that lane's start, valid for it,
 facing its traffic and named by its state.
 """
@@ -39,8 +39,15 @@ from dataclasses import dataclass, field
 import numpy as np
 
 from cmtool.data.jsonio import write_text_atomic
-from cmtool.data.lanelet2_export import LIGHT_REACH_M
-from cmtool.data.neighbours import LANE_WIDTH_M, abreast, graph_neighbours, lane_widths, same_direction, side_of
+from cmtool.data.lanegraph import controlled_lanes
+from cmtool.data.neighbours import (
+    LANE_WIDTH_M,
+    abreast,
+    graph_neighbours,
+    lane_widths,
+    same_direction,
+    side_of,
+)
 from cmtool.errors import CmtoolError
 from cmtool.geometry import offset, resample
 from cmtool.unionfind import UnionFind
@@ -90,7 +97,7 @@ def to_opendrive(graph, lat0: float, lon0: float, heading: float = 0.0, lane_wid
         side |= {k: (r, lane_id) for k, lane_id in road.ids().items()}
     links = [_ends(roads, side, i, j) for i, j in dict.fromkeys((int(i), int(j)) for i, j in graph.successors)]
     lane_links, junctions = _link(roads, side, links)
-    _place_lights(graph, lanes, roads, side, widths)
+    _place_lights(graph, roads, side, widths)
     return _xml(roads, junctions, lane_links, widths, lat0, lon0)
 
 
@@ -278,19 +285,14 @@ def _junction_ids(conn: set[int], joints, first: int) -> dict[int, int]:
     return {r: first + n for n, group in enumerate(sorted(groups.groups(), key=min)) for r in group}
 
 
-def _place_lights(graph, lanes, roads, side, widths) -> None:
-    """Add a signal to the road of each lane a traffic-light line starts at, at the start of that lane."""
-    starts = np.array([lane[0] for lane in lanes])
-    for state, lights in (("green", graph.green_lights), ("red", graph.red_lights)):
-        for line in lights:
-            first = np.asarray(line, np.float64)[0]
-            k = int(np.argmin(np.linalg.norm(starts - first, axis=1)))
-            if np.linalg.norm(starts[k] - first) <= LIGHT_REACH_M:
-                road, lane_id = roads[side[k][0]], side[k][1]
-                along = road.runs_along(lane_id)
-                s = 0.0 if along else _lengths(road.points)[1][-1]
-                t = _lane_offsets(road, widths)[lane_id]
-                road.signals.append((s, t, "+" if along else "-", lane_id, state))
+def _place_lights(graph, roads, side, widths) -> None:
+    """Add a signal to the road of each lane a traffic-light line controls, at the start of that lane."""
+    for state, _, k in controlled_lanes(graph):
+        road, lane_id = roads[side[k][0]], side[k][1]
+        along = road.runs_along(lane_id)
+        s = 0.0 if along else _lengths(road.points)[1][-1]
+        t = _lane_offsets(road, widths)[lane_id]
+        road.signals.append((s, t, "+" if along else "-", lane_id, state))
 
 
 def _lane_offsets(road: _Road, widths) -> dict[int, float]:
