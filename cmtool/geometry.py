@@ -96,7 +96,7 @@ CV_SHIFT = 4  # fraction bits of OpenCV's sub-pixel drawing coordinates
 
 def ego_to_pixel(points, px_m: float, frame_m: float = 64.0) -> np.ndarray:
     """Ego-frame metres (..., 2) -> OpenCV fixed-point pixel coordinates (..., 2) int32, as
-    (column, row) with ``CV_SHIFT`` fraction bits. The raster convention (README: "Frames and rasters"): row 0 is
+    (column, row) with ``CV_SHIFT`` fraction bits. The raster convention (docs/data.md: "Frames and rasters"): row 0 is
     the front edge (x = +frame/2), column 0 the left edge (y = +frame/2)."""
     half = frame_m / 2.0
     p = np.asarray(points, dtype=np.float64)

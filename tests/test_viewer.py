@@ -126,3 +126,41 @@ def test_serve_serves_the_recording_and_the_web_viewer(tmp_path):
     finally:
         proc.terminate()
         proc.wait(timeout=30)
+
+
+# views that identify each kind's layout (a subset of its view names; data's scene views are titled "#k CITY ...")
+LAYOUT_VIEWS = {
+    "data": {"#"},
+    "train": {"rvae: loss", "rvae: learning rate", "rvae: gradient norm"},
+    "sample": {"SD control", "x0 lanes over diffusion steps", "latent x_t, one channel", "noise prediction norms"},
+    "eval": {"SD input", "unguided DiT", "ControlMap", "ground truth", "scores of this scene"},
+    "ablate": {"scene 0: at this w", "scene 1: at this w"},
+}
+
+
+@pytest.mark.skipif(missing() is not None, reason=f"no headless viewer here: {missing()}")
+def test_recordings_opened_one_after_another_keep_their_own_layouts(recordings, tmp_path, monkeypatch):
+    """In one running viewer, each recording opened after another shows its own views (none of the others', none
+    empty or failing), and going back to the first shows its layout again."""
+    import socket
+
+    from rerun.experimental import ViewerClient
+
+    for var in ("XDG_DATA_HOME", "XDG_CONFIG_HOME", "XDG_CACHE_HOME"):  # no layout remembered from earlier runs
+        monkeypatch.setenv(var, str(tmp_path))
+    with socket.socket() as s:
+        s.bind(("127.0.0.1", 0))
+        port = s.getsockname()[1]
+    viewer = ViewerClient.spawn(headless=True, port=port, hide_welcome_screen=True)
+    try:
+        for kind in ["data", "sample", "eval", "train", "ablate", "data"]:
+            viewer.open(str(recordings[kind]))
+            state = viewer.get_state()
+            names = {"#" if view.name.startswith("#") else view.name for view in state.views}
+            assert LAYOUT_VIEWS[kind] <= names, f"{kind}: views {sorted(names)}"
+            others = set().union(*(v for k, v in LAYOUT_VIEWS.items() if k != kind))
+            assert not names & others, f"{kind} shows views of another recording: {sorted(names & others)}"
+            problems = [(view.name, r.summary) for view in state.views for r in view.reports]
+            assert not problems, f"{kind}: {problems}"
+    finally:
+        viewer.quit()

@@ -143,8 +143,8 @@ def ablate_dit(ckpts, data_dir, split, n, steps, sampler, seed, smooth, out, dev
               help="RVAE checkpoint or run folder [default: the decoder shipped with cmtool].")
 @click.option("--encoder", "encoder_path", type=click.Path(path_type=Path),
               help="RVAE run whose encoder makes the latents [default: the RVAE's own]; needed for a decoder "
-                   "without one, such as the shipped decoder (its encoder does not ship; README: \"Training the "
-                   "shipped models further\" recreates it).")
+                   "without one, such as the shipped decoder (its encoder does not ship; docs/retraining-shipped.md "
+                   "recreates it).")
 @click.option("--data", "data_dir", required=True, type=click.Path(file_okay=False, path_type=Path),
               help="Dataset cache.")
 @click.option("--split", "splits", multiple=True, help="Split to measure (repeatable) [default: every split].")

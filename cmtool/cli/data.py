@@ -112,7 +112,7 @@ def sd(hd_map, out, origin, offset, rotation, drop_minor, seed):
               help="Heading of the frame's forward axis, degrees (90 = north up).")
 @click.option("--png", required=True, type=click.Path(dir_okay=False, path_type=Path), help="SD raster PNG to write.")
 def raster(sd_map, x, y, yaw, png):
-    """Rasterise a 64 m window of an SD map into the 128 x 128 RGB control image (README: SD raster)."""
+    """Rasterise a 64 m window of an SD map into the 128 x 128 RGB control image (docs/data.md: "Frames and rasters")."""
     import cv2
     import numpy as np
 

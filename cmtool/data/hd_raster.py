@@ -1,4 +1,4 @@
-"""The HD raster (RVAE input, README: "Frames and rasters"): scene vectors drawn as direction-coded lines.
+"""The HD raster (RVAE input, docs/data.md: "Frames and rasters"): scene vectors drawn as direction-coded lines.
 
 Six channels, in pairs: lanes, green-light lines, red-light lines. Every pixel a line covers
 carries its local heading h (ego frame) as ``0.5 * (cos h, sin h) + 0.5``; the background is 0.

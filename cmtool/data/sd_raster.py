@@ -1,6 +1,6 @@
 """SD raster: the ControlMap control image, 128 x 128 x 3 uint8 RGB over the 64 m ego frame.
 
-Frame and orientation (README: "Frames and rasters"): x forward, y left; row 0 is the front edge (x = +32), column 0
+Frame and orientation (docs/data.md: "Frames and rasters"): x forward, y left; row 0 is the front edge (x = +32), column 0
 the left edge (y = +32); pixel (i, j) is centred at x = 32 - (i + 0.5) * px, y = 32 - (j + 0.5) * px
 with px = frame_m / size (0.5 m). Roads are drawn as polylines 4 px wide, without anti-aliasing, so
 every value is exact. Channels:

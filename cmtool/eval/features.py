@@ -49,7 +49,7 @@ def lanes_image(lanes, frame_m: float = 64.0, size: int = IMAGE_PX) -> np.ndarra
 
 
 def sd_image(sd: np.ndarray) -> np.ndarray:
-    """An SD raster (README: "Frames and rasters") as a feature raster in the same style as :func:`lanes_image`."""
+    """An SD raster (docs/data.md: "Frames and rasters") as a feature raster in the same style as :func:`lanes_image`."""
     dec = decode_sd(sd)
     img = np.zeros(sd.shape[:2] + (3,), np.uint8)
     road = dec["road"]

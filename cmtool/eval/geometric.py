@@ -1,6 +1,6 @@
 """Geometric metrics of a generated lane set against its ground truth and its SD control (ours,
 beyond the paper). Lanes are ego-frame polylines in metres; SD rasters follow the raster convention
-(README: "Frames and rasters").
+(docs/data.md: "Frames and rasters").
 
 - :func:`chamfer`: symmetric mean distance between the lane sets (metres);
 - :func:`sd_adherence`: share of SD road within 3 m of a generated lane, and share of generated lane

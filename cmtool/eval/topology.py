@@ -1,4 +1,4 @@
-"""SLEDGE's urban-planning statistics of lane graphs and their Fréchet distances (README: "Evaluation").
+"""SLEDGE's urban-planning statistics of lane graphs and their Fréchet distances (docs/evaluation.md).
 
 Per scene, the *keypoint graph*: every lane is a directed edge from its start keypoint to its end
 keypoint, and for every successor edge (a, b) the end of a and the start of b are one keypoint

@@ -1,7 +1,7 @@
 """The raster-to-vector autoencoder (RVAE, stage 1), after SLEDGE.
 
 The encoder is a torchvision ResNet trunk (random init, GroupNorm instead of BatchNorm) that maps the
-HD raster (README: "Frames and rasters") to a Gaussian posterior over a ``latent_channels x latent_size x latent_size``
+HD raster (docs/data.md: "Frames and rasters") to a Gaussian posterior over a ``latent_channels x latent_size x latent_size``
 latent. The decoder is DETR-style: one learned query per output slot (lines, green-light lines,
 red-light lines) attends to the latent tokens through a pre-norm transformer decoder; per element type
 an MLP head regresses the polyline points (ego-frame metres, tanh-bounded to the frame) and a linear

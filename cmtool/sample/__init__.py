@@ -4,10 +4,10 @@ guidance."""
 SAMPLERS = ("ddpm", "ddim", "dpm++2m", "dpm++2m-sde")
 # DDPM by default: with the small shipped models, deterministic DDIM turns about one map in nine
 # into a zig-zag tangle, and the fresh noise of every ancestral step keeps the trajectory near the
-# data (README: Shipped weights).
+# data (docs/shipped-weights.md).
 DEFAULT_SAMPLER = "ddpm"
 # Decoded polylines are replaced by their least-squares Bézier curves with this many control points
 # (0: the decoder's raw points). 99% of the CPU dataset's ground-truth lanes lie within 5 cm of their
 # fit, the shipped model's lanes half a metre from it at the median: the fit removes the decoder's
-# point jitter, not the lanes' shape (README: Generating maps).
+# point jitter, not the lanes' shape (docs/sampling.md).
 DEFAULT_SMOOTH = 6

@@ -1,6 +1,6 @@
 """Pictures of scenes for people: lane panels coloured by direction, SD raster panels, tile grids.
 
-All panels follow the raster convention (README: "Frames and rasters"): forward is up, left is left. Lane colour
+All panels follow the raster convention (docs/data.md: "Frames and rasters"): forward is up, left is left. Lane colour
 is the lane's local heading in the ego frame as a hue (forward red, left green-yellow, backward
 cyan, right violet; see :func:`heading_colours`), so opposite directions of one road stand apart.
 Images are RGB uint8.

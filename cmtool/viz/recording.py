@@ -1,4 +1,4 @@
-"""Rerun recordings of scenes (entity layout: README "Generating maps"), shared by ``data show`` and sampling.
+"""Rerun recordings of scenes (entity layout: docs/sampling.md), shared by ``data show`` and sampling.
 
 Scene data is logged in ego-frame metres (x forward, y left) under ``<prefix>hd/...``; a transform
 on ``<prefix>hd`` maps it to the 2D view's screen axes (forward up, left left), and the SD raster
