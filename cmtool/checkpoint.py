@@ -21,6 +21,7 @@ from __future__ import annotations
 import dataclasses
 import hashlib
 import json
+import math
 import os
 import shutil
 from pathlib import Path
@@ -141,10 +142,15 @@ def run_checkpoints(run_dir: Path) -> list[Path]:
 
 
 def prune(run_dir: Path, keep: int) -> None:
-    """Delete all but the newest ``keep`` checkpoints and any leftover temporary directories."""
-    for p in run_checkpoints(run_dir)[:-keep]:
-        shutil.rmtree(p)
+    """Delete all but the newest ``keep`` checkpoints, and what an interrupted save or prune left behind. A folder
+    is renamed to a temporary name before it is deleted, so a kill midway leaves a temporary folder (removed by
+    the next prune), never a half-deleted ``step_*`` folder that looks like a checkpoint."""
     root = Path(run_dir) / "checkpoints"
+    complete = run_checkpoints(run_dir)
+    for p in complete[:-keep] + [p for p in root.glob("step_*") if p not in complete]:
+        trash = p.with_name(f".{p.name}.old-{os.getpid()}")
+        os.rename(p, trash)
+        shutil.rmtree(trash)
     for p in root.glob(".step_*.*-*"):
         shutil.rmtree(p, ignore_errors=True)
 
@@ -207,7 +213,36 @@ def load_config(path) -> dict:
         raise CmtoolError(f"{path}: not a cmtool checkpoint config")
     if config.get("kind") not in KINDS:
         raise CmtoolError(f"{path}: unknown checkpoint kind {config.get('kind')!r} (known: {', '.join(KINDS)})")
+    for key, (ok, what) in _FIELDS.items():
+        if key in config and not ok(config[key]):
+            raise CmtoolError(f"{path}: {key}: expected {what}, got {json.dumps(config[key])[:40]}")
+    for key in ("model", "control") if config["kind"] == "controlmap" else ("model",):
+        if key not in config:
+            raise CmtoolError(f"{path}: {key}: missing")
+    with torch.device("meta"):  # types and ranges of the model config, and its size, before anything is allocated
+        params = sum(p.numel() for p in build_model(config, str(path)).parameters())
+    if params > MAX_PARAMS:
+        raise CmtoolError(f"{path}: model: {params / 1e9:.1f} billion parameters, more than cmtool loads "
+                          f"({MAX_PARAMS / 1e9:.0f} billion)")
     return config
+
+
+def _number(v, low: float = 0.0) -> bool:
+    return isinstance(v, (int, float)) and not isinstance(v, bool) and math.isfinite(v) and v > low
+
+
+MAX_PARAMS = 3_000_000_000  # 12 GB in float32: ControlMap on DiT-XL is under a third of it
+_FIELDS = {  # top-level config fields the commands read: (valid?, what they must be)
+    "cities": (lambda v: isinstance(v, list) and all(isinstance(c, str) for c in v), "a list of city labels"),
+    "latent_scale": (lambda v: v is None or _number(v), "a finite number > 0"),
+    "rvae": (lambda v: v is None or isinstance(v, str), "a path"),
+    "dit": (lambda v: v is None or isinstance(v, str), "a path"),
+    "model": (lambda v: isinstance(v, dict), "an object"),
+    "control": (lambda v: isinstance(v, dict), "an object"),
+    "schedule": (lambda v: isinstance(v, dict), "an object"),
+    "step": (lambda v: isinstance(v, int) and not isinstance(v, bool) and v >= 0, "a step count"),
+    "steps": (lambda v: isinstance(v, int) and not isinstance(v, bool) and v >= 0, "a step count"),
+}
 
 
 def load_tensors(path: Path) -> dict[str, torch.Tensor]:

@@ -6,14 +6,21 @@ import math
 
 import numpy as np
 
+MAX_COORD_M = 1e8  # map coordinates are metres: a projected map of the whole Earth stays within 2e7
+
 
 def as_polyline(points, min_points: int = 2) -> np.ndarray:
-    """Return ``points`` as a float64 (N, 2) array, checking shape and finiteness."""
-    arr = np.asarray(points, dtype=np.float64)
+    """Return ``points`` as a float64 (N, 2) array, checking shape, finiteness and range (``MAX_COORD_M``)."""
+    try:
+        arr = np.asarray(points, dtype=np.float64)
+    except OverflowError:
+        raise ValueError("a coordinate is too large a number") from None
     if arr.ndim != 2 or arr.shape[1] != 2 or arr.shape[0] < min_points:
         raise ValueError(f"expected at least {min_points} points of [x, y], got shape {arr.shape}")
     if not np.all(np.isfinite(arr)):
         raise ValueError("polyline has NaN or infinite coordinates")
+    if arr.size and np.abs(arr).max() > MAX_COORD_M:
+        raise ValueError(f"a coordinate lies beyond {MAX_COORD_M:.0e} m (metres are expected)")
     return arr
 
 

@@ -257,6 +257,8 @@ def load_recipe(path) -> Recipe:
         raise CmtoolError(f"{path}: malformed TOML: {e}") from None
     except UnicodeDecodeError:
         raise CmtoolError(f"{path}: not a UTF-8 text file") from None
+    if not table:
+        raise CmtoolError(f"{path}: an empty recipe; name at least what to build or train (see recipes/)")
     recipe = from_table(Recipe, table, f"{path}: ")
     recipe.path = path
     recipe.data.check(str(path))

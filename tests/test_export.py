@@ -128,7 +128,7 @@ def test_export_takes_the_origin_from_meta_geo_and_refuses_bad_inputs(tmp_path, 
         assert code == 1 and "latitude must be within" in err
     code, _, err = in_process(capsys, "export", "--format", "lanelet2", tmp_path / "s.jsonl", "--heading", "nan",
                               "--out", tmp_path / "x.osm")
-    assert code == 1 and "expected a finite number" in err
+    assert code == 2 and "not a finite number" in err
     (tmp_path / "one.jsonl").write_text('{"version": 1, "lanes": [[[0, 0]]]}\n')
     code, _, err = in_process(capsys, "export", "--format", "opendrive", tmp_path / "one.jsonl", "--origin", "49,8",
                               "--out", tmp_path / "x.osm")

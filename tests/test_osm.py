@@ -96,10 +96,16 @@ def test_bad_pbf_and_wrong_suffix(tmp_path):
         read_osm(other)
 
 
-def test_empty_file_gives_empty_map(tmp_path):
+def test_file_without_roads_is_refused(tmp_path):
     path = tmp_path / "empty.osm"
     path.write_text("<osm version='0.6'><node id='1' lat='1' lon='2'/></osm>")
-    assert read_osm(path).roads == []
+    with pytest.raises(CmtoolError, match="no drivable roads"):
+        read_osm(path)
+    lanelet2 = tmp_path / "lanelets.osm"
+    lanelet2.write_text("<osm version='0.6'><node id='1' lat='1' lon='2'/><node id='2' lat='1' lon='2.001'/>"
+                        "<way id='3'><nd ref='1'/><nd ref='2'/><tag k='type' v='line_thin'/></way></osm>")
+    with pytest.raises(CmtoolError, match="Lanelet2 map"):
+        read_osm(lanelet2)
 
 
 def test_tag_parsing():

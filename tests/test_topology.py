@@ -74,3 +74,30 @@ def test_identical_sets_score_zero_and_scaling():
     fd = topology_fd(graphs, other)
     assert fd["connectivity"] == pytest.approx(10 * frechet_1d(a["connectivity"], b["connectivity"]))
     assert fd["density"] == pytest.approx(frechet_1d(a["density"], b["density"]))
+
+
+def test_component_search_equals_the_all_pairs_matrix(monkeypatch):
+    """Statistics searched per weakly connected component, in chunks of sources, against the slow path (one dense
+    all-pairs hop matrix), on 300 random scenes: forks, merges, cycles, self-loops and isolated lanes."""
+    from scipy.sparse import csr_matrix
+    from scipy.sparse.csgraph import shortest_path
+
+    from cmtool.eval import topology
+
+    def dense(graph):
+        n, e = graph.n, graph.edges
+        hops = shortest_path(csr_matrix((np.ones(len(e)), (e[:, 0], e[:, 1])), shape=(n, n)), directed=True,
+                             unweighted=True)
+        np.fill_diagonal(hops, np.inf)
+        return np.isfinite(hops).sum(axis=1), np.sort(hops[np.isfinite(hops)])
+
+    rng = np.random.default_rng(5)
+    for scene in range(300):
+        lanes = int(rng.integers(1, 60))
+        successors = [tuple(p) for p in rng.integers(0, lanes, (int(rng.integers(0, 2 * lanes)), 2))]
+        graph = topology.keypoint_graph(lanes, successors)
+        monkeypatch.setattr(topology, "CHUNK", int(rng.integers(1, 8)) if scene % 2 else 2048)  # batches used
+        stats = topology.scene_statistics(graph)
+        reach, convenience = dense(graph)
+        np.testing.assert_array_equal(stats["reach"], reach)
+        np.testing.assert_array_equal(np.sort(stats["convenience"]), convenience)

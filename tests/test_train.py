@@ -426,6 +426,29 @@ def test_checkpoint_writes_are_atomic_and_validated(tmp_path):
         ckpt.load_tensors(target / ckpt.WEIGHTS)
 
 
+def test_a_prune_killed_midway_leaves_no_half_deleted_checkpoint(tmp_path):
+    """kill -9 while old checkpoints are deleted: what is left is a temporary folder that the next prune removes,
+    never a step_* folder missing files."""
+    for step in (1, 2, 3):
+        ckpt.save_checkpoint(ckpt.step_dir(tmp_path, step), {"kind": "dit"}, {"w": torch.full((2,), float(step))},
+                             state={"s": torch.ones(1)})
+    killed = subprocess.run([sys.executable, "-c", (
+        "import os, shutil, signal, sys\n"
+        "import cmtool.checkpoint as c\n"
+        "def rmtree(path, *a, **k):\n"
+        "    os.remove(os.path.join(path, c.CONFIG))  # part of the folder is gone, then the process dies\n"
+        "    os.kill(os.getpid(), signal.SIGKILL)\n"
+        "shutil.rmtree = rmtree\n"
+        "c.prune(sys.argv[1], 1)\n"), str(tmp_path)], cwd=REPO)
+    assert killed.returncode == -9
+    folders = sorted(p.name for p in (tmp_path / "checkpoints").iterdir())
+    assert [f for f in folders if f.startswith("step_")] == ["step_00000002", "step_00000003"]  # 1 was renamed away
+    assert ckpt.resolve(tmp_path) == ckpt.step_dir(tmp_path, 3)
+    (ckpt.step_dir(tmp_path, 2) / ckpt.CONFIG).unlink()  # a folder half deleted by an older cmtool
+    ckpt.prune(tmp_path, 1)
+    assert sorted(p.name for p in (tmp_path / "checkpoints").iterdir()) == ["step_00000003"]
+
+
 def test_sd_shift_moves_each_raster_sideways_by_at_most_max_px():
     from cmtool.train.data import shift_sideways
 

@@ -164,3 +164,34 @@ def test_routability_equals_an_all_pairs_path_search():
     chain = [(i, i + 1) for i in range(9999)]  # 10,000 lanes in a row: half of all ordered pairs
     assert _routability(10000, chain) == (pytest.approx(0.5), 1)
     assert _routability(10000, chain + [(9999, 0)]) == (1.0, 10000)
+
+
+def test_duplicate_search_finds_what_comparing_every_pair_finds():
+    """The KD-tree search of repair's duplicate lanes against the slow path (every pair compared), on 300 lanes of
+    which many are shifted, stretched or reversed copies of others."""
+    from cmtool.eval.repair import DUPLICATE_M, duplicate_pairs
+    from cmtool.geometry import polyline_length, resample
+
+    rng = np.random.default_rng(3)
+    lines = []
+    for _ in range(100):
+        start, angle, length = rng.uniform(-30, 30, 2), rng.uniform(-np.pi, np.pi), rng.uniform(3, 40)
+        t = np.linspace(0, 1, 20)[:, None]
+        base = start + length * t * np.array([np.cos(angle), np.sin(angle)]) + rng.normal(0, 1) * t * (1 - t)
+        lines.append(base)
+        for _ in range(2):  # copies: shifted about 0.35 m, stretched by up to 10%, sometimes reversed
+            copy = base + rng.normal(0, 0.25, 2)
+            copy = copy[0] + (copy - copy[0]) * rng.uniform(0.9, 1.1)
+            lines.append(copy[::-1] if rng.random() < 0.2 else copy)
+
+    def slow(a, b):
+        la, lb = polyline_length(a), polyline_length(b)
+        if min(la, lb) <= 0 or abs(la - lb) > 0.2 * max(la, lb):
+            return False
+        return float(np.linalg.norm(resample(a, 20) - resample(b, 20), axis=1).mean()) < DUPLICATE_M
+
+    ids = list(range(7, 7 + len(lines)))
+    expected = [(ids[p], ids[q]) for p in range(len(lines)) for q in range(p + 1, len(lines))
+                if slow(lines[p], lines[q])]
+    assert 30 < len(expected) < 250  # the copies make some duplicates, not all
+    assert duplicate_pairs(lines, ids) == expected

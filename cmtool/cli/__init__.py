@@ -11,6 +11,7 @@ maps: validate and export, ablate, bench, release: info and pack); this module h
 
 from __future__ import annotations
 
+import errno
 import sys
 
 import click
@@ -50,3 +51,11 @@ def main(argv=None) -> None:
     except click.ClickException as e:
         click.echo(f"Error: {e.format_message()}", err=True)
         sys.exit(e.exit_code)
+    except OSError as e:  # a path the user gave that cannot be made, read or written (the command did not say which)
+        if e.filename is None and e.errno not in (errno.ENOSPC, errno.EFBIG, errno.EDQUOT):
+            raise
+        from cmtool.data.jsonio import os_reason
+
+        where = f"{e.filename}: " if e.filename is not None else "cannot write: "
+        click.echo(f"Error: {where}{os_reason(e)}", err=True)
+        sys.exit(1)

@@ -6,7 +6,14 @@ from pathlib import Path
 
 import click
 
-from cmtool.cli.common import CITY_CFG_HELP, SMOOTH_OPTION, _checkpoint, _device
+from cmtool.cli.common import (
+    CITY_CFG_HELP,
+    SEED,
+    SMOOTH_OPTION,
+    Finite,
+    _checkpoint,
+    _device,
+)
 from cmtool.errors import CmtoolError
 from cmtool.sample import DEFAULT_SAMPLER, SAMPLERS
 
@@ -86,9 +93,9 @@ def ablate_cfg(ckpt, data_dir, split, n, steps, sampler, smooth, out, device, qu
 @ablate.command("city-swap")
 @_ablate_options
 @click.option("--labels", default="SGP,LAV", show_default=True, help="City labels to compare (or none).")
-@click.option("--cfg", default=1.0, show_default=True, help="Guidance weight.")
-@click.option("--city-cfg", default=1.0, show_default=True, help=CITY_CFG_HELP)
-@click.option("--seed", default=0, show_default=True, help="Random seed (the same noise for every label).")
+@click.option("--cfg", default=1.0, show_default=True, type=Finite(min=0), help="Guidance weight.")
+@click.option("--city-cfg", default=1.0, show_default=True, type=Finite(min=0), help=CITY_CFG_HELP)
+@click.option("--seed", default=0, show_default=True, type=SEED, help="Random seed (the same noise for every label).")
 def ablate_city_swap(ckpt, data_dir, split, n, steps, sampler, smooth, out, device, quiet, labels, cfg, city_cfg, seed):
     """Swap the city label on the same SD maps: the driving side per label (SGP drives on the left).
 
@@ -114,7 +121,8 @@ def ablate_city_swap(ckpt, data_dir, split, n, steps, sampler, smooth, out, devi
 @click.option("--n", default=128, show_default=True, type=click.IntRange(min=2), help="Scenes (the first N).")
 @click.option("--steps", default=50, show_default=True, type=click.IntRange(min=1), help="Denoising steps.")
 @click.option("--sampler", default=DEFAULT_SAMPLER, show_default=True, type=click.Choice(SAMPLERS))
-@click.option("--seed", default=0, show_default=True, help="Random seed (the same noise for every checkpoint).")
+@click.option("--seed", default=0, show_default=True, type=SEED,
+              help="Random seed (the same noise for every checkpoint).")
 @SMOOTH_OPTION
 @click.option("--out", required=True, type=click.Path(file_okay=False, path_type=Path), help="Output folder.")
 @click.option("--device", help="torch device [default: cuda when available, else cpu].")
@@ -149,7 +157,7 @@ def ablate_dit(ckpts, data_dir, split, n, steps, sampler, seed, smooth, out, dev
               help="Dataset cache.")
 @click.option("--split", "splits", multiple=True, help="Split to measure (repeatable) [default: every split].")
 @click.option("--n", default=64, show_default=True, type=click.IntRange(min=1), help="Scenes per split and city.")
-@click.option("--tol", default=1.0, show_default=True, type=click.FloatRange(min=0, min_open=True),
+@click.option("--tol", default=1.0, show_default=True, type=Finite(min=0, min_open=True),
               help="Lane F1 tolerance (m).")
 @click.option("--out", required=True, type=click.Path(file_okay=False, path_type=Path), help="Output folder.")
 @click.option("--device", help="torch device [default: cuda when available, else cpu].")

@@ -6,7 +6,7 @@ from pathlib import Path
 
 import click
 
-from cmtool.cli.common import _checkpoint, _device
+from cmtool.cli.common import Finite, _checkpoint, _device
 from cmtool.sample import DEFAULT_SAMPLER, SAMPLERS
 
 
@@ -21,7 +21,7 @@ def bench():
 @click.option("--sd", "sd_path", type=click.Path(path_type=Path), help="SD input [default: a procedural crossing].")
 @click.option("--steps", default=50, show_default=True, type=click.IntRange(min=1), help="Denoising steps.")
 @click.option("--sampler", default=DEFAULT_SAMPLER, show_default=True, type=click.Choice(SAMPLERS))
-@click.option("--cfg", default=1.0, show_default=True, help="Guidance weight.")
+@click.option("--cfg", default=1.0, show_default=True, type=Finite(min=0), help="Guidance weight.")
 @click.option("--batch", default=64, show_default=True, type=click.IntRange(min=2), help="The large batch to compare.")
 @click.option("--repeats", default=3, show_default=True, type=click.IntRange(min=1), help="Timed runs per setting.")
 @click.option("--device", help="torch device [default: cuda when available, else cpu].")

@@ -2,12 +2,35 @@
 
 from __future__ import annotations
 
+import math
 from pathlib import Path
 
 import click
 
 from cmtool.errors import CmtoolError
 from cmtool.sample import DEFAULT_SMOOTH
+
+
+class Finite(click.FloatRange):
+    """A finite number (never nan or inf), optionally within a range: every numeric option's type."""
+
+    def __init__(self, min: float | None = None, max: float | None = None, **kwargs):
+        super().__init__(min, max, **kwargs)
+        if min is None and max is None:
+            self.name = "float"
+
+    def convert(self, value, param, ctx):
+        number = super().convert(value, param, ctx)
+        if not math.isfinite(number):
+            self.fail(f"{value!r} is not a finite number.", param, ctx)
+        return number
+
+    def _describe_range(self) -> str:
+        return "" if self.min is None and self.max is None else super()._describe_range()
+
+
+SEED_MAX = 2**32 - 1
+SEED = click.IntRange(0, SEED_MAX)  # the same rule for every command's seed: what numpy and torch both take
 
 CITY_CFG_HELP = ("Guidance weight on the city label (1: the label as trained; > 1 strengthens the city's style, "
                  "such as its driving side, at one more model pass per step).")
@@ -31,7 +54,10 @@ def _origin(value: str) -> tuple[float, float]:
 def _device(name: str | None):
     import torch
 
-    dev = torch.device(name) if name else torch.device("cuda" if torch.cuda.is_available() else "cpu")
+    try:
+        dev = torch.device(name) if name else torch.device("cuda" if torch.cuda.is_available() else "cpu")
+    except RuntimeError:
+        raise CmtoolError(f"--device {name}: not a torch device (cpu, cuda, cuda:1, ...)") from None
     if dev.type == "cuda" and not torch.cuda.is_available():
         raise CmtoolError(f"--device {name}: CUDA is not available on this machine")
     return dev

@@ -6,7 +6,7 @@ from pathlib import Path
 
 import click
 
-from cmtool.cli.common import _origin
+from cmtool.cli.common import SEED, Finite, _origin
 from cmtool.errors import CmtoolError
 
 CITY_CHOICES = ("LAV", "PIT", "SGP", "BOS")
@@ -20,8 +20,9 @@ def data():
 @data.command()
 @click.option("--city", required=True, callback=lambda ctx, param, v: _city(v),
               help="City style: LAV, PIT, SGP or BOS.")
-@click.option("--seed", default=0, show_default=True, help="Random seed.")
-@click.option("--extent", default=800.0, show_default=True, help="Side of the square city, metres.")
+@click.option("--seed", default=0, show_default=True, type=SEED, help="Random seed.")
+@click.option("--extent", default=800.0, show_default=True, type=Finite(min=100, max=20000),
+              help="Side of the square city, metres.")
 @click.option("--out", required=True, type=click.Path(dir_okay=False, path_type=Path), help="HD map JSON to write.")
 def synth(city, seed, extent, out):
     """Generate a procedural city HD map in the style of a nuPlan city."""
@@ -77,10 +78,13 @@ def import_(fmt, file, out, city):
 @click.option("--out", required=True, type=click.Path(dir_okay=False, path_type=Path),
               help="SD map to write: cmtool JSON, or OpenStreetMap XML when the name ends in .osm.")
 @click.option("--origin", help="With an .osm output: LAT,LON where the map's (0, 0) lies.")
-@click.option("--offset", default=0.0, show_default=True, help="Jitter: random shift of up to this many metres.")
-@click.option("--rotation", default=0.0, show_default=True, help="Jitter: random rotation of up to this many degrees.")
-@click.option("--drop-minor", default=0.0, show_default=True, help="Jitter: probability of dropping each minor road.")
-@click.option("--seed", default=0, show_default=True, help="Seed of the jitter.")
+@click.option("--offset", default=0.0, show_default=True, type=Finite(min=0, max=1000),
+              help="Jitter: random shift of up to this many metres.")
+@click.option("--rotation", default=0.0, show_default=True, type=Finite(min=0, max=180),
+              help="Jitter: random rotation of up to this many degrees.")
+@click.option("--drop-minor", default=0.0, show_default=True, type=Finite(min=0, max=1),
+              help="Jitter: probability of dropping each minor road.")
+@click.option("--seed", default=0, show_default=True, type=SEED, help="Seed of the jitter.")
 def sd(hd_map, out, origin, offset, rotation, drop_minor, seed):
     """Derive the SD map (one polyline per road, as OpenStreetMap shows it) of an HD map."""
     from cmtool.data.hdmap import HDMap
@@ -106,18 +110,18 @@ def sd(hd_map, out, origin, offset, rotation, drop_minor, seed):
 
 @data.command()
 @click.argument("sd_map", type=click.Path(path_type=Path))
-@click.option("--x", "x", type=float, default=None, help="Frame centre x, metres [default: map centre].")
-@click.option("--y", "y", type=float, default=None, help="Frame centre y, metres [default: map centre].")
-@click.option("--yaw", default=90.0, show_default=True,
+@click.option("--x", "x", type=Finite(), default=None, help="Frame centre x, metres [default: map centre].")
+@click.option("--y", "y", type=Finite(), default=None, help="Frame centre y, metres [default: map centre].")
+@click.option("--yaw", default=90.0, show_default=True, type=Finite(),
               help="Heading of the frame's forward axis, degrees (90 = north up).")
 @click.option("--png", required=True, type=click.Path(dir_okay=False, path_type=Path), help="SD raster PNG to write.")
 def raster(sd_map, x, y, yaw, png):
-    """Rasterise a 64 m window of an SD map into the 128 x 128 RGB control image (docs/data.md: "Frames and rasters")."""
-    import cv2
+    """Rasterise a 64 m window of an SD map into the 128 x 128 RGB control image (docs/data.md)."""
     import numpy as np
 
     from cmtool.data.sd_raster import rasterize_sd
     from cmtool.data.sdmap import SDMap
+    from cmtool.viz.show import write_png
 
     sd_obj = SDMap.load(sd_map)
     if not sd_obj.roads:
@@ -125,19 +129,17 @@ def raster(sd_map, x, y, yaw, png):
     pts = np.concatenate([r.polyline for r in sd_obj.roads])
     cx, cy = (pts.min(0) + pts.max(0)) / 2.0
     image = rasterize_sd(sd_obj, cx if x is None else x, cy if y is None else y, np.radians(yaw))
-    png.parent.mkdir(parents=True, exist_ok=True)
-    if not cv2.imwrite(str(png), cv2.cvtColor(image, cv2.COLOR_RGB2BGR)):
-        raise CmtoolError(f"{png}: could not write the picture (is the extension .png?)")
+    write_png(png, image)
     click.echo(f"{png}: SD raster, {int((image[..., 0] > 0).sum())} road pixels")
 
 
 @data.command()
 @click.argument("map_file", type=click.Path(path_type=Path))
 @click.option("--n", default=1, show_default=True, type=click.IntRange(min=1), help="Poses to print.")
-@click.option("--seed", default=0, show_default=True, help="Random seed.")
+@click.option("--seed", default=0, show_default=True, type=SEED, help="Random seed.")
 @click.option("--kind", help="Only these kinds of frame, comma-separated: junction, approach, exit, end, curve, "
               "straight [default: all, in the dataset's mix].")
-@click.option("--near-junction", type=click.FloatRange(min=0), help="Only poses within this many metres of a junction.")
+@click.option("--near-junction", type=Finite(min=0), help="Only poses within this many metres of a junction.")
 @click.option("--latlon", is_flag=True, help="Print {lat, lon, heading} (compass degrees) for `sample --osm --center`; "
               "needs a map with a geographic origin (an OpenStreetMap file or its import).")
 @click.option("--out", type=click.Path(dir_okay=False, path_type=Path), help="Write the lines to this .jsonl file.")
@@ -202,7 +204,7 @@ def poses(map_file, n, seed, kind, near_junction, latlon, out):
 @click.option("--maps", default=4, show_default=True, type=click.IntRange(min=1),
               help="With --recipe: maps per city, each with the recipe's scenes_per_map frames.")
 @click.option("--n", default=500, show_default=True, type=click.IntRange(min=1), help="Frames per map file.")
-@click.option("--seed", default=0, show_default=True, help="Seed of the frames.")
+@click.option("--seed", default=0, show_default=True, type=SEED, help="Seed of the frames.")
 @click.option("--png", type=click.Path(dir_okay=False, path_type=Path),
               help="Also write the SD rasters of some frames of each source, a row each.")
 @click.option("--json", "json_out", type=click.Path(dir_okay=False, path_type=Path), help="Write the numbers here.")
@@ -242,8 +244,10 @@ def frames(sources, recipe, maps, n, seed, png, json_out):
 
 @data.command()
 @click.argument("maps", nargs=-1, type=click.Path(path_type=Path))
-@click.option("--seeds", default=2, show_default=True, help="Without MAPS: procedural seeds per city style.")
-@click.option("--extent", default=800.0, show_default=True, help="Without MAPS: side of each procedural city, metres.")
+@click.option("--seeds", default=2, show_default=True, type=click.IntRange(1, 100),
+              help="Without MAPS: procedural seeds per city style.")
+@click.option("--extent", default=800.0, show_default=True, type=Finite(min=100, max=20000),
+              help="Without MAPS: side of each procedural city, metres.")
 def stats(maps, seeds, extent):
     """Per-city statistics of HD maps: lanes per road, block length, intersection degree, curvature,
     one-way share. Without MAPS, of procedural cities of all four styles."""
@@ -258,8 +262,6 @@ def stats(maps, seeds, extent):
     else:
         from cmtool.data.synth import generate_city
 
-        if seeds < 1:
-            raise CmtoolError("--seeds must be at least 1")
         rows = {c: [map_stats(generate_city(c, seed=s, extent=extent)) for s in range(seeds)] for c in CITY_CHOICES}
     click.echo(_stats_table(rows))
 
@@ -323,7 +325,7 @@ def _lost(scenes: int, pieces: int, total: int) -> str:
 @click.option("--png", type=click.Path(dir_okay=False, path_type=Path), help="Picture grid to write.")
 @click.option("--rrd", type=click.Path(dir_okay=False, path_type=Path), help="Rerun recording to write.")
 @click.option("--split", default=None, help="Split to show [default: all].")
-@click.option("--seed", default=0, show_default=True, help="Seed of the scene choice.")
+@click.option("--seed", default=0, show_default=True, type=SEED, help="Seed of the scene choice.")
 def show(data_dir, n, png, rrd, split, seed):
     """Show scenes of a dataset: HD lanes beside their SD raster, as a PNG grid and/or a Rerun recording."""
     from cmtool.viz.show import show_dataset

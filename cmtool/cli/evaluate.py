@@ -6,8 +6,7 @@ from pathlib import Path
 
 import click
 
-from cmtool.cli.common import SMOOTH_OPTION, _checkpoint, _device
-from cmtool.errors import CmtoolError
+from cmtool.cli.common import SEED, SMOOTH_OPTION, Finite, _checkpoint, _device
 from cmtool.sample import DEFAULT_SAMPLER, SAMPLERS
 
 
@@ -56,10 +55,10 @@ def metrics(generated, reference, control, json_out, backbone, weights, no_featu
 @click.option("--split", default="test", show_default=True, help="Split to evaluate on.")
 @click.option("--n", default=3904, show_default=True, type=click.IntRange(min=1),
               help="Scenes (the first N of the split).")
-@click.option("--cfg", default=1.0, show_default=True, help="ControlMap's guidance weight.")
+@click.option("--cfg", default=1.0, show_default=True, type=Finite(min=0), help="ControlMap's guidance weight.")
 @click.option("--steps", default=50, show_default=True, type=click.IntRange(min=1), help="Denoising steps.")
 @click.option("--sampler", default=DEFAULT_SAMPLER, show_default=True, type=click.Choice(SAMPLERS))
-@click.option("--seed", default=0, show_default=True, help="Random seed (the same noise for both methods).")
+@click.option("--seed", default=0, show_default=True, type=SEED, help="Random seed (the same noise for both methods).")
 @SMOOTH_OPTION
 @click.option("--batch", default=64, show_default=True, type=click.IntRange(min=1), help="Maps per forward pass.")
 @click.option("--out", required=True, type=click.Path(file_okay=False, path_type=Path),
@@ -76,14 +75,11 @@ def metrics(generated, reference, control, json_out, backbone, weights, no_featu
 def eval_cmd(ckpt, data_dir, split, n, cfg, steps, sampler, seed, smooth, batch, out, backbone, weights, no_features,
              rrd_samples, device, quiet):
     """Evaluate a ControlMap checkpoint on a test split against its unguided DiT (paper Tables 1-2)."""
-    import math
 
     from cmtool.eval.evaluation import EvalSettings, run_eval
     from cmtool.eval.features import FeatureExtractor
     from cmtool.sample.generator import Generator
 
-    if not (math.isfinite(cfg) and cfg >= 0):
-        raise CmtoolError(f"--cfg: guidance weight must be a finite number >= 0, got {cfg}")
     dev = _device(device)
     gen = Generator.load(_checkpoint(ckpt), dev, smooth)
     gen.schedule.timesteps(steps)

@@ -6,7 +6,7 @@ from pathlib import Path
 
 import click
 
-from cmtool.cli.common import _origin
+from cmtool.cli.common import Finite, _origin
 from cmtool.errors import CmtoolError
 
 
@@ -68,10 +68,10 @@ def validate(maps, json_out, repair, out):
 @click.argument("map_path", metavar="MAP", type=click.Path(dir_okay=False, path_type=Path))
 @click.option("--origin", help="LAT,LON where the scene's origin (the ego) lies [default: what the map's meta.geo "
                                "records, as maps from `sample --osm` do].")
-@click.option("--heading", type=float,
+@click.option("--heading", type=Finite(),
               help="Compass heading of the scene's forward axis, degrees [default: meta.geo's, else 0].")
 @click.option("--scene", default=0, show_default=True, type=click.IntRange(min=0), help="Scene of a .jsonl file.")
-@click.option("--lane-width", default=3.5, show_default=True, type=click.FloatRange(min=0.5, max=10.0),
+@click.option("--lane-width", default=3.5, show_default=True, type=Finite(min=0.5, max=10.0),
               help="Lane width where the map records none and no neighbours give one, metres.")
 @click.option("--out", required=True, type=click.Path(dir_okay=False, path_type=Path), help="File to write.")
 def export(fmt, map_path, origin, heading, scene, lane_width, out):

@@ -7,7 +7,14 @@ from pathlib import Path
 
 import click
 
-from cmtool.cli.common import CITY_CFG_HELP, SMOOTH_OPTION, _checkpoint, _device
+from cmtool.cli.common import (
+    CITY_CFG_HELP,
+    SEED,
+    SMOOTH_OPTION,
+    Finite,
+    _checkpoint,
+    _device,
+)
 from cmtool.errors import CmtoolError
 from cmtool.sample import DEFAULT_SAMPLER, SAMPLERS
 
@@ -29,19 +36,22 @@ SD input (at most one kind; none: maps from the city label alone):
               help="SD raster / road drawing picture, or a folder of them (repeatable).")
 @click.option("--osm", type=click.Path(path_type=Path), help="OpenStreetMap .osm/.osm.pbf file.")
 @click.option("--center", help="With --osm: LAT,LON of the frame centre, or a .jsonl of {lat, lon, heading}.")
-@click.option("--heading", default=0.0, show_default=True, help="With --osm: compass heading that points up, degrees.")
+@click.option("--heading", default=0.0, show_default=True, type=Finite(),
+              help="With --osm: compass heading that points up, degrees.")
 @click.option("--from-hd", "from_hd", type=click.Path(path_type=Path), help="HD map JSON (procedural or imported).")
 @click.option("--pose", help="With --from-hd: X,Y,YAW (m, m, degrees) or a .jsonl of {x, y, yaw} [default: a random "
               "drivable pose].")
 @click.option("--num", default=1, show_default=True, type=click.IntRange(min=1), help="Maps per SD input.")
-@click.option("--seed", default=0, show_default=True, help="Random seed.")
+@click.option("--seed", default=0, show_default=True, type=SEED, help="Random seed.")
 @click.option("--steps", default=50, show_default=True, type=click.IntRange(min=1), help="Denoising steps.")
 @click.option("--sampler", default=DEFAULT_SAMPLER, show_default=True, type=click.Choice(SAMPLERS))
-@click.option("--eta", default=0.0, show_default=True, help="DDIM noise (0 deterministic, 1 like DDPM).")
+@click.option("--eta", default=0.0, show_default=True, type=Finite(min=0),
+              help="DDIM noise (0 deterministic, 1 like DDPM).")
 @click.option("--city", default="auto", show_default=True,
               help="City label of the checkpoint, or none; auto: the HD map's city, else none.")
-@click.option("--cfg", default=1.0, show_default=True, help="Guidance weight w >= 0 on the SD control (0: ignore it).")
-@click.option("--city-cfg", default=1.0, show_default=True, help=CITY_CFG_HELP)
+@click.option("--cfg", default=1.0, show_default=True, type=Finite(min=0),
+              help="Guidance weight w >= 0 on the SD control (0: ignore it).")
+@click.option("--city-cfg", default=1.0, show_default=True, type=Finite(min=0), help=CITY_CFG_HELP)
 @SMOOTH_OPTION
 @click.option("--batch", default=16, show_default=True, type=click.IntRange(min=1), help="Maps per forward pass.")
 @click.option("--out", default=Path("samples"), show_default=True, type=click.Path(file_okay=False, path_type=Path),

@@ -32,6 +32,7 @@ import json
 import multiprocessing
 import os
 import time
+import zipfile
 from collections import Counter
 from dataclasses import asdict, dataclass
 from pathlib import Path
@@ -230,9 +231,12 @@ def _count(out_dir: Path, units: list[WorkUnit], shard_size: int) -> tuple[dict,
                                             "line_cap": {"scenes_cut": 0, "pieces_cut": 0, "sources": {}},
                                             "frames": {"kinds": {}, "tags": {}}})
         for name in u.shard_files(shard_size):
-            with np.load(out_dir / name) as z:
-                cities, sources, cut = z["city"].tolist(), z["source"].tolist(), _array(z, "cut").tolist()
-                kinds, tags = _array(z, "kind").tolist(), _array(z, "tags").tolist()
+            try:
+                with np.load(out_dir / name) as z:
+                    cities, sources, cut = z["city"].tolist(), z["source"].tolist(), _array(z, "cut").tolist()
+                    kinds, tags = _array(z, "kind").tolist(), _array(z, "tags").tolist()
+            except (OSError, ValueError, KeyError, EOFError, zipfile.BadZipFile) as e:
+                raise CmtoolError(f"{out_dir / name}: unreadable shard ({e}); delete it and re-run the build") from None
             entry["shards"].append({"file": name, "scenes": len(cities)})
             entry["scenes"] += len(cities)
             for city, n in Counter(cities).items():
@@ -351,7 +355,7 @@ def load_dataset(data_dir, split: str | None = None) -> SceneDataset:
         try:
             with np.load(path) as z:
                 parts.append({k: _array(z, k) for k in _ARRAYS})
-        except (OSError, ValueError, KeyError) as e:
+        except (OSError, ValueError, KeyError, EOFError, zipfile.BadZipFile) as e:
             raise CmtoolError(f"{path}: unreadable shard ({e}); delete it and re-run the build") from None
     if not parts:
         raise CmtoolError(f"{data_dir}: split {split!r} has no scenes")

@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import errno
 import json
 import os
 import tempfile
@@ -11,36 +12,103 @@ from pathlib import Path
 from cmtool.errors import CmtoolError
 
 
-def read_json(path: str | os.PathLike):
-    """Load a JSON file; a missing file or malformed JSON becomes a :class:`CmtoolError`."""
+def read_text(path: str | os.PathLike) -> str:
+    """A UTF-8 text file's contents; a missing, unreadable or non-UTF-8 file becomes a :class:`CmtoolError`."""
     path = Path(path)
     if not path.is_file():
         raise CmtoolError(f"{path}: no such file")
     try:
-        with path.open(encoding="utf-8") as f:
-            return json.load(f)
+        return path.read_text(encoding="utf-8")
+    except UnicodeDecodeError as e:
+        raise CmtoolError(f"{path}: not a UTF-8 text file (byte {e.start} is {e.object[e.start]:#04x})") from None
+    except OSError as e:
+        raise CmtoolError(f"{path}: cannot read it: {os_reason(e)}") from None
+
+
+def read_json(path: str | os.PathLike):
+    """Load a JSON file; a missing file, non-UTF-8 text or malformed JSON becomes a :class:`CmtoolError`."""
+    text = read_text(path)
+    try:
+        return json.loads(text)
     except json.JSONDecodeError as e:
         raise CmtoolError(f"{path}: malformed JSON at line {e.lineno}, column {e.colno}: {e.msg}") from None
-    except UnicodeDecodeError:
-        raise CmtoolError(f"{path}: not a UTF-8 text file") from None
+
+
+def os_reason(e: OSError) -> str:
+    """Why an operating-system call failed, in words that name what the user can fix."""
+    if e.errno in (errno.ENOTDIR, errno.EEXIST) and e.filename:
+        for parent in Path(e.filename).parents if e.errno == errno.ENOTDIR else [Path(e.filename)]:
+            if parent.is_file():
+                return f"{parent} is a file, not a folder"
+    if e.errno == errno.EFBIG:
+        return "file too large (the file size limit, or a full disk)"
+    return e.strerror.lower() if e.strerror else str(e)
 
 
 @contextmanager
 def atomic_open(path: str | os.PathLike, mode: str = "w"):
     """Open a temporary file beside ``path`` for writing; when the block succeeds it is renamed over
-    ``path``, when it fails it is removed. So a crash never leaves a half-written file behind."""
+    ``path``, when it fails it is removed. So a crash never leaves a half-written file behind. An OS error
+    (a file in the way, no permission, a full disk) becomes a :class:`CmtoolError` naming ``path``."""
     path = Path(path)
-    path.parent.mkdir(parents=True, exist_ok=True)
-    fd, tmp = tempfile.mkstemp(dir=path.parent, prefix=f".{path.name}.", suffix=".tmp")
+    tmp = None
     try:
+        path.parent.mkdir(parents=True, exist_ok=True)
+        fd, tmp = tempfile.mkstemp(dir=path.parent, prefix=f".{path.name}.", suffix=".tmp")
         with os.fdopen(fd, mode, encoding=None if "b" in mode else "utf-8") as f:
             yield f
         os.chmod(tmp, 0o666 & ~_umask())  # mkstemp makes 0600 files; give the usual permissions
         os.replace(tmp, path)
+    except OSError as e:
+        _remove(tmp)
+        raise CmtoolError(f"cannot write {path}: {os_reason(e)}") from None
     except BaseException:
-        if os.path.exists(tmp):
-            os.unlink(tmp)
+        _remove(tmp)
         raise
+
+
+class OutputSet:
+    """Files a command writes as one set: each goes to a temporary file beside its destination, :meth:`commit`
+    renames them all into place when the command has succeeded, and :meth:`discard` (it failed) removes the
+    temporaries, so the files of an earlier run stay as they were."""
+
+    def __init__(self):
+        self.staged: list[tuple[str, Path]] = []
+
+    def write_bytes(self, path: str | os.PathLike, data: bytes) -> None:
+        path = Path(path)
+        tmp = None
+        try:
+            path.parent.mkdir(parents=True, exist_ok=True)
+            fd, tmp = tempfile.mkstemp(dir=path.parent, prefix=f".{path.name}.", suffix=".tmp")
+            self.staged.append((tmp, path))
+            with os.fdopen(fd, "wb") as f:
+                f.write(data)
+            os.chmod(tmp, 0o666 & ~_umask())
+        except OSError as e:
+            raise CmtoolError(f"cannot write {path}: {os_reason(e)}") from None
+
+    def write_text(self, path: str | os.PathLike, text: str) -> None:
+        self.write_bytes(path, text.encode("utf-8"))
+
+    def commit(self) -> None:
+        """Rename every staged file into place."""
+        for tmp, path in self.staged:
+            try:
+                os.replace(tmp, path)
+            except OSError as e:
+                raise CmtoolError(f"cannot write {path}: {os_reason(e)}") from None
+        self.staged = []
+
+    def discard(self) -> None:
+        for tmp, _ in self.staged:
+            _remove(tmp)
+        self.staged = []
+
+
+def _remove(tmp: str | None) -> None:
+    if tmp is not None and os.path.exists(tmp):
+        os.unlink(tmp)
 
 
 def _umask() -> int:
@@ -54,8 +122,13 @@ def write_text_atomic(path: str | os.PathLike, text: str) -> None:
         f.write(text)
 
 
+def json_text(obj) -> str:
+    """``obj`` as one line of compact JSON."""
+    return json.dumps(obj, separators=(",", ":")) + "\n"
+
+
 def write_json(path: str | os.PathLike, obj) -> None:
-    write_text_atomic(path, json.dumps(obj, separators=(",", ":")) + "\n")
+    write_text_atomic(path, json_text(obj))
 
 
 class Fields:
@@ -91,6 +164,8 @@ class Fields:
             self.fail(key, f"expected {_type_name(types)}, got {_short(value)}")
         if isinstance(value, float) and not (value == value and abs(value) != float("inf")):
             self.fail(key, "NaN or infinite number")
+        if isinstance(value, int) and abs(value) > 2**63:
+            self.fail(key, f"number too large ({len(str(abs(value)))} digits)")
         return value
 
     def header(self, fmt: str | None, kind: str, version: int = 1) -> None:

@@ -30,7 +30,7 @@ from pathlib import Path
 
 import numpy as np
 
-from cmtool.data.jsonio import Fields, write_text_atomic
+from cmtool.data.jsonio import Fields, read_json, read_text, write_text_atomic
 from cmtool.errors import CmtoolError
 from cmtool.geometry import unit
 from cmtool.unionfind import UnionFind
@@ -133,20 +133,19 @@ def _pairs(f: Fields, key: str, n: int) -> list[tuple[int, int]]:
 def read_jsonl(path: str | os.PathLike) -> list[LaneGraph]:
     """Read lane graphs from a ``.jsonl`` file (a ``.json`` file holding one object also works)."""
     path = Path(path)
-    if not path.is_file():
-        raise CmtoolError(f"{path}: no such file")
     graphs = []
-    with path.open(encoding="utf-8") as fh:
-        for lineno, line in enumerate(fh, start=1):
-            if not line.strip():
-                continue
-            try:
-                obj = json.loads(line)
-            except json.JSONDecodeError as e:
-                if lineno == 1 and path.suffix == ".json":  # a pretty-printed single scene
-                    return [LaneGraph.from_json(json.loads(path.read_text("utf-8")), f"{path}")]
-                raise CmtoolError(f"{path}: line {lineno}: malformed JSON at column {e.colno}: {e.msg}") from None
-            graphs.append(LaneGraph.from_json(obj, f"{path}: line {lineno}"))
+    for lineno, line in enumerate(read_text(path).splitlines(), start=1):
+        if not line.strip():
+            continue
+        try:
+            obj = json.loads(line)
+        except json.JSONDecodeError as e:
+            if lineno == 1 and path.suffix == ".json":  # a pretty-printed single scene
+                return [LaneGraph.from_json(read_json(path), f"{path}")]
+            raise CmtoolError(f"{path}: line {lineno}: malformed JSON at column {e.colno}: {e.msg}") from None
+        graphs.append(LaneGraph.from_json(obj, f"{path}: line {lineno}"))
+    if not graphs:
+        raise CmtoolError(f"{path}: no lane graphs in the file")
     return graphs
 
 

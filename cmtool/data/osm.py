@@ -36,7 +36,7 @@ def road_class_of(highway: str | None) -> str | None:
     """The SD road class of an OSM ``highway`` value, or None when it is not a drivable road."""
     if highway is None:
         return None
-    base = highway[: -len("_link")] if highway.endswith("_link") else highway
+    base = highway.removesuffix("_link")
     base = _ALIASES.get(base, base)
     return base if base in ROAD_CLASSES else None
 
@@ -77,12 +77,15 @@ def read_osm(path: str | os.PathLike) -> SDMap:
     path = Path(path)
     if not path.is_file():
         raise CmtoolError(f"{path}: no such file")
+    hint = ""
     if path.name.endswith(".pbf"):
         nodes, ways = _read_pbf(path)
     elif path.suffix == ".osm" or path.name.endswith(".osm.xml"):
         data = read_osm_xml(path)
         nodes = {i: (n.lat, n.lon) for i, n in data.nodes.items()}
         ways = [(i, w.nodes, w.tags) for i, w in data.ways.items() if road_class_of(w.tags.get("highway"))]
+        if any(w.tags.get("type") in ("line_thin", "line_thick") for w in data.ways.values()):
+            hint = "; it looks like a Lanelet2 map (`cmtool data import --format lanelet2`)"
     else:
         raise CmtoolError(f"{path}: expected an OpenStreetMap .osm or .osm.pbf file")
     runs = []  # (way id, part, node ids, tags)
@@ -97,9 +100,10 @@ def read_osm(path: str | os.PathLike) -> SDMap:
                 runs.append((way_id, parts, run, tags))
                 parts += 1
             run = []
-    sd = SDMap(city=None, source=f"osm:{path.name}")
     if not runs:
-        return sd
+        raise CmtoolError(f"{path}: no drivable roads (ways tagged highway=motorway ... service, with their nodes)"
+                          f"{hint}")
+    sd = SDMap(city=None, source=f"osm:{path.name}")
     used = np.array([nodes[r] for _, _, run, _ in runs for r in set(run)])
     lat0, lon0 = used.mean(axis=0)
     proj = LocalProjection(lat0, lon0)

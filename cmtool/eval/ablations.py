@@ -39,7 +39,7 @@ from cmtool.sample import DEFAULT_SAMPLER
 from cmtool.sample.diffusion import scene_seed, step_generator
 from cmtool.sample.generator import Generator
 from cmtool.viz.draw import BACKGROUND, TEXT, graph_panel, grid, sd_panel, title_strip
-from cmtool.viz.recording import log_lanes, log_sd, open_recording
+from cmtool.viz.recording import close_recording, log_lanes, log_sd, open_recording
 from cmtool.viz.show import write_png
 
 PICTURE_SCENES = 4
@@ -94,7 +94,7 @@ def cfg_sweep(gen: Generator, scenes, weights: list[float], seeds: int, steps: i
     write_text_atomic(out / "ablate_cfg.md", markdown_table(rows, ["w", "sd_coverage", "lane_on_sd", "gt_recall",
                                                                     "diversity_m"]))
     write_png(out / "ablate_cfg.png", _plot(rows))
-    rec = open_recording(out / "ablate_cfg.rrd", "ablate")
+    rec = open_recording("ablate")
     rec.send_blueprint(_cfg_blueprint(min(PICTURE_SCENES, len(scenes))))
     for k, scene in enumerate(scenes[:PICTURE_SCENES]):
         log_sd(rec, f"sample_{k}/", scene.sd, static=True)
@@ -107,8 +107,7 @@ def cfg_sweep(gen: Generator, scenes, weights: list[float], seeds: int, steps: i
         for k in range(min(PICTURE_SCENES, len(scenes))):
             g = maps_by_w[row["w"]][k]
             log_lanes(rec, f"sample_{k}/generated/", g.lanes, g.green_lights, g.red_lights, g.successors)
-    rec.flush()
-    rec.disconnect()
+    close_recording(rec, out / "ablate_cfg.rrd")
     return rows
 
 

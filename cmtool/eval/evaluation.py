@@ -36,7 +36,7 @@ from cmtool.release import BUNDLED
 from cmtool.sample import DEFAULT_SAMPLER, DEFAULT_SMOOTH
 from cmtool.sample.diffusion import scene_seed, step_generator
 from cmtool.sample.generator import Generator
-from cmtool.viz.recording import log_lanes, log_sd, open_recording
+from cmtool.viz.recording import close_recording, log_lanes, log_sd, open_recording
 
 METHODS = ("unguided", "controlmap")
 # How each batch's noise is drawn (x_T from the scene seed, step noise from ``step_generator``). Caches
@@ -185,7 +185,7 @@ SERIES_COLOURS = {"unguided": [230, 140, 40], "controlmap": [60, 150, 255]}
 def _write_recording(path: Path, scenes, reference, generated, results: dict, rrd_samples: int) -> None:
     """eval.rrd: on the ``sample`` timeline, scene k's SD | unguided | ControlMap | ground truth (the first
     ``rrd_samples`` scenes) beside its scores, and each score of every scene as a plot per score."""
-    rec = open_recording(path, "eval")
+    rec = open_recording("eval")
     rec.send_blueprint(_eval_blueprint())
     for key in RECORDED_SCORES:
         for m in METHODS:
@@ -209,8 +209,7 @@ def _write_recording(path: Path, scenes, reference, generated, results: dict, rr
             table += [f"| {title} | " + " | ".join("-" if values[m][key] is None else f"{values[m][key]:.3f}"
                                                     for m in METHODS) + " |" for key, title in RECORDED_SCORES.items()]
             rec.log("scene/scores", rr.TextDocument("\n".join(table), media_type="text/markdown"))
-    rec.flush()
-    rec.disconnect()
+    close_recording(rec, path)
 
 
 def _eval_blueprint() -> rrb.Blueprint:

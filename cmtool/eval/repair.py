@@ -12,6 +12,7 @@ from __future__ import annotations
 from dataclasses import replace
 
 import numpy as np
+from scipy.spatial import cKDTree
 
 from cmtool.data.lanegraph import LaneGraph, infer_successors
 from cmtool.eval.validity import MAX_GAP_M, MAX_TURN_DEG, MIN_LENGTH_M
@@ -32,13 +33,10 @@ def repair(graph: LaneGraph) -> tuple[LaneGraph, list[str]]:
             keep.remove(i)
             changes.append(f"dropped lane {i} ({length:.2f} m long)")
     alias = {i: i for i in range(len(lanes))}  # merged lanes -> the lane that replaces them
-    for a_pos, a in enumerate(keep):
-        if alias[a] != a:
-            continue
-        for b in keep[a_pos + 1:]:
-            if alias[b] == b and _duplicates(lanes[a], lanes[b]):
-                alias[b] = a
-                changes.append(f"merged lane {b} into lane {a} (duplicate)")
+    for a, b in duplicate_pairs([lanes[i] for i in keep], keep):
+        if alias[a] == a and alias[b] == b:
+            alias[b] = a
+            changes.append(f"merged lane {b} into lane {a} (duplicate)")
     keep = [i for i in keep if alias[i] == i]
     edges = {(alias[i], alias[j]) for i, j in graph.successors if alias[i] in keep and alias[j] in keep and
              alias[i] != alias[j]}
@@ -73,8 +71,19 @@ def repair(graph: LaneGraph) -> tuple[LaneGraph, list[str]]:
                    oncoming=pairs(graph.oncoming, order=lambda p: tuple(sorted(p))), widths=widths), changes
 
 
-def _duplicates(a: np.ndarray, b: np.ndarray) -> bool:
-    la, lb = polyline_length(a), polyline_length(b)
-    if min(la, lb) <= 0 or abs(la - lb) > 0.2 * max(la, lb):
-        return False
-    return float(np.linalg.norm(resample(a, 20) - resample(b, 20), axis=1).mean()) < DUPLICATE_M
+def duplicate_pairs(lines: list[np.ndarray], ids: list[int]) -> list[tuple[int, int]]:
+    """Pairs ``(ids[p], ids[q])``, p < q, in order, of lines that duplicate each other: lengths within 20%, and
+    within ``DUPLICATE_M`` on average over 20 points resampled along each. Only lines whose mean points lie that
+    close are compared (the distance of the means is at most the mean distance), found with a KD-tree."""
+    if len(lines) < 2:
+        return []
+    points = np.stack([resample(line, 20) for line in lines])
+    lengths = np.array([polyline_length(line) for line in lines])
+    out = []
+    for p, q in sorted(cKDTree(points.mean(axis=1)).query_pairs(DUPLICATE_M)):
+        la, lb = lengths[p], lengths[q]
+        if min(la, lb) <= 0 or abs(la - lb) > 0.2 * max(la, lb):
+            continue
+        if float(np.linalg.norm(points[p] - points[q], axis=1).mean()) < DUPLICATE_M:
+            out.append((ids[p], ids[q]))
+    return out

@@ -23,12 +23,13 @@ from dataclasses import dataclass
 
 import numpy as np
 from scipy.sparse import csr_matrix
-from scipy.sparse.csgraph import shortest_path
+from scipy.sparse.csgraph import connected_components, shortest_path
 
 from cmtool.unionfind import UnionFind
 
 STATISTICS = ("connectivity", "density", "reach", "convenience")
 SCALE = {"connectivity": 10.0, "density": 1.0, "reach": 1.0, "convenience": 10.0}
+CHUNK = 2048  # path searches per batch (a batch holds CHUNK x component-size hop counts)
 
 
 @dataclass
@@ -58,11 +59,24 @@ def scene_statistics(graph: KeypointGraph) -> dict[str, np.ndarray]:
                 "convenience": np.zeros(0)}
     degree = np.bincount(e[:, 0], minlength=n) + np.bincount(e[:, 1], minlength=n)
     adjacency = csr_matrix((np.ones(len(e)), (e[:, 0], e[:, 1])), shape=(n, n))
-    hops = shortest_path(adjacency, directed=True, unweighted=True)
-    np.fill_diagonal(hops, np.inf)
-    reachable = np.isfinite(hops)
-    return {"connectivity": degree.astype(float), "density": np.array([float(n)]),
-            "reach": reachable.sum(axis=1).astype(float), "convenience": hops[reachable]}
+    reach, convenience = np.zeros(n), []
+    # paths stay within a weakly connected component: search each on its own, CHUNK sources at a time, so memory
+    # grows with the component and the chunk, not with the square of the scene's keypoints
+    _, label = connected_components(adjacency, directed=True, connection="weak")
+    order = np.argsort(label, kind="stable")
+    for nodes in np.split(order, np.flatnonzero(np.diff(label[order])) + 1):
+        if len(nodes) < 2:
+            continue
+        sub = adjacency[nodes][:, nodes]
+        for start in range(0, len(nodes), CHUNK):
+            rows = np.arange(start, min(start + CHUNK, len(nodes)))
+            hops = shortest_path(sub, directed=True, unweighted=True, indices=rows)
+            hops[np.arange(len(rows)), rows] = np.inf
+            reachable = np.isfinite(hops)
+            reach[nodes[rows]] = reachable.sum(axis=1)
+            convenience.append(hops[reachable])
+    return {"connectivity": degree.astype(float), "density": np.array([float(n)]), "reach": reach,
+            "convenience": np.concatenate(convenience) if convenience else np.zeros(0)}
 
 
 def pooled_statistics(graphs) -> dict[str, np.ndarray]:

@@ -17,7 +17,14 @@ import numpy as np
 
 from cmtool.sample.generator import Generator
 from cmtool.sample.inputs import ControlInput
-from cmtool.sample.run import Job, SampleSettings, generate_maps, log_run_header, sampling_recording
+from cmtool.sample.run import (
+    Job,
+    SampleSettings,
+    generate_maps,
+    log_run_header,
+    sampling_recording,
+)
+from cmtool.viz.recording import close_recording
 
 LOG_LIMIT = 1.25  # issue #4: full logging may cost at most 25% over --no-log (tiny model, batch 1)
 
@@ -37,11 +44,10 @@ def _timed(gen: Generator, jobs: list[Job], settings: SampleSettings, log: bool)
     if log:
         with tempfile.TemporaryDirectory() as tmp:
             rrd = Path(tmp) / "bench.rrd"
-            rec = sampling_recording(rrd, None, [])
+            rec = sampling_recording(rrd, None)
             log_run_header(rec, gen, jobs, settings, "cmtool bench sample")
             generate_maps(gen, jobs, settings, rec, progress=False)
-            rec.flush()
-            rec.disconnect()
+            close_recording(rec, rrd)
             seconds = time.perf_counter() - began
     else:
         generate_maps(gen, jobs, settings, None, progress=False)

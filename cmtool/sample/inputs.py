@@ -14,6 +14,7 @@ from pathlib import Path
 
 import numpy as np
 
+from cmtool.data.jsonio import read_text
 from cmtool.data.lanegraph import LaneGraph
 from cmtool.data.sd_raster import FRAME_M, rasterize_sd, read_sd_image
 from cmtool.errors import CmtoolError
@@ -126,7 +127,7 @@ def parse_points(value: str, keys: tuple[str, ...], defaults: dict, option: str)
         if not path.is_file():
             raise CmtoolError(f"{option} {value}: no such file")
         rows = []
-        for lineno, line in enumerate(path.read_text("utf-8").splitlines(), start=1):
+        for lineno, line in enumerate(read_text(path).splitlines(), start=1):
             if not line.strip():
                 continue
             try:
@@ -151,7 +152,7 @@ def parse_points(value: str, keys: tuple[str, ...], defaults: dict, option: str)
 def _number(value, where: str) -> float:
     try:
         number = float(value)
-    except (TypeError, ValueError):
+    except (TypeError, ValueError, OverflowError):
         raise CmtoolError(f"{where}: expected a number, got {value!r}") from None
     if not math.isfinite(number):
         raise CmtoolError(f"{where}: expected a finite number, got {value!r}")

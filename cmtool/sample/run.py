@@ -5,8 +5,8 @@ generator seeded with ``seed`` and consumed in order, so the same command (input
 checkpoint, device) gives the same maps. Outputs per map in ``out``: ``<name>.json`` (the lane
 graph, successors inferred), ``<name>.png`` (SD | generated | ground truth when
 known) and ``<name>.gt.json`` (the ground truth, when known); plus one ``.rrd`` with every
-denoising step of every map (:mod:`cmtool.viz.trajectory`). Files are written atomically, and
-when the run fails, the files it already wrote are removed again.
+denoising step of every map (:mod:`cmtool.viz.trajectory`). The files are written as one set: each to a
+temporary file, all renamed into place when the run succeeds, so a failed run leaves earlier files as they were.
 """
 
 from __future__ import annotations
@@ -18,12 +18,11 @@ from dataclasses import dataclass
 from pathlib import Path
 from urllib.parse import urlsplit
 
-import cv2
 import numpy as np
 import rerun as rr
 import torch
 
-from cmtool.data.jsonio import atomic_open, write_json
+from cmtool.data.jsonio import OutputSet, json_text
 from cmtool.data.lanegraph import LaneGraph
 from cmtool.errors import CmtoolError
 from cmtool.eval.geometric import legal_oneway
@@ -36,7 +35,15 @@ from cmtool.sample.diffusion import SamplingError
 from cmtool.sample.generator import Generator
 from cmtool.sample.inputs import ControlInput
 from cmtool.viz.draw import graph_panel, legend, sd_panel, title_strip
-from cmtool.viz.recording import APP_IDS, log_lanes, log_sd, served
+from cmtool.viz.recording import (
+    APP_IDS,
+    close_recording,
+    log_lanes,
+    log_sd,
+    open_recording,
+    served,
+)
+from cmtool.viz.show import write_png
 from cmtool.viz.trajectory import TrajectoryLogger, sampling_blueprint
 
 SERVING: list[rr.RecordingStream] = []  # recordings served with --serve, kept alive until the process ends
@@ -111,38 +118,40 @@ def run_sample(gen: Generator, jobs: list[Job], settings: SampleSettings, out: P
     """Generate every job's map, write its files to ``out`` and (unless ``rrd`` and ``viewer`` are
     None) record every step; ``viewer`` is "spawn", "serve" (the recording is served from this process until it
     ends) or a Rerun gRPC URL to stream to live; ``grid`` is a PNG that gets all maps' pictures stacked."""
-    written: list[Path] = []
+    outputs = OutputSet()
     rec = None
     created = not out.exists()
     try:
         out.mkdir(parents=True, exist_ok=True)
         if rrd is not None or viewer is not None:
-            rec = sampling_recording(rrd, viewer, written)
+            rec = sampling_recording(rrd, viewer)
             log_run_header(rec, gen, jobs, settings, command)
         maps = generate_maps(gen, jobs, settings, rec, progress)
-        bodies = [_write_map(out, m, settings, written) for m in maps]
+        bodies = [_write_map(out, m, settings, outputs) for m in maps]
         if grid is not None:
             gap = np.full((4, bodies[0].shape[1], 3), 12, np.uint8)
             stacked = np.concatenate([x for body in bodies for x in (body, gap)][:-1], axis=0)
-            written.append(grid)
-            _write_png(grid, np.concatenate([stacked, legend(stacked.shape[1])], axis=0))
+            write_png(grid, np.concatenate([stacked, legend(stacked.shape[1])], axis=0), outputs)
         if rec is not None:
-            rec.flush()
-            if viewer == "serve":  # the stream owns the server: keep it until the process ends
-                SERVING.append(rec)
+            if viewer is None:
+                close_recording(rec, rrd, outputs)
             else:
-                rec.disconnect()
+                rec.flush()
+                if viewer == "serve":  # the stream owns the server: keep it until the process ends
+                    SERVING.append(rec)
+                else:
+                    rec.disconnect()
+                if rrd is not None:
+                    _partial(rrd).replace(rrd)
             rec = None
-            if rrd is not None:
-                rrd.parent.mkdir(parents=True, exist_ok=True)
-                _partial(rrd).replace(rrd)
-                written.append(rrd)
+        outputs.commit()
         return maps
     except BaseException:
         if rec is not None:
             rec.disconnect()
-        for path in written:
-            path.unlink(missing_ok=True)
+        outputs.discard()
+        if rrd is not None:
+            _partial(rrd).unlink(missing_ok=True)
         if created and out.is_dir() and not any(out.iterdir()):
             out.rmdir()
         raise
@@ -194,13 +203,15 @@ def _partial(rrd: Path) -> Path:
     return rrd.with_name(f".{rrd.name}.partial")
 
 
-def sampling_recording(rrd: Path | None, viewer: str | None, written: list[Path]) -> rr.RecordingStream:
-    """A recording that writes to ``rrd`` (renamed into place at the end) and/or streams to a viewer."""
+def sampling_recording(rrd: Path | None, viewer: str | None) -> rr.RecordingStream:
+    """A recording for ``rrd`` (kept in memory and written with the maps), or streamed to a viewer and, when ``rrd``
+    is given, written by Rerun to a file beside it that is renamed into place at the end."""
+    if viewer is None:
+        return open_recording("sample")
     rec = rr.RecordingStream(APP_IDS["sample"])
-    sinks = [] if viewer is None else [_viewer_sink(rec, viewer)]
+    sinks = [_viewer_sink(rec, viewer)]
     if rrd is not None:
         rrd.parent.mkdir(parents=True, exist_ok=True)
-        written.append(_partial(rrd))
         sinks.append(rr.FileSink(str(_partial(rrd))))
     rec.set_sinks(*sinks)
     return rec
@@ -256,15 +267,13 @@ def log_run_header(rec, gen: Generator, jobs: list[Job], settings: SampleSetting
                       static=True)
 
 
-def _write_map(out: Path, m: SampledMap, settings: SampleSettings, written: list[Path]) -> np.ndarray:
-    """Write a map's lane graph JSON, ground truth JSON (when known) and picture; record the paths.
+def _write_map(out: Path, m: SampledMap, settings: SampleSettings, outputs: OutputSet) -> np.ndarray:
+    """Stage a map's lane graph JSON, ground truth JSON (when known) and picture in ``outputs``.
     Returns the picture without its legend."""
-    written.append(out / f"{m.job.name}.json")
-    write_json(written[-1], m.graph.to_json())
+    outputs.write_text(out / f"{m.job.name}.json", json_text(m.graph.to_json()))
     truth = m.job.source.truth
     if truth is not None:
-        written.append(out / f"{m.job.name}.gt.json")
-        write_json(written[-1], truth.to_json())
+        outputs.write_text(out / f"{m.job.name}.gt.json", json_text(truth.to_json()))
     city = m.graph.city or "no city"
     panels = []
     if m.job.source.sd is not None:
@@ -276,17 +285,8 @@ def _write_map(out: Path, m: SampledMap, settings: SampleSettings, written: list
     tiles = [np.concatenate([title_strip(t, PANEL), img], axis=0) for t, img in panels]
     gap = np.full((tiles[0].shape[0], 4, 3), 12, np.uint8)
     body = np.concatenate([x for tile in tiles for x in (tile, gap)][:-1], axis=1)
-    written.append(out / f"{m.job.name}.png")
-    _write_png(written[-1], np.concatenate([body, legend(body.shape[1])], axis=0))
+    write_png(out / f"{m.job.name}.png", np.concatenate([body, legend(body.shape[1])], axis=0), outputs)
     return body
-
-
-def _write_png(path: Path, picture: np.ndarray) -> None:
-    ok, png = cv2.imencode(".png", cv2.cvtColor(picture, cv2.COLOR_RGB2BGR))
-    if not ok:
-        raise CmtoolError(f"{path}: could not encode the picture")
-    with atomic_open(path, "wb") as f:
-        f.write(png.tobytes())
 
 
 def summary_table(maps: list[SampledMap]) -> str:

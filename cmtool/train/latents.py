@@ -9,6 +9,7 @@ the dataset's order (the poses let stage 3 check that its SD rasters line up). S
 
 from __future__ import annotations
 
+import zipfile
 from dataclasses import dataclass
 from pathlib import Path
 
@@ -82,8 +83,12 @@ def read_latents(out_dir: Path, split: str) -> LatentSet:
     if not path.is_file():
         raise CmtoolError(f"{path}: no latent cache; `cmtool train rvae` writes it when it finishes "
                           "(re-run it with --resume to finish an interrupted run)")
-    with np.load(path) as z:
-        return LatentSet(z["mean"], z["logvar"], z["city"], z["pose"])
+    try:
+        with np.load(path) as z:
+            return LatentSet(z["mean"], z["logvar"], z["city"], z["pose"])
+    except (OSError, ValueError, KeyError, EOFError, zipfile.BadZipFile) as e:
+        raise CmtoolError(f"{path}: unreadable latent cache ({e}); delete it and re-run `cmtool train rvae "
+                          "--resume`") from None
 
 
 def mirrored_latents(rvae_loader, data_dir, out_dir: Path, device, progress: bool = True) -> LatentSet:

@@ -8,11 +8,13 @@ at ``<prefix>control/sd`` is placed on the same 64 m square, so lanes draw over 
 from __future__ import annotations
 
 import socket
+import weakref
 
 import numpy as np
 import rerun as rr
 import rerun.blueprint as rrb
 
+from cmtool.data.jsonio import OutputSet, atomic_open
 from cmtool.errors import CmtoolError
 from cmtool.viz.draw import GREEN, RED, heading_colours, sd_panel
 
@@ -25,11 +27,30 @@ LANE_RADIUS_M, LIGHT_RADIUS_M = 0.2, 0.3  # thin enough to see the junction thro
 GRPC_PORT, WEB_PORT = 9876, 9090  # where --serve serves a recording and Rerun's web viewer
 
 
-def open_recording(path, kind: str) -> rr.RecordingStream:
-    """A recording stream of one ``kind`` (a key of :data:`APP_IDS`) that writes to ``path`` (an ``.rrd`` file)."""
+def open_recording(kind: str) -> rr.RecordingStream:
+    """A recording stream of one ``kind`` (a key of :data:`APP_IDS`), kept in memory until :func:`close_recording`
+    writes it to its file. (Rerun's own file writer blocks for ever when a write fails, as on a full disk; written
+    by cmtool, such a file is an error that names it.)"""
     rec = rr.RecordingStream(APP_IDS[kind])
-    rec.save(str(path))
+    _MEMORY[rec] = rec.memory_recording()
     return rec
+
+
+def close_recording(rec: rr.RecordingStream, path, outputs: OutputSet | None = None) -> None:
+    """Close a recording of :func:`open_recording` and write it to ``path`` (an ``.rrd`` file), atomically or, with
+    ``outputs``, staged with the other files of the command."""
+    memory = _MEMORY.pop(rec)
+    rec.flush()
+    data = memory.drain_as_bytes()
+    rec.disconnect()
+    if outputs is not None:
+        outputs.write_bytes(path, data)
+    else:
+        with atomic_open(path, "wb") as f:
+            f.write(data)
+
+
+_MEMORY: weakref.WeakKeyDictionary[rr.RecordingStream, rr.MemoryRecording] = weakref.WeakKeyDictionary()
 
 
 def served(port: int = GRPC_PORT) -> rr.GrpcServerSink:

@@ -9,9 +9,15 @@ import numpy as np
 import rerun as rr
 
 from cmtool.data.cache import load_dataset
+from cmtool.data.jsonio import OutputSet, atomic_open
 from cmtool.errors import CmtoolError
 from cmtool.viz.draw import grid, lanes_panel, legend, sd_panel, title_strip
-from cmtool.viz.recording import log_scene, open_recording, scenes_blueprint
+from cmtool.viz.recording import (
+    close_recording,
+    log_scene,
+    open_recording,
+    scenes_blueprint,
+)
 
 PANEL = 256
 
@@ -32,11 +38,19 @@ def scene_tile(scene, title: str, panel: int = PANEL) -> np.ndarray:
     return np.concatenate([title_strip(title, body.shape[1]), body], axis=0)
 
 
-def write_png(path, image: np.ndarray) -> None:
+def write_png(path, image: np.ndarray, outputs: OutputSet | None = None) -> None:
+    """Write an RGB picture as a PNG file, atomically or, with ``outputs``, staged with the command's other files."""
     path = Path(path)
-    path.parent.mkdir(parents=True, exist_ok=True)
-    if not cv2.imwrite(str(path), cv2.cvtColor(image, cv2.COLOR_RGB2BGR)):
-        raise CmtoolError(f"{path}: could not write the picture (is the extension .png?)")
+    if path.suffix.lower() != ".png":
+        raise CmtoolError(f"{path}: a picture is written as PNG; give a path ending in .png")
+    ok, png = cv2.imencode(".png", cv2.cvtColor(image, cv2.COLOR_RGB2BGR))
+    if not ok:
+        raise CmtoolError(f"{path}: could not encode the picture")
+    if outputs is not None:
+        outputs.write_bytes(path, png.tobytes())
+    else:
+        with atomic_open(path, "wb") as f:
+            f.write(png.tobytes())
 
 
 def show_dataset(data_dir, n: int = 16, png=None, rrd=None, split: str | None = None, seed: int = 0) -> None:
@@ -54,8 +68,7 @@ def show_dataset(data_dir, n: int = 16, png=None, rrd=None, split: str | None = 
         picture = grid(tiles, columns=int(np.ceil(np.sqrt(len(tiles)))))
         write_png(png, np.concatenate([picture, legend(picture.shape[1])], axis=0))
     if rrd is not None:
-        Path(rrd).parent.mkdir(parents=True, exist_ok=True)
-        rec = open_recording(rrd, "data")
+        rec = open_recording("data")
         rec.send_blueprint(scenes_blueprint(titles, data.frame_m / 2.0))
         rec.log("info", rr.TextDocument(
             f"# cmtool data show\n\ndataset: `{data_dir}`\n\nsplit: {split or 'all'}, seed {seed}\n\n"
@@ -64,5 +77,4 @@ def show_dataset(data_dir, n: int = 16, png=None, rrd=None, split: str | None = 
         for k, scene in enumerate(scenes):
             rec.set_time("sample", sequence=k)
             log_scene(rec, f"sample_{k}/", scene)
-        rec.flush()
-        rec.disconnect()
+        close_recording(rec, rrd)

@@ -7,6 +7,7 @@ crossings become crosswalks. AV2 maps have no traffic-light stop lines.
 
 from __future__ import annotations
 
+import json
 import os
 import re
 from pathlib import Path
@@ -49,8 +50,8 @@ def import_av2(path: str | os.PathLike, city: str | None = None) -> HDMap:
                     id=str(seg["id"]),
                     centerline=centerline,
                     width=width,
-                    successors=[str(i) for i in seg.get("successors") or []],
-                    predecessors=[str(i) for i in seg.get("predecessors") or []],
+                    successors=_ids(seg, "successors"),
+                    predecessors=_ids(seg, "predecessors"),
                     left_neighbor=_id(seg.get("left_neighbor_id")),
                     right_neighbor=_id(seg.get("right_neighbor_id")),
                     is_intersection=bool(seg.get("is_intersection", False)),
@@ -88,6 +89,14 @@ def _records(items, path: Path, key: str) -> list[dict]:
 def _points(items) -> np.ndarray:
     """AV2 points ``[{"x":, "y":, "z":}, ...]`` as an (N, 2) array."""
     return as_polyline([[p["x"], p["y"]] for p in items])
+
+
+def _ids(seg: dict, key: str) -> list[str]:
+    """A list of lane ids (``key`` absent or null: none)."""
+    ids = seg.get(key) or []
+    if not isinstance(ids, list) or not all(isinstance(i, (int, str)) and not isinstance(i, bool) for i in ids):
+        raise ValueError(f"{key}: expected a list of lane ids, got {json.dumps(ids)[:40]}")
+    return [str(i) for i in ids]
 
 
 def _id(value) -> str | None:
