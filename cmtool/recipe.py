@@ -311,4 +311,6 @@ def _convert(tp, value, where: str, key: str):
     }[tp]
     if not ok:
         raise CmtoolError(f"{where}{key}: expected {tp.__name__}, got {value!r}")
+    if tp is float and not math.isfinite(value):
+        raise CmtoolError(f"{where}{key}: expected a finite number, got {value!r}")
     return float(value) if tp is float else value

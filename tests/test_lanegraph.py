@@ -63,3 +63,23 @@ def test_infer_successors_uses_gap_and_angle():
     assert infer_successors(lanes) == [(0, 1)]
     assert (0, 2) in infer_successors(lanes, max_angle_deg=95.0)
     assert infer_successors(lanes, max_gap_m=0.1) == []
+
+
+def test_infer_successors_equals_comparing_every_end_with_every_start():
+    """The KD-tree search against the slow path (all ends against all starts), on 50 random scenes of up to 300
+    short lanes whose ends often land near other lanes' starts."""
+    rng = np.random.default_rng(11)
+    for _ in range(50):
+        n = int(rng.integers(1, 300))
+        starts = rng.uniform(-20, 20, (n, 2))
+        starts[n // 2:] = np.round(starts[n // 2:])  # many lanes start on a grid of whole metres...
+        steps = rng.normal(0, 1, (n, 3, 2))
+        lanes = [np.cumsum(np.vstack([s, d]), axis=0) for s, d in zip(starts, steps)]
+        for lane in lanes[: n // 3]:
+            lane[-1] = np.round(lane[-1])  # ...and some end on it, at gaps of 0 to about 1.5 m of each other
+        ends, heads = np.array([l[-1] for l in lanes]), np.array([l[0] for l in lanes])
+        end_dir = np.array([(l[-1] - l[-2]) / np.linalg.norm(l[-1] - l[-2]) for l in lanes])
+        start_dir = np.array([(l[1] - l[0]) / np.linalg.norm(l[1] - l[0]) for l in lanes])
+        ok = (np.linalg.norm(ends[:, None] - heads[None], axis=-1) <= 1.5) & (end_dir @ start_dir.T >= 0.5)
+        np.fill_diagonal(ok, False)
+        assert infer_successors(lanes) == [(int(a), int(b)) for a, b in zip(*np.nonzero(ok))]
