@@ -208,6 +208,9 @@ def ws(tmp_path_factory, tiny_data):
         (root / name).write_text(text)
         p[name.replace(".toml", "").replace("-", "_")] = root / name
 
+    from tests.test_train import write_recipe
+
+    p["rvae_recipe"] = write_recipe(root / "rvae.toml", "rvae", 2, data=str(tiny_data))
     recipe("lr-nan.toml", f'[data]\npath = "{tiny_data}"\n[train]\nsteps = 2\nbatch_size = 2\nlr = nan\n')
     recipe("lr-neg.toml", f'[data]\npath = "{tiny_data}"\n[train]\nsteps = 2\nbatch_size = 2\nlr = -1.0\n')
     recipe("steps-huge.toml", f'[data]\npath = "{tiny_data}"\n[train]\nsteps = {10 ** 30}\nbatch_size = 2\n')
@@ -256,6 +259,7 @@ WRITERS = {
     "ablate-cfg": ("ablate", "cfg", "--data", "{data}", "--n", "2", "--w", "0,1", "--seeds", "1", "--steps", "2",
                    "--no-features", "--quiet", "--out", "{dest}"),
     "pack": ("pack", "--ckpt", "{ckpt}", "--out", "{dest}"),
+    "train": ("train", "rvae", "--recipe", "{rvae_recipe}", "--quiet", "--out", "{dest}"),
 }
 
 OUTPUT_CASES = [case(f"{name}-{fault}", *(a.replace("{dest}", dest) for a in args), full=fault == "full-disk")

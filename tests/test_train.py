@@ -200,9 +200,9 @@ def test_decoder_stage_trains_the_decoder_on_the_frozen_encoder(runs, tmp_path):
 
 def test_mirrored_scenes_take_a_label_of_the_other_driving_side(runs, tmp_path):
     from cmtool.data.cache import load_dataset
+    from cmtool.eval.metrics import drives_on
     from cmtool.recipe import load_recipe
     from cmtool.train.data import SceneRasters
-    from cmtool.eval.metrics import drives_on
     from cmtool.train.stages import ControlNetStage, DiTStage
 
     # the mirrored HD raster is the plain one flipped left-right (to within the one pixel by which

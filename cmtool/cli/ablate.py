@@ -6,14 +6,7 @@ from pathlib import Path
 
 import click
 
-from cmtool.cli.common import (
-    CITY_CFG_HELP,
-    SEED,
-    SMOOTH_OPTION,
-    Finite,
-    _checkpoint,
-    _device,
-)
+from cmtool.cli.common import CITY_CFG_HELP, PRECISION_OPTION, SEED, SMOOTH_OPTION, Finite, _device, _generator
 from cmtool.errors import CmtoolError
 from cmtool.sample import DEFAULT_SAMPLER, SAMPLERS
 
@@ -23,11 +16,10 @@ def ablate():
     """Ablations on fixed SD maps and seeds: the guidance weight, the city label; what the RVAE keeps."""
 
 
-def _ablation_setup(ckpt, data_dir, split, n, device, smooth, dit_ok=False):
+def _ablation_setup(ckpt, data_dir, split, n, device, smooth, precision, dit_ok=False):
     from cmtool.data.cache import load_dataset
-    from cmtool.sample.generator import Generator
 
-    gen = Generator.load(_checkpoint(ckpt), _device(device), smooth)
+    gen = _generator(ckpt, device, smooth, precision)
     if not gen.has_control and not dit_ok:
         raise CmtoolError(f"{gen.path}: the guidance sweep needs a ControlMap checkpoint")
     data = load_dataset(data_dir, split)
@@ -58,6 +50,7 @@ _ABLATE_COMMON = [
     SMOOTH_OPTION,
     click.option("--out", required=True, type=click.Path(file_okay=False, path_type=Path), help="Output folder."),
     click.option("--device", help="torch device [default: cuda when available, else cpu]."),
+    PRECISION_OPTION,
     click.option("--quiet", is_flag=True, help="No progress line."),
 ]
 
@@ -76,14 +69,14 @@ def _ablate_options(fn):
               type=click.Choice(["resnet50-seeded", "resnet50-imagenet"]), help="Feature network of GT Recall.")
 @click.option("--weights-file", type=click.Path(dir_okay=False, path_type=Path), help="ImageNet ResNet-50 weights.")
 @click.option("--no-features", is_flag=True, help="Skip GT Recall.")
-def ablate_cfg(ckpt, data_dir, split, n, steps, sampler, smooth, out, device, quiet, weights, seeds, backbone,
+def ablate_cfg(ckpt, data_dir, split, n, steps, sampler, smooth, out, device, precision, quiet, weights, seeds, backbone,
                weights_file, no_features):
     """Sweep the guidance weight w: SD adherence, GT Recall and diversity against w."""
     from cmtool.eval.ablations import cfg_sweep
     from cmtool.eval.features import FeatureExtractor
 
     ws = _floats(weights, "--w")
-    gen, scenes = _ablation_setup(ckpt, data_dir, split, n, device, smooth)
+    gen, scenes = _ablation_setup(ckpt, data_dir, split, n, device, smooth, precision)
     extractor = None if no_features else FeatureExtractor(backbone, weights_file, gen.device)
     cfg_sweep(gen, scenes, ws, seeds, steps, extractor, out, progress=not quiet, sampler=sampler)
     click.echo((out / "ablate_cfg.md").read_text().rstrip())
@@ -96,7 +89,8 @@ def ablate_cfg(ckpt, data_dir, split, n, steps, sampler, smooth, out, device, qu
 @click.option("--cfg", default=1.0, show_default=True, type=Finite(min=0), help="Guidance weight.")
 @click.option("--city-cfg", default=1.0, show_default=True, type=Finite(min=0), help=CITY_CFG_HELP)
 @click.option("--seed", default=0, show_default=True, type=SEED, help="Random seed (the same noise for every label).")
-def ablate_city_swap(ckpt, data_dir, split, n, steps, sampler, smooth, out, device, quiet, labels, cfg, city_cfg, seed):
+def ablate_city_swap(ckpt, data_dir, split, n, steps, sampler, smooth, out, device, precision, quiet, labels, cfg,
+                     city_cfg, seed):
     """Swap the city label on the same SD maps: the driving side per label (SGP drives on the left).
 
     --ckpt may also name a DiT: its maps ignore the SD maps, whose two-way roads still judge them
@@ -104,7 +98,7 @@ def ablate_city_swap(ckpt, data_dir, split, n, steps, sampler, smooth, out, devi
     from cmtool.eval.ablations import city_swap
 
     names = [v.strip() for v in labels.split(",") if v.strip()]
-    gen, scenes = _ablation_setup(ckpt, data_dir, split, n, device, smooth, dit_ok=True)
+    gen, scenes = _ablation_setup(ckpt, data_dir, split, n, device, smooth, precision, dit_ok=True)
     for name in names:
         gen.label(name)  # unknown labels fail before any work
     city_swap(gen, scenes, names, steps, cfg, seed, out, progress=not quiet, sampler=sampler, city_cfg=city_cfg)
@@ -126,17 +120,17 @@ def ablate_city_swap(ckpt, data_dir, split, n, steps, sampler, smooth, out, devi
 @SMOOTH_OPTION
 @click.option("--out", required=True, type=click.Path(file_okay=False, path_type=Path), help="Output folder.")
 @click.option("--device", help="torch device [default: cuda when available, else cpu].")
+@PRECISION_OPTION
 @click.option("--quiet", is_flag=True, help="No progress line.")
-def ablate_dit(ckpts, data_dir, split, n, steps, sampler, seed, smooth, out, device, quiet):
+def ablate_dit(ckpts, data_dir, split, n, steps, sampler, seed, smooth, out, device, precision, quiet):
     """Compare DiTs on the same city labels and noise: topology Fréchet distances to the scenes' ground
     truth, validity, lanes joined to nothing and crossings per map, driving side by oncoming lanes."""
     from cmtool.data.cache import load_dataset
     from cmtool.eval.ablations import dit_compare
-    from cmtool.sample.generator import Generator
 
     gens = {}
     for path in ckpts:
-        gen = Generator.load(_checkpoint(path), _device(device), smooth)
+        gen = _generator(path, device, smooth, precision)
         name = gen.path.parent.parent.name if gen.path.parent.name == "checkpoints" else gen.path.name
         gens[name if name not in gens else str(path)] = gen
     data = load_dataset(data_dir, split)

@@ -6,7 +6,7 @@ from pathlib import Path
 
 import click
 
-from cmtool.cli.common import Finite, _checkpoint, _device
+from cmtool.cli.common import PRECISION_OPTION, Finite, _device, _generator
 from cmtool.sample import DEFAULT_SAMPLER, SAMPLERS
 
 
@@ -25,23 +25,23 @@ def bench():
 @click.option("--batch", default=64, show_default=True, type=click.IntRange(min=2), help="The large batch to compare.")
 @click.option("--repeats", default=3, show_default=True, type=click.IntRange(min=1), help="Timed runs per setting.")
 @click.option("--device", help="torch device [default: cuda when available, else cpu].")
-def bench_sample_cmd(ckpt, sd_path, steps, sampler, cfg, batch, repeats, device):
+@PRECISION_OPTION
+def bench_sample_cmd(ckpt, sd_path, steps, sampler, cfg, batch, repeats, device, precision):
     """Time sampling: per-step logging against --no-log at batch 1, and batch 1 against a large batch."""
     import torch
 
     from cmtool.sample.bench import LOG_LIMIT, bench_sample, default_sd
-    from cmtool.sample.generator import Generator
     from cmtool.sample.inputs import image_inputs
     from cmtool.sample.run import SampleSettings
 
     settings = SampleSettings(steps=steps, cfg=cfg, sampler=sampler)
     settings.check()
     sd = image_inputs([sd_path])[0].sd if sd_path else default_sd()
-    dev = _device(device)
-    gen = Generator.load(_checkpoint(ckpt), dev)
+    gen = _generator(ckpt, device, precision=precision)
+    dev = gen.device
     params = sum(p.numel() for p in gen.model.parameters())
     click.echo(f"{gen.path}: {gen.config['kind']}, {params / 1e6:.1f}M parameters; {dev} "
-               f"({torch.get_num_threads()} threads); {steps} {settings.sampler} steps, cfg {cfg}")
+               f"({torch.get_num_threads()} threads, {precision}); {steps} {settings.sampler} steps, cfg {cfg}")
     r = bench_sample(gen, sd, settings, batch=batch, repeats=repeats)
     verdict = "within" if r["log_ratio"] <= LOG_LIMIT else "OVER"
     click.echo(f"full logging / --no-log at batch 1: {r['log_ratio']:.3f} ({verdict} the {LOG_LIMIT:.2f} limit)")

@@ -6,7 +6,7 @@ from pathlib import Path
 
 import click
 
-from cmtool.cli.common import SEED, SMOOTH_OPTION, Finite, _checkpoint, _device
+from cmtool.cli.common import PRECISION_OPTION, SEED, SMOOTH_OPTION, Finite, _device, _generator
 from cmtool.sample import DEFAULT_SAMPLER, SAMPLERS
 
 
@@ -71,21 +71,20 @@ def metrics(generated, reference, control, json_out, backbone, weights, no_featu
 @click.option("--rrd-samples", default=64, show_default=True, type=click.IntRange(min=0),
               help="Scenes whose maps go into eval.rrd (scores go in for all).")
 @click.option("--device", help="torch device [default: cuda when available, else cpu].")
+@PRECISION_OPTION
 @click.option("--quiet", is_flag=True, help="No progress line.")
 def eval_cmd(ckpt, data_dir, split, n, cfg, steps, sampler, seed, smooth, batch, out, backbone, weights, no_features,
-             rrd_samples, device, quiet):
+             rrd_samples, device, precision, quiet):
     """Evaluate a ControlMap checkpoint on a test split against its unguided DiT (paper Tables 1-2)."""
 
     from cmtool.eval.evaluation import EvalSettings, run_eval
     from cmtool.eval.features import FeatureExtractor
-    from cmtool.sample.generator import Generator
 
-    dev = _device(device)
-    gen = Generator.load(_checkpoint(ckpt), dev, smooth)
+    gen = _generator(ckpt, device, smooth, precision)
     gen.schedule.timesteps(steps)
-    extractor = None if no_features else FeatureExtractor(backbone, weights, dev)
+    extractor = None if no_features else FeatureExtractor(backbone, weights, gen.device)
     settings = EvalSettings(data=str(data_dir.resolve()), split=split, n=n, cfg=cfg, steps=steps, sampler=sampler,
-                            seed=seed, batch=batch)
+                            seed=seed, batch=batch, precision=precision)
     run_eval(gen, settings, out, extractor, rrd_samples=rrd_samples, progress=not quiet)
     click.echo((out / "summary.md").read_text())
     click.echo(f"wrote {out / 'metrics.json'}, {out / 'summary.md'}, {out / 'eval.rrd'}")

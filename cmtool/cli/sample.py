@@ -7,14 +7,7 @@ from pathlib import Path
 
 import click
 
-from cmtool.cli.common import (
-    CITY_CFG_HELP,
-    SEED,
-    SMOOTH_OPTION,
-    Finite,
-    _checkpoint,
-    _device,
-)
+from cmtool.cli.common import CITY_CFG_HELP, PRECISION_OPTION, SEED, SMOOTH_OPTION, Finite, _generator
 from cmtool.errors import CmtoolError
 from cmtool.sample import DEFAULT_SAMPLER, SAMPLERS
 
@@ -66,13 +59,13 @@ SD input (at most one kind; none: maps from the city label alone):
                                             "(ports 9876 and 9090), until Ctrl-C: for a browser elsewhere.")
 @click.option("--no-log", is_flag=True, help="No recording (fastest).")
 @click.option("--device", help="torch device [default: cuda when available, else cpu].")
+@PRECISION_OPTION
 @click.option("--quiet", is_flag=True, help="No progress line.")
 def sample(ckpt, sd_paths, osm, center, heading, from_hd, pose, num, seed, steps, sampler, eta, city, cfg, city_cfg,
-           smooth, batch, out, rrd, grid, spawn, connect_url, serve, no_log, device, quiet):
+           smooth, batch, out, rrd, grid, spawn, connect_url, serve, no_log, device, precision, quiet):
     import shlex
 
     from cmtool.sample import inputs as src
-    from cmtool.sample.generator import Generator
     from cmtool.sample.run import SampleSettings, plan, run_sample, summary_table
 
     kinds = [name for name, given in (("--sd", sd_paths), ("--osm", osm), ("--from-hd", from_hd)) if given]
@@ -101,7 +94,7 @@ def sample(ckpt, sd_paths, osm, center, heading, from_hd, pose, num, seed, steps
         inputs = src.hd_inputs(from_hd, poses, seed)
     else:
         inputs = [src.ControlInput("uncond", None, "no SD input")]
-    gen = Generator.load(_checkpoint(ckpt), _device(device), smooth)
+    gen = _generator(ckpt, device, smooth, precision)
     jobs = plan(gen, inputs, settings)
     for item in inputs:
         if item.note:

@@ -58,6 +58,7 @@ class EvalSettings:
     checkpoint: str = ""
     weights: str = ""  # digest of the ControlMap's and its RVAE's weights (a re-pack keeps the path)
     noise: str = NOISE
+    precision: str = "fp32"  # of the denoising model (Generator.precision)
 
 
 def run_eval(gen: Generator, settings: EvalSettings, out: Path, extractor: FeatureExtractor | None,

@@ -17,13 +17,7 @@ import numpy as np
 
 from cmtool.sample.generator import Generator
 from cmtool.sample.inputs import ControlInput
-from cmtool.sample.run import (
-    Job,
-    SampleSettings,
-    generate_maps,
-    log_run_header,
-    sampling_recording,
-)
+from cmtool.sample.run import Job, SampleSettings, generate_maps, log_run_header, sampling_recording
 from cmtool.viz.recording import close_recording
 
 LOG_LIMIT = 1.25  # issue #4: full logging may cost at most 25% over --no-log (tiny model, batch 1)

@@ -36,7 +36,6 @@ from cmtool.model.controlmap import ControlMap
 from cmtool.sample import DEFAULT_SAMPLER, SAMPLERS
 
 
-
 class SamplingError(CmtoolError, ValueError):
     """A bad schedule or sampling argument (also a ValueError for library callers)."""
 
@@ -162,14 +161,15 @@ def sample(model: nn.Module, schedule: NoiseSchedule, y: Tensor, *, control: Ten
     previous, ab_last = None, 0.0  # the multistep solvers' clean estimate and abar of the step before
     for i, t in enumerate(ts):
         tt = torch.full((shape[0],), t, dtype=torch.long, device=x.device)
-        if guided:
+        if guided:  # under bf16 autocast the model answers in bf16: the update runs in float32
             eps_cond, eps_uncond, residuals = model.forward_cfg(x, tt, y, tokens=tokens)
+            eps_cond, eps_uncond = eps_cond.float(), eps_uncond.float()
             eps = eps_uncond + cfg * (eps_cond - eps_uncond)
         else:
             eps_cond, residuals = None, None
-            eps = eps_uncond = model(x, tt, y)
+            eps = eps_uncond = model(x, tt, y).float()
         if city_cfg != 1:
-            push = (city_cfg - 1) * (eps_uncond - model(x, tt, null))
+            push = (city_cfg - 1) * (eps_uncond - model(x, tt, null).float())
             eps, eps_uncond = eps + push, eps_uncond + push
             eps_cond = None if eps_cond is None else eps_cond + push
         x0 = schedule.predict_x0(x, tt, eps)

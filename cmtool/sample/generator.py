@@ -27,13 +27,18 @@ from cmtool.sample import DEFAULT_SAMPLER, DEFAULT_SMOOTH
 from cmtool.sample.diffusion import NoiseSchedule, sample
 
 NONE = "none"  # the --city value for the null label
+PRECISIONS = ("fp32", "bf16")  # of the denoising model (the decoder runs in fp32)
 
 
 class Generator:
     """Sampling with a loaded checkpoint: labels, control rasters in, latents and lane graphs out."""
 
-    def __init__(self, model, rvae, config: dict, path: Path, device: torch.device, smooth: int = DEFAULT_SMOOTH):
+    def __init__(self, model, rvae, config: dict, path: Path, device: torch.device, smooth: int = DEFAULT_SMOOTH,
+                 precision: str = "fp32"):
         self.model, self.rvae, self.config, self.path, self.device = model, rvae, config, path, device
+        if precision not in PRECISIONS:
+            raise CmtoolError(f"--precision: {precision!r} (choose {', '.join(PRECISIONS)})")
+        self.precision = precision
         points = rvae.cfg.num_points
         if smooth != 0 and not 2 <= smooth <= points:
             raise CmtoolError(f"--smooth: 0 (the decoder's raw points) or 2..{points} control points, got {smooth}")
@@ -44,9 +49,9 @@ class Generator:
         self.schedule = NoiseSchedule(from_table(ScheduleConfig, config["schedule"], f"{path}: ", "schedule."))
 
     @classmethod
-    def load(cls, path, device="cpu", smooth: int = DEFAULT_SMOOTH) -> "Generator":
+    def load(cls, path, device="cpu", smooth: int = DEFAULT_SMOOTH, precision: str = "fp32") -> "Generator":
         """The checkpoint at ``path`` and its RVAE; ``smooth``: Bézier control points of decoded polylines
-        (0: raw)."""
+        (0: raw); ``precision``: "bf16" runs the denoising model under bf16 autocast (the decoder stays fp32)."""
         path = ckpt.resolve(path)
         config = ckpt.load_config(path)
         if config["kind"] == "rvae":
@@ -64,7 +69,7 @@ class Generator:
         if have != tuple(model.latent_shape):
             raise CmtoolError(f"{path}: the model's latent {tuple(model.latent_shape)} does not match its RVAE "
                               f"{rvae_path} ({have})")
-        return cls(model, rvae, config, path, device, smooth)
+        return cls(model, rvae, config, path, device, smooth, precision)
 
     @property
     def has_control(self) -> bool:
@@ -105,8 +110,9 @@ class Generator:
                 raise CmtoolError(f"{self.path}: a DiT checkpoint has no control branch; give a ControlMap "
                                   "checkpoint or leave out the SD input")
             control = torch.stack([sd_tensor(s) for s in sd]).to(self.device)
-        return sample(self.model, self.schedule, y, control=control, cfg=cfg, city_cfg=city_cfg, steps=steps,
-                      sampler=sampler, eta=eta, generator=generator, noise=noise, callback=callback)
+        with torch.autocast(self.device.type, dtype=torch.bfloat16, enabled=self.precision == "bf16"):
+            return sample(self.model, self.schedule, y, control=control, cfg=cfg, city_cfg=city_cfg, steps=steps,
+                          sampler=sampler, eta=eta, generator=generator, noise=noise, callback=callback)
 
     @torch.no_grad()
     def decode(self, latents: torch.Tensor, threshold: float = 0.5) -> list[dict[str, np.ndarray]]:

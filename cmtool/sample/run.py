@@ -35,14 +35,7 @@ from cmtool.sample.diffusion import SamplingError
 from cmtool.sample.generator import Generator
 from cmtool.sample.inputs import ControlInput
 from cmtool.viz.draw import graph_panel, legend, sd_panel, title_strip
-from cmtool.viz.recording import (
-    APP_IDS,
-    close_recording,
-    log_lanes,
-    log_sd,
-    open_recording,
-    served,
-)
+from cmtool.viz.recording import APP_IDS, close_recording, log_lanes, log_sd, open_recording, served
 from cmtool.viz.show import write_png
 from cmtool.viz.trajectory import TrajectoryLogger, sampling_blueprint
 
@@ -196,7 +189,7 @@ def _meta(gen: Generator, job: Job, settings: SampleSettings) -> dict:
     geo = {} if job.source.geo is None else {"geo": job.source.geo}
     return {"source": job.source.source, "checkpoint": str(gen.path), "seed": settings.seed, "index": job.index,
             "cfg": settings.cfg, "city_cfg": settings.city_cfg, "steps": settings.steps, "sampler": settings.sampler,
-            "eta": settings.eta, "smooth": gen.smooth, **geo}
+            "eta": settings.eta, "smooth": gen.smooth, "precision": gen.precision, **geo}
 
 
 def _partial(rrd: Path) -> Path:

@@ -11,9 +11,9 @@ exact ``--resume``, a progress line and a Rerun recording of the run (``train/lo
 from __future__ import annotations
 
 import math
-from abc import ABC, abstractmethod
 import sys
 import time
+from abc import ABC, abstractmethod
 from pathlib import Path
 
 import rerun as rr
@@ -30,7 +30,7 @@ from cmtool.progress import Progress
 from cmtool.recipe import Recipe, TrainRecipe
 from cmtool.train import dist as D
 from cmtool.train.data import StepBatches
-from cmtool.viz.recording import APP_IDS, served, training_blueprint
+from cmtool.viz.recording import ReplayRecording, served, training_blueprint
 
 
 class Stage(ABC):
@@ -198,9 +198,8 @@ def train(stage: Stage, run_dir: Path, resume: bool = False, progress: bool = Tr
     rec = None
     if info.main:
         run_dir.mkdir(parents=True, exist_ok=True)
-        rec = rr.RecordingStream(APP_IDS["train"])
-        sinks = [rr.FileSink(str(run_dir / ("train.rrd" if start == 0 else f"train_from_{start:08d}.rrd")))]
-        rec.set_sinks(*sinks, *([served(serve)] if serve else []))
+        rec = ReplayRecording("train", run_dir / ("train.rrd" if start == 0 else f"train_from_{start:08d}.rrd"),
+                              served(serve) if serve else None)
         rec.send_blueprint(training_blueprint(stage.name or stage.kind, stage.preview_views()))
 
     def save(step: int, complete: bool = False, extra: dict | None = None) -> Path:
@@ -215,6 +214,7 @@ def train(stage: Stage, run_dir: Path, resume: bool = False, progress: bool = Tr
                                    "torch": torch.__version__, "replica_fingerprints": fingerprints}}
             ckpt.save_checkpoint(target, config, ema.module.state_dict(), tensors, meta)
             ckpt.prune(run_dir, t.keep)
+            rec.write()
         D.barrier()
         return target
 
@@ -263,9 +263,7 @@ def train(stage: Stage, run_dir: Path, resume: bool = False, progress: bool = Tr
         extra = stage.finish(ema.module, run_dir)
     final = save(t.steps, complete=True, extra=extra)
     if info.main:
-        rec.flush()
-        if serve:
-            rec.disconnect()  # frees the port for the next stage
+        rec.close()  # frees the served port for the next stage
         print(f"{stage.name or stage.kind}: {t.steps} steps in {record['time_s']:.0f} s, last loss {record.get('last_loss', float('nan')):.4f} -> {final}",
               file=sys.stderr)
     D.cleanup()

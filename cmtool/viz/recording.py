@@ -8,7 +8,9 @@ at ``<prefix>control/sd`` is placed on the same 64 m square, so lanes draw over 
 from __future__ import annotations
 
 import socket
+import uuid
 import weakref
+from pathlib import Path
 
 import numpy as np
 import rerun as rr
@@ -27,11 +29,11 @@ LANE_RADIUS_M, LIGHT_RADIUS_M = 0.2, 0.3  # thin enough to see the junction thro
 GRPC_PORT, WEB_PORT = 9876, 9090  # where --serve serves a recording and Rerun's web viewer
 
 
-def open_recording(kind: str) -> rr.RecordingStream:
+def open_recording(kind: str, recording_id: str | None = None) -> rr.RecordingStream:
     """A recording stream of one ``kind`` (a key of :data:`APP_IDS`), kept in memory until :func:`close_recording`
     writes it to its file. (Rerun's own file writer blocks for ever when a write fails, as on a full disk; written
     by cmtool, such a file is an error that names it.)"""
-    rec = rr.RecordingStream(APP_IDS[kind])
+    rec = rr.RecordingStream(APP_IDS[kind], recording_id=recording_id)
     _MEMORY[rec] = rec.memory_recording()
     return rec
 
@@ -48,6 +50,52 @@ def close_recording(rec: rr.RecordingStream, path, outputs: OutputSet | None = N
     else:
         with atomic_open(path, "wb") as f:
             f.write(data)
+
+
+class ReplayRecording:
+    """A recording of one ``kind`` that keeps what is logged to it (``set_time`` and ``log`` calls, the blueprint),
+    so :meth:`write` can write all of it to ``path`` at any time, as a long run does at each checkpoint (Rerun's
+    own file writer blocks for ever when a write fails). ``live``: also stream it to this sink (``--serve``)."""
+
+    def __init__(self, kind: str, path, live: rr.GrpcServerSink | None = None):
+        self.kind, self.path, self.calls, self.blueprint = kind, Path(path), [], None
+        self.recording_id = str(uuid.uuid4())
+        self.live = None
+        if live is not None:
+            self.live = rr.RecordingStream(APP_IDS[kind], recording_id=self.recording_id)
+            self.live.set_sinks(live)
+
+    def send_blueprint(self, blueprint: rrb.Blueprint) -> None:
+        self.blueprint = blueprint
+        if self.live is not None:
+            self.live.send_blueprint(blueprint)
+
+    def set_time(self, *args, **kwargs) -> None:
+        self._call("set_time", args, kwargs)
+
+    def log(self, *args, **kwargs) -> None:
+        self._call("log", args, kwargs)
+
+    def _call(self, name: str, args, kwargs) -> None:
+        self.calls.append((name, args, kwargs))
+        if self.live is not None:
+            getattr(self.live, name)(*args, **kwargs)
+
+    def write(self) -> None:
+        """Write everything logged so far to ``path`` (atomically)."""
+        rec = open_recording(self.kind, self.recording_id)
+        if self.blueprint is not None:
+            rec.send_blueprint(self.blueprint)
+        for name, args, kwargs in self.calls:
+            getattr(rec, name)(*args, **kwargs)
+        close_recording(rec, self.path)
+
+    def close(self) -> None:
+        """Write the file and stop streaming (which frees the served port)."""
+        self.write()
+        if self.live is not None:
+            self.live.flush()
+            self.live.disconnect()
 
 
 _MEMORY: weakref.WeakKeyDictionary[rr.RecordingStream, rr.MemoryRecording] = weakref.WeakKeyDictionary()

@@ -12,12 +12,7 @@ from cmtool.data.cache import load_dataset
 from cmtool.data.jsonio import OutputSet, atomic_open
 from cmtool.errors import CmtoolError
 from cmtool.viz.draw import grid, lanes_panel, legend, sd_panel, title_strip
-from cmtool.viz.recording import (
-    close_recording,
-    log_scene,
-    open_recording,
-    scenes_blueprint,
-)
+from cmtool.viz.recording import close_recording, log_scene, open_recording, scenes_blueprint
 
 PANEL = 256
 
