@@ -109,3 +109,19 @@ def test_sincos_positions_are_distinct():
     pos = sincos_pos_embed_2d(64, 8)
     assert pos.shape == (64, 64)
     assert torch.cdist(pos, pos).add(torch.eye(64)).min() > 0.1
+
+
+def test_bench_dit_compares_with_diffusers_of_the_same_shape(capsys):
+    """`cmtool bench dit`: both DiTs of one size timed in fp32 and bf16, bf16 outputs close to fp32's."""
+    pytest.importorskip("diffusers")
+    from tests.conftest import in_process
+
+    code, out, err = in_process(capsys, "bench", "dit", "--size", "tiny", "--batch", 2, "--repeats", 1)
+    assert code == 0, err
+    assert "cmtool 5.5M, diffusers" in out and "speed-up over diffusers fp32" in out
+    for setting in ("cmtool fp32", "cmtool bf16", "diffusers fp32", "diffusers bf16"):
+        assert setting in out
+    from cmtool.model.dit_bench import bench_dit
+
+    result = bench_dit("tiny", 2, 1, report=lambda line: None)
+    assert 0 < result["cmtool bf16 difference"] < 0.05 and 0 < result["diffusers bf16 difference"] < 0.05

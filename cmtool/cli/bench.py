@@ -49,6 +49,18 @@ def bench_sample_cmd(ckpt, sd_path, steps, sampler, cfg, batch, repeats, device,
                f"({r['batch_speedup']:.1f}x faster per map)")
 
 
+@bench.command("dit")
+@click.option("--size", default="B", show_default=True, help="DiT size (tiny, S, B, L, XL).")
+@click.option("--batch", default=32, show_default=True, type=click.IntRange(min=1), help="Latents per forward pass.")
+@click.option("--repeats", default=5, show_default=True, type=click.IntRange(min=1), help="Timed passes per setting.")
+def bench_dit_cmd(size, batch, repeats):
+    """This project's DiT forward pass against diffusers' DiTTransformer2DModel of the same shape and batch, fp32
+    and bf16 autocast, on the CPU (needs `pip install 'cmtool[bench]'`)."""
+    from cmtool.model.dit_bench import bench_dit
+
+    bench_dit(size, batch, repeats, report=click.echo)
+
+
 @bench.command("metrics")
 @click.option("--eval", "eval_dir", required=True, type=click.Path(file_okay=False, path_type=Path),
               help="A `cmtool eval --out` folder: its cached maps and the scenes they were made for.")
