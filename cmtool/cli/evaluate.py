@@ -25,7 +25,8 @@ from cmtool.sample import DEFAULT_SAMPLER, SAMPLERS
               help="ImageNet ResNet-50 weights file [default: torchvision's file in the torch hub cache].")
 @click.option("--no-features", is_flag=True, help="Skip the feature metrics (precision/recall, Control/GT Recall).")
 @click.option("--device", help="torch device [default: cuda when available, else cpu].")
-def metrics(generated, reference, control, json_out, backbone, weights, no_features, device):
+@click.option("--quiet", is_flag=True, help="No progress line.")
+def metrics(generated, reference, control, json_out, backbone, weights, no_features, device, quiet):
     """Score generated lane graphs against a reference set (and their SD controls): topology FDs,
     improved precision/recall, Control / GT Recall with p-values, and geometric lane metrics."""
     from cmtool.data.jsonio import write_json
@@ -36,7 +37,7 @@ def metrics(generated, reference, control, json_out, backbone, weights, no_featu
     gen, ref = read_jsonl(generated), read_jsonl(reference)
     controls = load_controls(control) if control is not None else None
     extractor = None if no_features else FeatureExtractor(backbone, weights, _device(device))
-    result = evaluate(gen, ref, controls, extractor, features=not no_features)
+    result = evaluate(gen, ref, controls, extractor, features=not no_features, progress=not quiet)
     click.echo(summary_table({generated.name: result}))
     click.echo(f"{result['scenes']} scene pairs in {sum(result['seconds'].values()):.1f} s ("
                + ", ".join(f"{k} {v:.1f} s" for k, v in result["seconds"].items()) + ")"

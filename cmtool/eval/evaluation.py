@@ -78,8 +78,8 @@ def run_eval(gen: Generator, settings: EvalSettings, out: Path, extractor: Featu
     if extractor is not None:  # the ground truth's and the controls' features serve both methods
         shared = {"reference_features": reference_image_features(reference, extractor),
                   "control_features": extractor(np.stack([sd_image(sd) for sd in controls]))}
-    results = {m: evaluate(generated[m], reference, controls, extractor, features=extractor is not None, **shared)
-               for m in METHODS}
+    results = {m: evaluate(generated[m], reference, controls, extractor, features=extractor is not None,
+                           progress=progress, **shared) for m in METHODS}
     truth = [check(g) for g in reference]
     report = {"settings": asdict(settings), "methods": results,
               "ground_truth_validity": float(np.mean([r.score for r in truth])),

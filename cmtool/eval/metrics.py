@@ -26,6 +26,7 @@ from cmtool.eval.lanes import pair_distances, scores_at
 from cmtool.eval.retrieval import batch_recall, improved_precision_recall
 from cmtool.eval.topology import topology_fd
 from cmtool.eval.validity import check
+from cmtool.progress import Progress
 
 LEFT_HAND = {"SGP"}  # city labels that drive on the left; all others drive on the right
 RECALL_BATCH, RECALL_K, PR_K = 64, 3, 3
@@ -59,10 +60,11 @@ def drives_on(city: str | None) -> str:
 
 def evaluate(generated, reference, controls: np.ndarray | None = None, extractor: FeatureExtractor | None = None,
              features: bool = True, reference_features: np.ndarray | None = None,
-             control_features: np.ndarray | None = None) -> dict:
+             control_features: np.ndarray | None = None, progress: bool = False) -> dict:
     """Every metric of ``generated`` against ``reference`` (lists of LaneGraph) and ``controls``
     ((N, 128, 128, 3) SD rasters or None). ``features=False`` skips the ResNet-50 metrics; the
-    reference's and controls' features can be passed in when several sets share them."""
+    reference's and controls' features can be passed in when several sets share them. ``progress``: a status
+    line on stderr (scenes done, the family of metrics at work)."""
     if len(generated) != len(reference):
         raise CmtoolError(f"{len(generated)} generated scenes but {len(reference)} reference scenes; "
                           "scene i of one set pairs with scene i of the other")
@@ -72,11 +74,14 @@ def evaluate(generated, reference, controls: np.ndarray | None = None, extractor
         raise CmtoolError("no scenes to evaluate")
     out: dict = {"scenes": len(generated)}
     seconds: dict[str, float] = {}
+    bar = Progress(len(generated), label="metrics", unit="scenes", enabled=progress)
+    bar.update(0, family="topology")
     with _timed(seconds, "topology"):
         out["topology_fd"] = topology_fd(generated, reference)
-    out["geometry"] = geometry(generated, reference, controls, seconds)
+    out["geometry"] = geometry(generated, reference, controls, seconds, bar)
     if features:
         extractor = extractor or FeatureExtractor()
+        bar.update(0, family="features")
         with _timed(seconds, "features"):  # the rasters and their ResNet-50 passes
             gen = extractor(np.stack([lanes_image(g.lanes, g.frame_m) for g in generated]))
             ref = reference_features if reference_features is not None else \
@@ -90,6 +95,7 @@ def evaluate(generated, reference, controls: np.ndarray | None = None, extractor
             out["gt_recall"] = batch_recall(gen, ref, RECALL_BATCH, RECALL_K)
             if controls is not None:
                 out["control_recall"] = batch_recall(gen, control_features, RECALL_BATCH, RECALL_K)
+    bar.close()
     out["seconds"] = seconds
     return out
 
@@ -109,23 +115,27 @@ def reference_image_features(graphs, extractor: FeatureExtractor) -> np.ndarray:
     return extractor(np.stack([lanes_image(g.lanes, g.frame_m) for g in graphs]))
 
 
-def geometry(generated, reference, controls: np.ndarray | None, seconds: dict[str, float] | None = None) -> dict:
+def geometry(generated, reference, controls: np.ndarray | None, seconds: dict[str, float] | None = None,
+             bar: Progress | None = None) -> dict:
     """Per-scene geometric scores (``per_scene``, None where undefined) and their averages (with the
     number of scenes each average covers); ``legal_oneway`` is averaged by the lane length judged.
-    ``seconds`` collects the time of each family of scores."""
+    ``seconds`` collects the time of each family of scores; ``bar`` counts the scenes done."""
     seconds = {} if seconds is None else seconds
+    bar = bar or Progress(len(generated), enabled=False)
     rows: dict[str, list] = {k: [] for k in ("chamfer_m", "lane_precision", "lane_recall", "lane_f1", "validity",
                                              "dangling", "crossings", "routable")}
     if controls is not None:
         rows.update({"sd_coverage": [], "lane_on_sd": [], "driving_side": [], "legal_oneway": []})
     judged = []
     for i, (g, r) in enumerate(zip(generated, reference)):
+        bar.update(0, family="lane distances")
         with _timed(seconds, "lane distances"):
             distances = pair_distances(g.lanes, r.lanes)
             rows["chamfer_m"].append(chamfer_of(distances))
             scores = scores_at(distances, 1.0)
             for k in ("precision", "recall", "f1"):
                 rows[f"lane_{k}"].append(scores[k])
+        bar.update(0, family="validity")
         with _timed(seconds, "validity"):
             report = check(g)
             counts = report.counts()
@@ -134,6 +144,7 @@ def geometry(generated, reference, controls: np.ndarray | None, seconds: dict[st
             rows["crossings"].append(counts.get("crossing", 0))
             rows["routable"].append(report.routable_with_changes)
         if controls is not None:
+            bar.update(0, family="SD adherence")
             with _timed(seconds, "SD adherence"):
                 for k, v in sd_adherence(g.lanes, controls[i]).items():
                     rows[k].append(v)
@@ -143,6 +154,7 @@ def geometry(generated, reference, controls: np.ndarray | None, seconds: dict[st
                 share, length = legal_oneway(g.lanes, controls[i])
                 rows["legal_oneway"].append(share)
                 judged.append(length)
+        bar.update(1)
     out = {}
     for k, values in rows.items():
         v = np.asarray(values, float)
