@@ -10,6 +10,8 @@ from cmtool.cli.common import Finite, _origin
 from cmtool.errors import CmtoolError
 
 
+LARGE_SCENE = 2000  # lanes; export announces itself for scenes this large
+
 @click.command()
 @click.argument("maps", type=click.Path(dir_okay=False, path_type=Path))
 @click.option("--json", "json_out", type=click.Path(dir_okay=False, path_type=Path), help="Write the full report here.")
@@ -107,6 +109,8 @@ def export(fmt, map_path, origin, heading, scene, lane_width, out):
         heading = geo[2] if geo is not None and origin is None else 0.0
     if not math.isfinite(heading):
         raise CmtoolError(f"--heading {heading}: expected a finite number of degrees")
+    if len(graph.lanes) >= LARGE_SCENE:  # seconds of work ahead: say so before it starts
+        click.echo(f"{map_path}: exporting {len(graph.lanes):,} lanes to {fmt} (about a second per 1,000)...", err=True)
     if fmt in ("lanelet2", "opendrive"):
         if fmt == "lanelet2":
             from cmtool.data.lanelet2_export import write_lanelet2 as write
