@@ -9,8 +9,8 @@ import click
 from cmtool.cli.common import Finite, _origin
 from cmtool.errors import CmtoolError
 
-
 LARGE_SCENE = 2000  # lanes; export announces itself for scenes this large
+
 
 @click.command()
 @click.argument("maps", type=click.Path(dir_okay=False, path_type=Path))
