@@ -3,7 +3,7 @@ traceback, and leaves what was there before byte-identical.
 
 Each case is a command line run in this process; ``{name}`` in it is a path of the workspace below (good inputs, bad
 inputs, outputs that cannot be written). Output faults: a file in the way of a folder, a folder nobody may write
-(``/sys``, refused even to root), and a full disk (``RLIMIT_FSIZE`` of 4 KiB for the run).
+(``/sys``, refused even to root), and a full disk (``RLIMIT_FSIZE`` of 16 bytes for the run).
 """
 
 from __future__ import annotations
