@@ -34,6 +34,28 @@ def read_json(path: str | os.PathLike):
         raise CmtoolError(f"{path}: malformed JSON at line {e.lineno}, column {e.colno}: {e.msg}") from None
 
 
+class MalformedLine(CmtoolError):
+    """A line of a JSON Lines file that is not JSON (``lineno`` counts from 1)."""
+
+    def __init__(self, message: str, lineno: int):
+        super().__init__(message)
+        self.lineno = lineno
+
+
+def json_lines(path: str | os.PathLike) -> list[tuple[int, object]]:
+    """(line number, value) of each non-empty line of a UTF-8 JSON Lines file; a malformed line is a
+    :class:`MalformedLine` naming the file and the line."""
+    out = []
+    for lineno, line in enumerate(read_text(path).splitlines(), start=1):
+        if line.strip():
+            try:
+                out.append((lineno, json.loads(line)))
+            except json.JSONDecodeError as e:
+                raise MalformedLine(f"{path}: line {lineno}: malformed JSON at column {e.colno}: {e.msg}",
+                                    lineno) from None
+    return out
+
+
 def os_reason(e: OSError) -> str:
     """Why an operating-system call failed, in words that name what the user can fix."""
     if e.errno in (errno.ENOTDIR, errno.EEXIST) and e.filename:

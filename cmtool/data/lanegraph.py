@@ -31,7 +31,7 @@ from pathlib import Path
 import numpy as np
 from scipy.spatial import cKDTree
 
-from cmtool.data.jsonio import Fields, read_json, read_text, write_text_atomic
+from cmtool.data.jsonio import Fields, MalformedLine, json_lines, read_json, write_text_atomic
 from cmtool.errors import CmtoolError
 from cmtool.geometry import unit
 from cmtool.unionfind import UnionFind
@@ -134,17 +134,13 @@ def _pairs(f: Fields, key: str, n: int) -> list[tuple[int, int]]:
 def read_jsonl(path: str | os.PathLike) -> list[LaneGraph]:
     """Read lane graphs from a ``.jsonl`` file (a ``.json`` file holding one object also works)."""
     path = Path(path)
-    graphs = []
-    for lineno, line in enumerate(read_text(path).splitlines(), start=1):
-        if not line.strip():
-            continue
-        try:
-            obj = json.loads(line)
-        except json.JSONDecodeError as e:
-            if lineno == 1 and path.suffix == ".json":  # a pretty-printed single scene
-                return [LaneGraph.from_json(read_json(path), f"{path}")]
-            raise CmtoolError(f"{path}: line {lineno}: malformed JSON at column {e.colno}: {e.msg}") from None
-        graphs.append(LaneGraph.from_json(obj, f"{path}: line {lineno}"))
+    try:
+        rows = json_lines(path)
+    except MalformedLine as e:
+        if e.lineno == 1 and path.suffix == ".json":  # a pretty-printed single scene
+            return [LaneGraph.from_json(read_json(path), f"{path}")]
+        raise
+    graphs = [LaneGraph.from_json(obj, f"{path}: line {lineno}") for lineno, obj in rows]
     if not graphs:
         raise CmtoolError(f"{path}: no lane graphs in the file")
     return graphs

@@ -7,14 +7,13 @@ the command with one message and no output.
 
 from __future__ import annotations
 
-import json
 import math
 from dataclasses import dataclass
 from pathlib import Path
 
 import numpy as np
 
-from cmtool.data.jsonio import read_text
+from cmtool.data.jsonio import json_lines
 from cmtool.data.lanegraph import LaneGraph
 from cmtool.data.sd_raster import FRAME_M, rasterize_sd, read_sd_image
 from cmtool.errors import CmtoolError
@@ -127,13 +126,7 @@ def parse_points(value: str, keys: tuple[str, ...], defaults: dict, option: str)
         if not path.is_file():
             raise CmtoolError(f"{option} {value}: no such file")
         rows = []
-        for lineno, line in enumerate(read_text(path).splitlines(), start=1):
-            if not line.strip():
-                continue
-            try:
-                obj = json.loads(line)
-            except json.JSONDecodeError as e:
-                raise CmtoolError(f"{path}: line {lineno}: malformed JSON ({e.msg})") from None
+        for lineno, obj in json_lines(path):
             if not isinstance(obj, dict):
                 raise CmtoolError(f"{path}: line {lineno}: expected an object with {', '.join(keys)}")
             rows.append(tuple(_number(obj.get(k, defaults.get(k)), f"{path}: line {lineno}: {k}") for k in keys))
