@@ -263,7 +263,7 @@ def train(stage: Stage, run_dir: Path, resume: bool = False, progress: bool = Tr
         extra = stage.finish(ema.module, run_dir)
     final = save(t.steps, complete=True, extra=extra)
     if info.main:
-        rec.close()  # frees the served port for the next stage
+        rec.close()  # the final save wrote train.rrd; this frees the served port for the next stage
         print(f"{stage.name or stage.kind}: {t.steps} steps in {record['time_s']:.0f} s, last loss {record.get('last_loss', float('nan')):.4f} -> {final}",
               file=sys.stderr)
     D.cleanup()

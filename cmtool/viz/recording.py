@@ -91,8 +91,7 @@ class ReplayRecording:
         close_recording(rec, self.path)
 
     def close(self) -> None:
-        """Write the file and stop streaming (which frees the served port)."""
-        self.write()
+        """Stop streaming (which frees the served port); the file is as the last :meth:`write` left it."""
         if self.live is not None:
             self.live.flush()
             self.live.disconnect()
