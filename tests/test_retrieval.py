@@ -78,3 +78,22 @@ def test_seeded_backbone_is_deterministic_and_imagenet_needs_weights(tmp_path, m
         FeatureExtractor("resnet50-imagenet", weights=bad)
     with pytest.raises(CmtoolError, match="unknown feature backbone"):
         FeatureExtractor("vgg")
+
+
+def test_bf16_features_stay_close_to_fp32():
+    images = np.stack([lanes_image([np.array([[-30.0, y], [30.0, y + k]]) for y in (-10.0, 0.0, 10.0)])
+                       for k in range(-6, 6)])
+    fp32 = FeatureExtractor("resnet50-seeded")(images)
+    bf16 = FeatureExtractor("resnet50-seeded", precision="bf16")(images)
+    assert bf16.dtype == np.float32 and bf16.shape == fp32.shape and not np.array_equal(bf16, fp32)
+    cosine = (fp32 * bf16).sum(1) / np.linalg.norm(fp32, axis=1) / np.linalg.norm(bf16, axis=1)
+    assert cosine.min() > 0.99
+    # what the recall metrics use: each image's nearest other image is the same
+    def nearest(f):
+        d = ((f[:, None] - f[None]) ** 2).sum(-1)
+        np.fill_diagonal(d, np.inf)
+        return d.argmin(1)
+
+    assert (nearest(fp32) == nearest(bf16)).mean() >= 0.9
+    with pytest.raises(CmtoolError, match="feature precision"):
+        FeatureExtractor(precision="fp16")

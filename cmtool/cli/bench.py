@@ -6,7 +6,7 @@ from pathlib import Path
 
 import click
 
-from cmtool.cli.common import PRECISION_OPTION, Finite, _device, _generator
+from cmtool.cli.common import FEATURE_PRECISION_OPTION, PRECISION_OPTION, Finite, _device, _generator
 from cmtool.sample import DEFAULT_SAMPLER, SAMPLERS
 
 
@@ -70,12 +70,15 @@ def bench_dit_cmd(size, batch, repeats):
 @click.option("--repeats", default=3, show_default=True, type=click.IntRange(min=1), help="Timed runs.")
 @click.option("--no-features", is_flag=True, help="Leave out the ResNet-50 metrics.")
 @click.option("--device", help="torch device [default: cuda when available, else cpu].")
-def bench_metrics_cmd(eval_dir, method, tile, repeats, no_features, device):
+@FEATURE_PRECISION_OPTION
+def bench_metrics_cmd(eval_dir, method, tile, repeats, no_features, device, precision):
     """Time each family of metrics (topology, lane distances, validity, SD adherence, driving side, legal
-    one-way, features, recall) on an evaluation's maps: minimum and median over the repeats."""
+    one-way, features, recall) on an evaluation's maps: minimum and median over the repeats; with the features,
+    also the ResNet-50 passes alone on the same rasters."""
     from cmtool.eval.bench import bench_metrics, eval_set, report_table
     from cmtool.eval.features import FeatureExtractor
 
     generated, reference, controls = eval_set(eval_dir, method, tile)
-    extractor = None if no_features else FeatureExtractor("resnet50-seeded", None, _device(device))
+    extractor = None if no_features else FeatureExtractor("resnet50-seeded", None, _device(device),
+                                                          precision=precision)
     click.echo(report_table(bench_metrics(generated, reference, controls, extractor, repeats)))

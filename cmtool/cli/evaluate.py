@@ -6,7 +6,7 @@ from pathlib import Path
 
 import click
 
-from cmtool.cli.common import PRECISION_OPTION, SEED, SMOOTH_OPTION, Finite, _device, _generator
+from cmtool.cli.common import FEATURE_PRECISION_OPTION, PRECISION_OPTION, SEED, SMOOTH_OPTION, Finite, _device, _generator
 from cmtool.sample import DEFAULT_SAMPLER, SAMPLERS
 
 
@@ -25,8 +25,9 @@ from cmtool.sample import DEFAULT_SAMPLER, SAMPLERS
               help="ImageNet ResNet-50 weights file [default: torchvision's file in the torch hub cache].")
 @click.option("--no-features", is_flag=True, help="Skip the feature metrics (precision/recall, Control/GT Recall).")
 @click.option("--device", help="torch device [default: cuda when available, else cpu].")
+@FEATURE_PRECISION_OPTION
 @click.option("--quiet", is_flag=True, help="No progress line.")
-def metrics(generated, reference, control, json_out, backbone, weights, no_features, device, quiet):
+def metrics(generated, reference, control, json_out, backbone, weights, no_features, device, precision, quiet):
     """Score generated lane graphs against a reference set (and their SD controls): topology FDs,
     improved precision/recall, Control / GT Recall with p-values, and geometric lane metrics."""
     from cmtool.data.jsonio import write_json
@@ -36,7 +37,7 @@ def metrics(generated, reference, control, json_out, backbone, weights, no_featu
 
     gen, ref = read_jsonl(generated), read_jsonl(reference)
     controls = load_controls(control) if control is not None else None
-    extractor = None if no_features else FeatureExtractor(backbone, weights, _device(device))
+    extractor = None if no_features else FeatureExtractor(backbone, weights, _device(device), precision=precision)
     result = evaluate(gen, ref, controls, extractor, features=not no_features, progress=not quiet)
     click.echo(summary_table({generated.name: result}))
     click.echo(f"{result['scenes']} scene pairs in {sum(result['seconds'].values()):.1f} s ("
@@ -76,16 +77,24 @@ def metrics(generated, reference, control, json_out, backbone, weights, no_featu
 @click.option("--quiet", is_flag=True, help="No progress line.")
 def eval_cmd(ckpt, data_dir, split, n, cfg, steps, sampler, seed, smooth, batch, out, backbone, weights, no_features,
              rrd_samples, device, precision, quiet):
-    """Evaluate a ControlMap checkpoint on a test split against its unguided DiT (paper Tables 1-2)."""
+    """Evaluate a ControlMap checkpoint on a test split against its unguided DiT (paper Tables 1-2).
+    Under torchrun the processes share the generation (the same maps as one process)."""
 
+    from cmtool import dist as D
     from cmtool.eval.evaluation import EvalSettings, run_eval
     from cmtool.eval.features import FeatureExtractor
 
-    gen = _generator(ckpt, device, smooth, precision)
-    gen.schedule.timesteps(steps)
-    extractor = None if no_features else FeatureExtractor(backbone, weights, gen.device)
-    settings = EvalSettings(data=str(data_dir.resolve()), split=split, n=n, cfg=cfg, steps=steps, sampler=sampler,
-                            seed=seed, batch=batch, precision=precision)
-    run_eval(gen, settings, out, extractor, rrd_samples=rrd_samples, progress=not quiet)
-    click.echo((out / "summary.md").read_text())
-    click.echo(f"wrote {out / 'metrics.json'}, {out / 'summary.md'}, {out / 'eval.rrd'}")
+    info = D.setup(str(_device(device)))
+    try:
+        gen = _generator(ckpt, str(info.device), smooth, precision)
+        gen.schedule.timesteps(steps)
+        extractor = None if no_features or not info.main else FeatureExtractor(backbone, weights, gen.device,
+                                                                                      precision=precision)
+        settings = EvalSettings(data=str(data_dir.resolve()), split=split, n=n, cfg=cfg, steps=steps,
+                                sampler=sampler, seed=seed, batch=batch, precision=precision)
+        run_eval(gen, settings, out, extractor, rrd_samples=rrd_samples, progress=not quiet, info=info)
+    finally:
+        D.cleanup()
+    if info.main:
+        click.echo((out / "summary.md").read_text())
+        click.echo(f"wrote {out / 'metrics.json'}, {out / 'summary.md'}, {out / 'eval.rrd'}")

@@ -7,7 +7,7 @@ from pathlib import Path
 
 import click
 
-from cmtool.cli.common import CITY_CFG_HELP, PRECISION_OPTION, SEED, SMOOTH_OPTION, Finite, _generator
+from cmtool.cli.common import CITY_CFG_HELP, PRECISION_OPTION, SEED, SMOOTH_OPTION, Finite, _device, _generator
 from cmtool.errors import CmtoolError
 from cmtool.sample import DEFAULT_SAMPLER, SAMPLERS
 
@@ -19,6 +19,9 @@ SD input (at most one kind; none: maps from the city label alone):
   --osm FILE --center LAT,LON [--heading DEG]
   --from-hd MAP.json [--pose X,Y,YAW]   (the ground truth is shown beside the map)
 --center and --pose also take a .jsonl file of points for many inputs at once.
+
+Large sets in several processes (CPU or GPUs), the same maps as one process:
+  torchrun --nproc_per_node 2 -m cmtool -- sample ... --no-log
 """
 
 
@@ -65,6 +68,7 @@ def sample(ckpt, sd_paths, osm, center, heading, from_hd, pose, num, seed, steps
            smooth, batch, out, rrd, grid, spawn, connect_url, serve, no_log, device, precision, quiet):
     import shlex
 
+    from cmtool import dist as D
     from cmtool.sample import inputs as src
     from cmtool.sample.run import SampleSettings, plan, run_sample, summary_table
 
@@ -94,10 +98,13 @@ def sample(ckpt, sd_paths, osm, center, heading, from_hd, pose, num, seed, steps
         inputs = src.hd_inputs(from_hd, poses, seed)
     else:
         inputs = [src.ControlInput("uncond", None, "no SD input")]
-    gen = _generator(ckpt, device, smooth, precision)
+    info = D.setup(str(_device(device)))
+    if info.world > 1 and not no_log:
+        raise CmtoolError(f"the {info.world} processes of a torchrun record no denoising steps: add --no-log")
+    gen = _generator(ckpt, str(info.device), smooth, precision)
     jobs = plan(gen, inputs, settings)
     for item in inputs:
-        if item.note:
+        if item.note and info.main:
             click.echo(f"note: {item.note}", err=True)
     if not no_log and rrd is None:
         rrd = out / "sample.rrd"
@@ -107,8 +114,13 @@ def sample(ckpt, sd_paths, osm, center, heading, from_hd, pose, num, seed, steps
 
         click.echo(serve_web_viewer(), err=True)
     command = shlex.join(["cmtool", *sys.argv[1:]])
-    maps = run_sample(gen, jobs, settings, out, None if no_log else rrd, viewer, command, progress=not quiet,
-                      grid=grid)
+    try:
+        maps = run_sample(gen, jobs, settings, out, None if no_log else rrd, viewer, command, progress=not quiet,
+                          grid=grid, info=info)
+    finally:
+        D.cleanup()
+    if not info.main:
+        return
     click.echo(summary_table(maps))
     click.echo(f"wrote {len(maps)} lane graph{'s' if len(maps) > 1 else ''} and picture{'s' if len(maps) > 1 else ''} "
                f"to {out}" + ("" if no_log or rrd is None else f"; recording {rrd}"))

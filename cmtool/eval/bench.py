@@ -18,7 +18,7 @@ from cmtool.data.cache import load_dataset
 from cmtool.data.jsonio import read_json
 from cmtool.errors import CmtoolError
 from cmtool.eval.evaluation import METHODS, read_cache
-from cmtool.eval.features import FeatureExtractor
+from cmtool.eval.features import FeatureExtractor, lanes_image, sd_image
 from cmtool.eval.metrics import evaluate
 
 
@@ -42,21 +42,42 @@ def eval_set(eval_dir: Path, method: str = "controlmap", tile: int = 1):
 
 
 def bench_metrics(generated, reference, controls, extractor: FeatureExtractor | None, repeats: int = 3) -> dict:
-    """Per metric family (and for the whole call) the seconds of each repeat."""
+    """Per metric family (and for the whole call) the seconds of each repeat; with an ``extractor`` also the
+    ResNet-50 passes alone over the same rasters (generated, reference and SD), interleaved with the whole calls."""
     families: dict[str, list[float]] = {}
-    total = []
+    total, passes = [], []
+    images = None
+    if extractor is not None:
+        images = np.concatenate([np.stack([lanes_image(g.lanes, g.frame_m) for g in generated + reference]),
+                                 np.stack([sd_image(sd) for sd in controls])])
     for _ in range(repeats):
         began = time.perf_counter()
         result = evaluate(generated, reference, controls, extractor, features=extractor is not None)
         total.append(time.perf_counter() - began)
         for name, seconds in result["seconds"].items():
             families.setdefault(name, []).append(seconds)
-    return {"scenes": len(generated), "repeats": repeats, "families": families, "total": total}
+        if images is not None:
+            began = time.perf_counter()
+            extractor(images)
+            passes.append(time.perf_counter() - began)
+    report = {"scenes": len(generated), "repeats": repeats, "families": families, "total": total}
+    if extractor is not None:
+        report |= {"resnet_passes": passes, "images": len(images), "precision": extractor.precision}
+    return report
 
 
 def report_table(report: dict) -> str:
-    """The bench as a markdown table: minimum and median seconds per family, then the whole call."""
+    """The bench as a markdown table: minimum and median seconds per family, then the whole call (and the
+    ResNet-50 passes alone, with the whole call's time as a multiple of theirs)."""
     rows = ["| metric family | min s | median s |", "|---|---|---|"]
-    for name, times in [*report["families"].items(), ("all of `evaluate`", report["total"])]:
+    named = [*report["families"].items(), ("all of `evaluate`", report["total"])]
+    if "resnet_passes" in report:
+        named.append((f"ResNet-50 passes alone ({report['images']:,} images, {report['precision']})",
+                      report["resnet_passes"]))
+    for name, times in named:
         rows.append(f"| {name} | {min(times):.2f} | {statistics.median(times):.2f} |")
-    return f"{report['scenes']} scene pairs, {report['repeats']} repeats\n\n" + "\n".join(rows)
+    head = f"{report['scenes']} scene pairs, {report['repeats']} repeats"
+    if "resnet_passes" in report:
+        head += (f"; all of `evaluate` is {min(report['total']) / min(report['resnet_passes']):.2f}x the ResNet-50 "
+                 "passes alone (minimum over minimum)")
+    return head + "\n\n" + "\n".join(rows)

@@ -4,9 +4,10 @@
 - **ControlMap**: the scene's SD raster as control at guidance weight ``cfg``, with the scene's city
   label when the checkpoint knows it (else the null label).
 
-Both use the same initial noise per scene. Generated maps go to a cache, ``<out>/cache/{unguided,
-controlmap}.jsonl``, one batch at a time, so an interrupted run continues where it stopped (the
-cache remembers its settings and refuses to mix runs). Then ``metrics.json``, ``summary.md``
+Both use the same initial noise per scene (drawn per batch from the seed and the batch's first
+scene, so processes under ``torchrun`` can share the batches). Generated maps go to a cache,
+``<out>/cache/{unguided,controlmap}.jsonl``, one batch at a time, so an interrupted run continues
+where it stopped (the cache remembers its settings and refuses to mix runs). Then ``metrics.json``, ``summary.md``
 (tables shaped like the paper's Tables 1 and 2 plus our geometric metrics) and ``eval.rrd``
 (on the ``sample`` timeline: SD | unguided | ControlMap | ground truth of the first ``rrd_samples``
 scenes with their scores, and per-scene scores of all scenes).
@@ -24,6 +25,7 @@ import rerun.blueprint as rrb
 import torch
 
 from cmtool import checkpoint as ckpt
+from cmtool import dist as D
 from cmtool.data.cache import load_dataset
 from cmtool.data.jsonio import read_json, write_json, write_text_atomic
 from cmtool.data.lanegraph import LaneGraph, write_jsonl
@@ -62,8 +64,10 @@ class EvalSettings:
 
 
 def run_eval(gen: Generator, settings: EvalSettings, out: Path, extractor: FeatureExtractor | None,
-             rrd_samples: int = 64, progress: bool = True) -> dict:
-    """Generate (or continue generating) both sets, compute the metrics and write the reports."""
+             rrd_samples: int = 64, progress: bool = True, info: D.DistInfo = D.SINGLE) -> dict | None:
+    """Generate (or continue generating) both sets, compute the metrics and write the reports. Under ``torchrun``
+    (``info``) the processes take turns at the batches and the main process scores and writes everything; the
+    others return None."""
     if not gen.has_control:
         raise CmtoolError(f"{gen.path}: eval compares ControlMap with its unguided DiT; give a ControlMap checkpoint")
     data = load_dataset(settings.data, settings.split)
@@ -71,9 +75,11 @@ def run_eval(gen: Generator, settings: EvalSettings, out: Path, extractor: Featu
     settings.n, settings.checkpoint, settings.smooth = n, str(gen.path), gen.smooth
     settings.weights = ckpt.weights_digest(gen.path, ckpt.resolve(ckpt.linked(gen.path, gen.config["rvae"])))
     scenes = [data.scene(i) for i in range(n)]
+    generated = _generate(gen, scenes, settings, out / "cache", progress, info)
+    if not info.main:
+        return None
     reference = [s.to_lanegraph() for s in scenes]
     controls = np.stack([s.sd for s in scenes])
-    generated = _generate(gen, scenes, settings, out / "cache", progress)
     shared = {}
     if extractor is not None:  # the ground truth's and the controls' features serve both methods
         shared = {"reference_features": reference_image_features(reference, extractor),
@@ -90,8 +96,37 @@ def run_eval(gen: Generator, settings: EvalSettings, out: Path, extractor: Featu
     return report
 
 
-def _generate(gen: Generator, scenes, settings: EvalSettings, cache: Path, progress: bool) -> dict[str, list]:
-    """Both methods' maps for ``scenes``, continuing from (and extending) the cache."""
+def _generate(gen: Generator, scenes, settings: EvalSettings, cache: Path, progress: bool,
+              info: D.DistInfo) -> dict[str, list] | None:
+    """Both methods' maps for ``scenes``, continuing from (and extending) the cache: on the main process; the
+    others generate their turns' batches and get None."""
+    start, done = None, None
+    if info.main:
+        try:
+            start, done = _open_cache(cache, settings)
+        except CmtoolError as e:
+            start = e  # every process stops with it
+    start = D.broadcast(start, info)
+    if isinstance(start, CmtoolError):
+        raise start
+    with Progress(len(scenes), "eval", "scenes", enabled=progress and info.main) as bar:
+        bar.update(start)
+        for mine in D.rounds(list(range(start, len(scenes), settings.batch)), info):
+            made = [_batch_lines(gen, scenes[b0:b0 + settings.batch], b0, settings) for b0 in mine]
+            for part in D.gather(made, info) or []:
+                for lines in part:
+                    for m in METHODS:
+                        with (cache / f"{m}.jsonl").open("a", encoding="utf-8") as f:
+                            f.write("".join(line + "\n" for line in lines[m]))
+                        # scored as cached (coordinates to the millimetre): a resumed run scores what a whole one does
+                        done[m] += [LaneGraph.from_json(json.loads(line)) for line in lines[m]]
+                    bar.update(len(lines[METHODS[0]]))
+    return done
+
+
+def _open_cache(cache: Path, settings: EvalSettings) -> tuple[int, dict[str, list]]:
+    """The first scene still to generate and both methods' maps so far (whole batches of both: a crash may have
+    left one method a batch ahead), after checking that the cache was made with these settings."""
     cache.mkdir(parents=True, exist_ok=True)
     meta = cache / "settings.json"
     mine = {k: v for k, v in asdict(settings).items() if k != "n"}
@@ -106,33 +141,30 @@ def _generate(gen: Generator, scenes, settings: EvalSettings, cache: Path, progr
     done = {m: read_cache(cache / f"{m}.jsonl") for m in METHODS}
     start = min(len(v) for v in done.values()) // settings.batch * settings.batch
     done = {m: v[:start] for m, v in done.items()}
-    for m in METHODS:  # keep whole batches of both methods only
+    for m in METHODS:
         write_jsonl(cache / f"{m}.jsonl", done[m])
-    null = len(gen.cities)
-    with Progress(len(scenes), "eval", "scenes", enabled=progress) as bar:
-        bar.update(start)
-        for b0 in range(start, len(scenes), settings.batch):
-            batch = scenes[b0:b0 + settings.batch]
-            noise = torch.randn((len(batch), *gen.model.latent_shape),
-                                generator=torch.Generator().manual_seed(scene_seed(settings.seed, b0)))
-            for m in METHODS:
-                if m == "unguided":
-                    labels, sd = [null] * len(batch), None
-                else:
-                    labels = [gen.known_label(s.city) for s in batch]
-                    sd = np.stack([s.sd for s in batch])
-                z = gen.sample(sd, labels, cfg=settings.cfg if m == "controlmap" else 0.0, steps=settings.steps,
-                               sampler=settings.sampler, noise=noise.to(gen.device),
-                               generator=step_generator(scene_seed(settings.seed, b0), gen.device))
-                graphs = [gen.lane_graph(el, gen.city_name(y), {"method": m, "scene": b0 + k, "seed": settings.seed})
-                          for k, (el, y) in enumerate(zip(gen.decode(z), labels))]
-                lines = [json.dumps(g.to_json(), separators=(",", ":")) for g in graphs]
-                with (cache / f"{m}.jsonl").open("a", encoding="utf-8") as f:
-                    f.write("".join(line + "\n" for line in lines))
-                # scored as cached (coordinates to the millimetre), so a resumed run scores what a whole one does
-                done[m] += [LaneGraph.from_json(json.loads(line)) for line in lines]
-            bar.update(len(batch))
-    return done
+    return start, done
+
+
+def _batch_lines(gen: Generator, batch, b0: int, settings: EvalSettings) -> dict[str, list[str]]:
+    """Both methods' maps of the scenes ``batch`` (starting at scene ``b0``) as JSON lines; the batch's noise
+    depends on ``b0`` alone, so the maps do not depend on which process makes them."""
+    noise = torch.randn((len(batch), *gen.model.latent_shape),
+                        generator=torch.Generator().manual_seed(scene_seed(settings.seed, b0)))
+    lines = {}
+    for m in METHODS:
+        if m == "unguided":
+            labels, sd = [len(gen.cities)] * len(batch), None
+        else:
+            labels = [gen.known_label(s.city) for s in batch]
+            sd = np.stack([s.sd for s in batch])
+        z = gen.sample(sd, labels, cfg=settings.cfg if m == "controlmap" else 0.0, steps=settings.steps,
+                       sampler=settings.sampler, noise=noise.to(gen.device),
+                       generator=step_generator(scene_seed(settings.seed, b0), gen.device))
+        graphs = [gen.lane_graph(el, gen.city_name(y), {"method": m, "scene": b0 + k, "seed": settings.seed})
+                  for k, (el, y) in enumerate(zip(gen.decode(z), labels))]
+        lines[m] = [json.dumps(g.to_json(), separators=(",", ":")) for g in graphs]
+    return lines
 
 
 def read_cache(path: Path) -> list[LaneGraph]:

@@ -81,12 +81,15 @@ def imagenet_weights(path=None) -> Path:
 class FeatureExtractor:
     """ResNet-50 trunk -> (N, 2048) pooled features of uint8 RGB rasters (N, H, W, 3)."""
 
-    def __init__(self, backbone: str = "resnet50-seeded", weights=None, device="cpu", batch: int = 64):
+    def __init__(self, backbone: str = "resnet50-seeded", weights=None, device="cpu", batch: int = 64,
+                 precision: str = "fp32"):
         from torchvision.models import resnet50
 
         if backbone not in BACKBONES:
             raise CmtoolError(f"unknown feature backbone {backbone!r} (choose {', '.join(BACKBONES)})")
-        self.backbone, self.device, self.batch = backbone, torch.device(device), batch
+        if precision not in ("fp32", "bf16"):
+            raise CmtoolError(f"feature precision {precision!r} (choose fp32, bf16)")
+        self.backbone, self.device, self.batch, self.precision = backbone, torch.device(device), batch, precision
         if backbone == "resnet50-seeded":
             with torch.random.fork_rng(devices=[]):
                 torch.manual_seed(0)
@@ -104,16 +107,18 @@ class FeatureExtractor:
             net.load_state_dict(state)
             self.source = str(file)
         net.fc = torch.nn.Identity()
-        self.net = net.eval().to(self.device)
+        self.net = net.eval().to(self.device, memory_format=torch.channels_last)
 
-    @torch.no_grad()
+    @torch.inference_mode()
     def __call__(self, images: np.ndarray) -> np.ndarray:
+        """Features of ``images`` in batches; under bf16 autocast with ``precision`` "bf16"."""
         out = []
-        for start in range(0, len(images), self.batch):
-            x = torch.from_numpy(np.ascontiguousarray(images[start:start + self.batch])).to(self.device)
-            x = x.permute(0, 3, 1, 2).float().div_(255.0)
-            x = (x - _MEAN.to(self.device)) / _STD.to(self.device)
-            out.append(self.net(x).float().cpu().numpy())
+        mean, std = _MEAN.to(self.device), _STD.to(self.device)
+        with torch.autocast(self.device.type, dtype=torch.bfloat16, enabled=self.precision == "bf16"):
+            for start in range(0, len(images), self.batch):
+                x = torch.from_numpy(np.ascontiguousarray(images[start:start + self.batch])).to(self.device)
+                x = ((x.permute(0, 3, 1, 2).float() / 255.0 - mean) / std).contiguous(memory_format=torch.channels_last)
+                out.append(self.net(x).float().cpu().numpy())
         return np.concatenate(out) if out else np.zeros((0, 2048), np.float32)
 
 

@@ -1,12 +1,13 @@
 """``cmtool sample``: HD maps for a list of SD inputs, as lane graph JSON, pictures and one recording.
 
-Maps are generated in batches; every input gets ``num`` maps. All randomness comes from one
-generator seeded with ``seed`` and consumed in order, so the same command (inputs, options,
-checkpoint, device) gives the same maps. Outputs per map in ``out``: ``<name>.json`` (the lane
-graph, successors inferred), ``<name>.png`` (SD | generated | ground truth when
-known) and ``<name>.gt.json`` (the ground truth, when known); plus one ``.rrd`` with every
-denoising step of every map (:mod:`cmtool.viz.trajectory`). The files are written as one set: each to a
-temporary file, all renamed into place when the run succeeds, so a failed run leaves earlier files as they were.
+Maps are generated in batches; every input gets ``num`` maps. A batch's randomness comes from
+``seed`` and the number of its first map, so the same command (inputs, options, checkpoint,
+device) gives the same maps, also when the processes of a ``torchrun`` share the batches.
+Outputs per map in ``out``: ``<name>.json`` (the lane graph, successors inferred), ``<name>.png``
+(SD | generated | ground truth when known) and ``<name>.gt.json`` (the ground truth, when known);
+plus one ``.rrd`` with every denoising step of every map (:mod:`cmtool.viz.trajectory`). The files
+are written as one set: each to a temporary file, all renamed into place when the run succeeds, so
+a failed run leaves earlier files as they were.
 """
 
 from __future__ import annotations
@@ -22,6 +23,7 @@ import numpy as np
 import rerun as rr
 import torch
 
+from cmtool import dist as D
 from cmtool.data.jsonio import OutputSet, json_text
 from cmtool.data.lanegraph import LaneGraph
 from cmtool.errors import CmtoolError
@@ -31,7 +33,7 @@ from cmtool.eval.validity import check
 from cmtool.geometry import polyline_length
 from cmtool.progress import Progress
 from cmtool.sample import DEFAULT_SAMPLER, SAMPLERS
-from cmtool.sample.diffusion import SamplingError
+from cmtool.sample.diffusion import SamplingError, scene_seed, step_generator
 from cmtool.sample.generator import Generator
 from cmtool.sample.inputs import ControlInput
 from cmtool.viz.draw import graph_panel, legend, sd_panel, title_strip
@@ -107,10 +109,16 @@ def plan(gen: Generator, inputs: list[ControlInput], settings: SampleSettings) -
 
 def run_sample(gen: Generator, jobs: list[Job], settings: SampleSettings, out: Path, rrd: Path | None = None,
                viewer: str | None = None, command: str = "", progress: bool = True,
-               grid: Path | None = None) -> list[SampledMap]:
+               grid: Path | None = None, info: D.DistInfo = D.SINGLE) -> list[SampledMap] | None:
     """Generate every job's map, write its files to ``out`` and (unless ``rrd`` and ``viewer`` are
     None) record every step; ``viewer`` is "spawn", "serve" (the recording is served from this process until it
-    ends) or a Rerun gRPC URL to stream to live; ``grid`` is a PNG that gets all maps' pictures stacked."""
+    ends) or a Rerun gRPC URL to stream to live; ``grid`` is a PNG that gets all maps' pictures stacked. Under
+    ``torchrun`` (``info``, several processes, no recording) the main process writes the files and returns the maps,
+    the others only generate their share and return None."""
+    if info.world > 1 and (rrd is not None or viewer is not None):
+        raise CmtoolError(f"the {info.world} processes of a torchrun record no denoising steps: add --no-log")
+    if not info.main:
+        return generate_maps(gen, jobs, settings, None, progress, info)
     outputs = OutputSet()
     rec = None
     created = not out.exists()
@@ -119,7 +127,7 @@ def run_sample(gen: Generator, jobs: list[Job], settings: SampleSettings, out: P
         if rrd is not None or viewer is not None:
             rec = sampling_recording(rrd, viewer)
             log_run_header(rec, gen, jobs, settings, command)
-        maps = generate_maps(gen, jobs, settings, rec, progress)
+        maps = generate_maps(gen, jobs, settings, rec, progress, info)
         bodies = [_write_map(out, m, settings, outputs) for m in maps]
         if grid is not None:
             gap = np.full((4, bodies[0].shape[1], 3), 12, np.uint8)
@@ -150,39 +158,53 @@ def run_sample(gen: Generator, jobs: list[Job], settings: SampleSettings, out: P
         raise
 
 
-def generate_maps(gen: Generator, jobs: list[Job], settings: SampleSettings, rec, progress: bool) -> list[SampledMap]:
-    """Sample, decode and (when ``rec`` is a recording) log every step of the jobs' maps, in batches."""
-    generator = torch.Generator(gen.device).manual_seed(settings.seed)
+def generate_maps(gen: Generator, jobs: list[Job], settings: SampleSettings, rec, progress: bool,
+                  info: D.DistInfo = D.SINGLE) -> list[SampledMap] | None:
+    """Sample, decode and (when ``rec`` is a recording) log every step of the jobs' maps, in batches. Under
+    ``torchrun`` (``info``) the processes take turns at the batches and the main process gets all maps (the others
+    None)."""
     maps = []
-    with Progress(len(jobs), "sample", "maps", enabled=progress and len(jobs) > 1) as bar:
-        for start in range(0, len(jobs), settings.batch):
-            batch = jobs[start:start + settings.batch]
-            logger = None
-            if rec is not None:
-                logger = TrajectoryLogger(rec, [j.prefix for j in batch], gen.decode, settings.cfg)
-            sds = [j.source.sd for j in batch]
-            sd = None if all(s is None for s in sds) else np.stack(sds)
-            began = time.perf_counter()
-            z = gen.sample(sd, [j.label for j in batch], cfg=settings.cfg, city_cfg=settings.city_cfg,
-                           steps=settings.steps, sampler=settings.sampler, eta=settings.eta, generator=generator,
-                           callback=logger)
-            decoded = gen.decode(z)
-            graphs = [gen.lane_graph(el, gen.city_name(j.label), _meta(gen, j, settings)) for j, el in zip(batch, decoded)]
-            for job, graph in zip(batch, graphs):
-                graph.meta["validity"] = round(check(graph).score, 6)
-                if job.source.sd is not None:  # lane length along one-way SD roads running the legal way
-                    share, judged = legal_oneway(graph.lanes, job.source.sd)
-                    graph.meta["legal_oneway"] = None if math.isnan(share) else round(share, 6)
-                    graph.meta["oneway_judged_m"] = round(judged, 1)
-            if logger is not None:
-                logger.flush()
-                for job, graph in zip(batch, graphs):
-                    log_lanes(rec, job.prefix, graph.lanes, graph.green_lights, graph.red_lights, graph.successors,
-                              static=True)
-            seconds = (time.perf_counter() - began) / len(batch)
-            maps += [SampledMap(j, g, seconds) for j, g in zip(batch, graphs)]
-            bar.update(len(batch))
-    return maps
+    with Progress(len(jobs), "sample", "maps", enabled=progress and len(jobs) > 1 and info.main) as bar:
+        for mine in D.rounds(list(range(0, len(jobs), settings.batch)), info):
+            made = [(start, _batch_maps(gen, jobs[start:start + settings.batch], start, settings, rec))
+                    for start in mine]
+            for part in D.gather(made, info) or []:
+                for start, batch in part:
+                    maps += [SampledMap(jobs[start + k], graph, seconds) for k, (graph, seconds) in enumerate(batch)]
+                    bar.update(len(batch))
+    return maps if info.main else None
+
+
+def _batch_maps(gen: Generator, batch: list[Job], start: int, settings: SampleSettings,
+                rec) -> list[tuple[LaneGraph, float]]:
+    """The lane graphs of the jobs ``batch`` (jobs ``start``, ``start + 1``, ...) with each map's share of the
+    time; the batch's noise depends on the seed and ``start`` alone, as in ``cmtool eval``."""
+    logger = None
+    if rec is not None:
+        logger = TrajectoryLogger(rec, [j.prefix for j in batch], gen.decode, settings.cfg)
+    sds = [j.source.sd for j in batch]
+    sd = None if all(s is None for s in sds) else np.stack(sds)
+    began = time.perf_counter()
+    noise = torch.randn((len(batch), *gen.model.latent_shape),
+                        generator=torch.Generator().manual_seed(scene_seed(settings.seed, start)))
+    z = gen.sample(sd, [j.label for j in batch], cfg=settings.cfg, city_cfg=settings.city_cfg, steps=settings.steps,
+                   sampler=settings.sampler, eta=settings.eta, noise=noise.to(gen.device),
+                   generator=step_generator(scene_seed(settings.seed, start), gen.device), callback=logger)
+    decoded = gen.decode(z)
+    graphs = [gen.lane_graph(el, gen.city_name(j.label), _meta(gen, j, settings)) for j, el in zip(batch, decoded)]
+    for job, graph in zip(batch, graphs):
+        graph.meta["validity"] = round(check(graph).score, 6)
+        if job.source.sd is not None:  # lane length along one-way SD roads running the legal way
+            share, judged = legal_oneway(graph.lanes, job.source.sd)
+            graph.meta["legal_oneway"] = None if math.isnan(share) else round(share, 6)
+            graph.meta["oneway_judged_m"] = round(judged, 1)
+    if logger is not None:
+        logger.flush()
+        for job, graph in zip(batch, graphs):
+            log_lanes(rec, job.prefix, graph.lanes, graph.green_lights, graph.red_lights, graph.successors,
+                      static=True)
+    seconds = (time.perf_counter() - began) / len(batch)
+    return [(graph, seconds) for graph in graphs]
 
 
 def _meta(gen: Generator, job: Job, settings: SampleSettings) -> dict:

@@ -38,6 +38,11 @@ def open_recording(kind: str, recording_id: str | None = None) -> rr.RecordingSt
     return rec
 
 
+def in_memory(rec: rr.RecordingStream) -> bool:
+    """Whether ``rec`` is a recording of :func:`open_recording` (written at the end, no live viewer)."""
+    return rec in _MEMORY
+
+
 def close_recording(rec: rr.RecordingStream, path, outputs: OutputSet | None = None) -> None:
     """Close a recording of :func:`open_recording` and write it to ``path`` (an ``.rrd`` file), atomically or, with
     ``outputs``, staged with the other files of the command."""

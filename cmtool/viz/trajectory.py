@@ -2,8 +2,8 @@
 
 :class:`TrajectoryLogger` is the sampler's per-step callback. It keeps each step's tensors and
 sends them in columns (one ``send_columns`` per entity for many steps), which costs a fraction
-of logging row by row; pending steps go out every ``flush_s`` seconds, so a live viewer follows
-the run. Per map, under ``<prefix>`` (``sample_{k}/`` when a recording holds several maps) and on
+of logging row by row; pending steps go out every ``flush_s`` seconds when a live viewer follows
+the run, else all at the end of the batch. Per map, under ``<prefix>`` (``sample_{k}/`` when a recording holds several maps) and on
 the ``diffusion_step`` (0 = pure noise) and ``timestep`` timelines:
 
 - ``diffusion/latent``: the latent x_t (Tensor channel x row x col, shown as one channel's 8 x 8
@@ -19,6 +19,7 @@ the ``diffusion_step`` (0 = pure noise) and ``timestep`` timelines:
 
 from __future__ import annotations
 
+import math
 import time
 from typing import Callable
 
@@ -31,7 +32,7 @@ from rerun.encodings import TensorDimensionIndexSelection, TensorDimensionSelect
 
 from cmtool.sample.diffusion import StepInfo
 from cmtool.viz.draw import GREEN, RED
-from cmtool.viz.recording import LANE_RADIUS_M, LIGHT_RADIUS_M, lane_colours, log_ego_frame
+from cmtool.viz.recording import LANE_RADIUS_M, LIGHT_RADIUS_M, in_memory, lane_colours, log_ego_frame
 
 LATENT_DIMS = ("channel", "row", "col")
 MAX_TABS = 16  # maps that get their own tab in the default layout
@@ -104,10 +105,14 @@ def _norms(x) -> np.ndarray:
 
 
 class TrajectoryLogger:
-    """Sampler callback that records every step of a batch of maps, one ``prefix`` per map."""
+    """Sampler callback that records every step of a batch of maps, one ``prefix`` per map. ``flush_s``: seconds
+    between flushes [default: 0.5 for a live viewer; none before the last step for a recording kept in memory,
+    so that all steps' latents are decoded in one batch]."""
 
     def __init__(self, rec: rr.RecordingStream, prefixes: list[str], decode: Callable, cfg: float,
-                 flush_s: float = 0.5):
+                 flush_s: float | None = None):
+        if flush_s is None:
+            flush_s = math.inf if in_memory(rec) else 0.5
         self.rec, self.prefixes, self.decode, self.cfg, self.flush_s = rec, prefixes, decode, cfg, flush_s
         self.pending: list[dict] = []
         self.last_flush = time.perf_counter()

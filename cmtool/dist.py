@@ -1,7 +1,8 @@
-"""Process-group setup for multi-GPU / multi-node training under ``torchrun``.
+"""Several processes under ``torchrun``: training (DDP), ``cmtool eval`` and ``cmtool sample``.
 
 ``torchrun`` sets RANK, WORLD_SIZE, LOCAL_RANK, MASTER_ADDR and MASTER_PORT; without them the
-run is a single process. NCCL is used on CUDA, gloo on CPU.
+run is a single process. NCCL is used on CUDA, gloo on CPU. Sampling splits its batches over the
+processes (:func:`rounds`) and gathers the maps on the main process (:func:`gather`).
 """
 
 from __future__ import annotations
@@ -23,6 +24,9 @@ class DistInfo:
     @property
     def main(self) -> bool:
         return self.rank == 0
+
+
+SINGLE = DistInfo(0, 1, torch.device("cpu"))  # a process on its own (its device is not used)
 
 
 def setup(device: str | None = None) -> DistInfo:
@@ -49,6 +53,31 @@ def cleanup() -> None:
 def barrier() -> None:
     if dist.is_initialized():
         dist.barrier()
+
+
+def broadcast(obj, info: DistInfo):
+    """The main process's ``obj`` on every process."""
+    if info.world == 1:
+        return obj
+    box = [obj]
+    dist.broadcast_object_list(box, src=0)
+    return box[0]
+
+
+def gather(obj, info: DistInfo) -> list | None:
+    """Every process's ``obj`` in rank order on the main process; None on the others."""
+    if info.world == 1:
+        return [obj]
+    out = [None] * info.world if info.main else None
+    dist.gather_object(obj, out, dst=0)
+    return out
+
+
+def rounds(items: list, info: DistInfo) -> list[list]:
+    """``items`` dealt round by round, one to each process in rank order: in every round this process's item, or
+    none when the items ran out (so every process takes part in every round's :func:`gather`)."""
+    per_round = [items[k:k + info.world] for k in range(0, len(items), info.world)]
+    return [chunk[info.rank:info.rank + 1] for chunk in per_round]
 
 
 def hardware(info: DistInfo) -> str:
