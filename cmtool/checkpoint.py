@@ -30,7 +30,7 @@ import torch
 from safetensors import SafetensorError
 from safetensors.torch import load_file, save_file
 
-from cmtool.data.jsonio import read_json
+from cmtool.data.jsonio import file_mode, read_json
 from cmtool.errors import CmtoolError
 
 FORMAT = "cmtool.checkpoint"
@@ -50,6 +50,7 @@ def _fsync_dir(path: Path) -> None:
 
 def _write_tensors(path: Path, tensors: dict[str, torch.Tensor]) -> None:
     save_file({k: v.detach().contiguous().cpu() for k, v in tensors.items()}, str(path))
+    os.chmod(path, file_mode())  # safetensors writes 0600 files; weights to ship and share get the usual ones
     with open(path, "rb") as f:
         os.fsync(f.fileno())
 

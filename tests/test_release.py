@@ -6,6 +6,7 @@ import pytest
 import torch
 
 from cmtool import checkpoint as ckpt
+from cmtool.data.jsonio import file_mode
 from cmtool.data.lanegraph import read_jsonl
 from cmtool.data.sd_raster import read_sd_image
 from cmtool.errors import CmtoolError
@@ -17,9 +18,9 @@ from tests.conftest import REPO, in_process
 def test_shipped_weights_match_their_checksums_and_size():
     assert verify(BUNDLED) == []
     manifest = (BUNDLED / MANIFEST).read_text()
-    assert "controlmap/model.safetensors" in manifest and "rvae/model.safetensors" in manifest
-    total = sum(p.stat().st_size for p in BUNDLED.rglob("*") if p.is_file())
-    assert total <= 30e6
+    assert "controlmap/model.safetensors.index.json" in manifest and "rvae/model.safetensors" in manifest
+    files = [p for p in BUNDLED.rglob("*") if p.is_file()]
+    assert sum(p.stat().st_size for p in files) <= 30e6 and max(p.stat().st_size for p in files) <= 16 * 2**20
 
 
 def test_shipped_weights_sample_lane_graphs_for_each_city(tmp_path, capsys):
@@ -40,7 +41,8 @@ def test_info_without_a_path_describes_the_shipped_models(capsys):
     code, out, err = in_process(capsys, "info")
     assert code == 0, err
     assert "controlmap (complete" in out and "DiT trained" in out and "decoder only" in out
-    assert out.count("trained ") >= 2 and "recipes/tiny-cpu/controlnet.toml" in out
+    assert out.count("trained ") >= 2 and "recipes/tiny-cpu/pipeline/controlnet.toml" in out
+    assert "decoder=graph" in out  # the RVAE's decoder predicts successor links
 
 
 def test_pack_writes_float16_weights_that_sample_like_the_original(sampling_ckpt, tmp_path, capsys):
@@ -81,6 +83,8 @@ def test_pack_splits_weights_into_files_under_the_limit(sampling_ckpt, tmp_path,
     cm = tmp_path / "split" / "controlmap"
     shards = sorted(cm.glob("model-*-of-*.safetensors"))
     assert len(shards) >= 2 and all(p.stat().st_size <= 64 * 1024 for p in shards)
+    # the usual permissions of new files (safetensors itself makes them 0600: unreadable to others once installed)
+    assert {p.stat().st_mode & 0o777 for p in cm.iterdir()} == {file_mode()}
     assert not (cm / ckpt.WEIGHTS).exists() and (cm / ckpt.INDEX).is_file()
     whole = ckpt.read_weights(tmp_path / "whole" / "controlmap")
     split = ckpt.read_weights(cm)

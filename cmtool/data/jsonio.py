@@ -79,7 +79,7 @@ def atomic_open(path: str | os.PathLike, mode: str = "w"):
         fd, tmp = tempfile.mkstemp(dir=path.parent, prefix=f".{path.name}.", suffix=".tmp")
         with os.fdopen(fd, mode, encoding=None if "b" in mode else "utf-8") as f:
             yield f
-        os.chmod(tmp, 0o666 & ~_umask())  # mkstemp makes 0600 files; give the usual permissions
+        os.chmod(tmp, file_mode())  # mkstemp makes 0600 files; give the usual permissions
         os.replace(tmp, path)
     except OSError as e:
         _remove(tmp)
@@ -106,7 +106,7 @@ class OutputSet:
             self.staged.append((tmp, path))
             with os.fdopen(fd, "wb") as f:
                 f.write(data)
-            os.chmod(tmp, 0o666 & ~_umask())
+            os.chmod(tmp, file_mode())
         except OSError as e:
             raise CmtoolError(f"cannot write {path}: {os_reason(e)}") from None
 
@@ -133,10 +133,11 @@ def _remove(tmp: str | None) -> None:
         os.unlink(tmp)
 
 
-def _umask() -> int:
+def file_mode() -> int:
+    """The permissions a new file gets from ``open`` under the process's umask (0644 under the usual 022)."""
     mask = os.umask(0)
     os.umask(mask)
-    return mask
+    return 0o666 & ~mask
 
 
 def write_text_atomic(path: str | os.PathLike, text: str) -> None:
