@@ -77,7 +77,7 @@ def ablate_cfg(ckpt, data_dir, split, n, steps, sampler, smooth, out, device, pr
 
     ws = _floats(weights, "--w")
     gen, scenes = _ablation_setup(ckpt, data_dir, split, n, device, smooth, precision)
-    extractor = None if no_features else FeatureExtractor(backbone, weights_file, gen.device, precision=precision)
+    extractor = None if no_features else FeatureExtractor(backbone, weights_file, gen.device)
     cfg_sweep(gen, scenes, ws, seeds, steps, extractor, out, progress=not quiet, sampler=sampler)
     click.echo((out / "ablate_cfg.md").read_text().rstrip())
     click.echo(f"wrote {out / 'ablate_cfg.md'}, {out / 'ablate_cfg.png'}, {out / 'ablate_cfg.rrd'}")

@@ -43,14 +43,14 @@ SMOOTH_OPTION = click.option(
 
 PRECISION_OPTION = click.option(
     "--precision", default="fp32", show_default=True, type=click.Choice(["fp32", "bf16"]),
-    help="bf16: the denoising model (and the feature network of the metrics) under bf16 autocast, faster where the "
-         "CPU computes bf16 natively (AVX512-BF16, AMX) or on a GPU; maps stay within about 1% of fp32's latents "
-         "(docs/speed.md).")
+    help="bf16: the denoising model under bf16 autocast, faster where the CPU computes bf16 natively (AVX512-BF16, "
+         "AMX) or on a GPU; maps stay within about 1% of fp32's latents (docs/speed.md).")
 
 FEATURE_PRECISION_OPTION = click.option(
     "--precision", default="fp32", show_default=True, type=click.Choice(["fp32", "bf16"]),
-    help="bf16: the ResNet-50 of the feature metrics under bf16 autocast, faster where the CPU computes bf16 "
-         "natively (AVX512-BF16, AMX) or on a GPU (docs/speed.md).")
+    help="bf16: the ResNet-50 of the feature metrics under bf16 autocast, about 2.5x faster where the CPU computes "
+         "bf16 natively (AVX512-BF16, AMX); recall values move slightly (docs/speed.md). `eval` and `ablate` keep "
+         "fp32 features, so that their numbers compare across runs.")
 
 
 def _generator(ckpt, device, smooth: int = DEFAULT_SMOOTH, precision: str = "fp32"):

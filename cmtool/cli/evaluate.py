@@ -88,8 +88,7 @@ def eval_cmd(ckpt, data_dir, split, n, cfg, steps, sampler, seed, smooth, batch,
     try:
         gen = _generator(ckpt, str(info.device), smooth, precision)
         gen.schedule.timesteps(steps)
-        extractor = None if no_features or not info.main else FeatureExtractor(backbone, weights, gen.device,
-                                                                                      precision=precision)
+        extractor = None if no_features or not info.main else FeatureExtractor(backbone, weights, gen.device)
         settings = EvalSettings(data=str(data_dir.resolve()), split=split, n=n, cfg=cfg, steps=steps,
                                 sampler=sampler, seed=seed, batch=batch, precision=precision)
         run_eval(gen, settings, out, extractor, rrd_samples=rrd_samples, progress=not quiet, info=info)
