@@ -6,7 +6,8 @@ from pathlib import Path
 
 import click
 
-from cmtool.cli.common import FEATURE_PRECISION_OPTION, PRECISION_OPTION, SEED, SMOOTH_OPTION, Finite, _device, _generator
+from cmtool.cli.common import (FEATURE_PRECISION_OPTION, PRECISION_OPTION, SEED, SMOOTH_OPTION, Finite, _device,
+                               _generator)
 from cmtool.sample import DEFAULT_SAMPLER, SAMPLERS
 
 

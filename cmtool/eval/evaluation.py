@@ -22,7 +22,6 @@ from pathlib import Path
 import numpy as np
 import rerun as rr
 import rerun.blueprint as rrb
-import torch
 
 from cmtool import checkpoint as ckpt
 from cmtool import dist as D
@@ -36,7 +35,6 @@ from cmtool.eval.validity import check
 from cmtool.progress import Progress
 from cmtool.release import BUNDLED
 from cmtool.sample import DEFAULT_SAMPLER, DEFAULT_SMOOTH
-from cmtool.sample.diffusion import scene_seed, step_generator
 from cmtool.sample.generator import Generator
 from cmtool.viz.recording import close_recording, log_lanes, log_sd, open_recording
 
@@ -149,8 +147,6 @@ def _open_cache(cache: Path, settings: EvalSettings) -> tuple[int, dict[str, lis
 def _batch_lines(gen: Generator, batch, b0: int, settings: EvalSettings) -> dict[str, list[str]]:
     """Both methods' maps of the scenes ``batch`` (starting at scene ``b0``) as JSON lines; the batch's noise
     depends on ``b0`` alone, so the maps do not depend on which process makes them."""
-    noise = torch.randn((len(batch), *gen.model.latent_shape),
-                        generator=torch.Generator().manual_seed(scene_seed(settings.seed, b0)))
     lines = {}
     for m in METHODS:
         if m == "unguided":
@@ -158,9 +154,9 @@ def _batch_lines(gen: Generator, batch, b0: int, settings: EvalSettings) -> dict
         else:
             labels = [gen.known_label(s.city) for s in batch]
             sd = np.stack([s.sd for s in batch])
+        noise, steps = gen.batch_noise(len(batch), settings.seed, b0)  # the same for both methods
         z = gen.sample(sd, labels, cfg=settings.cfg if m == "controlmap" else 0.0, steps=settings.steps,
-                       sampler=settings.sampler, noise=noise.to(gen.device),
-                       generator=step_generator(scene_seed(settings.seed, b0), gen.device))
+                       sampler=settings.sampler, noise=noise, generator=steps)
         graphs = [gen.lane_graph(el, gen.city_name(y), {"method": m, "scene": b0 + k, "seed": settings.seed})
                   for k, (el, y) in enumerate(zip(gen.decode(z), labels))]
         lines[m] = [json.dumps(g.to_json(), separators=(",", ":")) for g in graphs]

@@ -24,7 +24,7 @@ from cmtool.model.controlmap import ControlMap, sd_tensor
 from cmtool.model.rvae import ELEMENTS, decoded_elements
 from cmtool.recipe import from_table
 from cmtool.sample import DEFAULT_SAMPLER, DEFAULT_SMOOTH
-from cmtool.sample.diffusion import NoiseSchedule, sample
+from cmtool.sample.diffusion import NoiseSchedule, sample, scene_seed, step_generator
 
 NONE = "none"  # the --city value for the null label
 PRECISIONS = ("fp32", "bf16")  # of the denoising model (the decoder runs in fp32)
@@ -96,6 +96,14 @@ class Generator:
 
     def city_name(self, label: int) -> str | None:
         return self.cities[label] if label < len(self.cities) else None
+
+    def batch_noise(self, n: int, seed: int, first: int) -> tuple[torch.Tensor, torch.Generator]:
+        """The initial latents of a batch of ``n`` maps whose first is map (or scene) ``first`` of a run seeded
+        ``seed``, and the generator of the samplers' step noise: both from ``scene_seed(seed, first)`` alone, so a
+        batch's maps depend neither on the batches before it nor on the process that makes them."""
+        base = scene_seed(seed, first)
+        noise = torch.randn((n, *self.model.latent_shape), generator=torch.Generator().manual_seed(base))
+        return noise.to(self.device), step_generator(base, self.device)
 
     def sample(self, sd: np.ndarray | None, labels, *, cfg: float, steps: int, sampler: str = DEFAULT_SAMPLER,
                city_cfg: float = 1.0, eta: float = 0.0, generator: torch.Generator | None = None,

@@ -21,7 +21,6 @@ from urllib.parse import urlsplit
 
 import numpy as np
 import rerun as rr
-import torch
 
 from cmtool import dist as D
 from cmtool.data.jsonio import OutputSet, json_text
@@ -33,7 +32,7 @@ from cmtool.eval.validity import check
 from cmtool.geometry import polyline_length
 from cmtool.progress import Progress
 from cmtool.sample import DEFAULT_SAMPLER, SAMPLERS
-from cmtool.sample.diffusion import SamplingError, scene_seed, step_generator
+from cmtool.sample.diffusion import SamplingError
 from cmtool.sample.generator import Generator
 from cmtool.sample.inputs import ControlInput
 from cmtool.viz.draw import graph_panel, legend, sd_panel, title_strip
@@ -185,11 +184,9 @@ def _batch_maps(gen: Generator, batch: list[Job], start: int, settings: SampleSe
     sds = [j.source.sd for j in batch]
     sd = None if all(s is None for s in sds) else np.stack(sds)
     began = time.perf_counter()
-    noise = torch.randn((len(batch), *gen.model.latent_shape),
-                        generator=torch.Generator().manual_seed(scene_seed(settings.seed, start)))
+    noise, steps = gen.batch_noise(len(batch), settings.seed, start)
     z = gen.sample(sd, [j.label for j in batch], cfg=settings.cfg, city_cfg=settings.city_cfg, steps=settings.steps,
-                   sampler=settings.sampler, eta=settings.eta, noise=noise.to(gen.device),
-                   generator=step_generator(scene_seed(settings.seed, start), gen.device), callback=logger)
+                   sampler=settings.sampler, eta=settings.eta, noise=noise, generator=steps, callback=logger)
     decoded = gen.decode(z)
     graphs = [gen.lane_graph(el, gen.city_name(j.label), _meta(gen, j, settings)) for j, el in zip(batch, decoded)]
     for job, graph in zip(batch, graphs):
