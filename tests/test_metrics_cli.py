@@ -49,6 +49,28 @@ def test_metrics_end_to_end(tmp_path, capsys):
                                  "legal one-way", "features", "recall"} and all(v >= 0 for v in m["seconds"].values())
 
 
+def test_processes_share_the_scenes_with_the_same_numbers(tmp_path, capsys):
+    """--workers 2 scores a set above POOL_MIN_SCENES in two processes, value for value as one process does."""
+    from cmtool.eval.scenes import POOL_MIN_SCENES
+
+    ref, sd = scenes(POOL_MIN_SCENES + 44, 0)
+    other, _ = scenes(POOL_MIN_SCENES + 44, 1)
+    write_jsonl(tmp_path / "ref.jsonl", ref)
+    write_jsonl(tmp_path / "other.jsonl", other)
+    np.save(tmp_path / "sd.npy", sd)
+    results = []
+    for workers in (1, 2):
+        code, _, err = in_process(capsys, "metrics", "--generated", tmp_path / "other.jsonl", "--reference",
+                                  tmp_path / "ref.jsonl", "--control", tmp_path / "sd.npy", "--no-features", "--quiet",
+                                  "--workers", workers, "--json", tmp_path / f"m{workers}.json")
+        assert code == 0, err
+        results.append(json.loads((tmp_path / f"m{workers}.json").read_text()))
+        results[-1].pop("seconds")
+    assert results[0] == results[1]
+    per_scene = results[0]["geometry"]["lane_f1"]["per_scene"]
+    assert len(per_scene) == POOL_MIN_SCENES + 44 and len(set(per_scene)) > 10  # varied scenes
+
+
 def test_metrics_without_features_on_a_different_set(tmp_path, capsys):
     ref, sd = scenes(20, 0)
     other, _ = scenes(20, 1)

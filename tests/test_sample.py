@@ -22,7 +22,7 @@ from cmtool.data.lanegraph import LaneGraph, infer_successors, read_jsonl
 from cmtool.data.sd_raster import read_sd_image
 from cmtool.eval.geometric import legal_oneway
 from cmtool.eval.validity import check
-from cmtool.sample import DEFAULT_SAMPLER, DEFAULT_SMOOTH
+from cmtool.sample import DEFAULT_SAMPLER, DEFAULT_SMOOTH, DEFAULT_STEPS
 from cmtool.viz.trajectory import strips_column, tensor_column
 from tests.conftest import REPO, in_process
 
@@ -307,6 +307,22 @@ def test_lane_graph_meta_records_how_it_was_made(sampled):
     assert graph.meta["steps"] == STEPS and graph.meta["sampler"] == DEFAULT_SAMPLER == "ddpm"
 
 
+def test_steps_default_to_the_samplers_own_count(sampling_ckpt, tmp_path, capsys):
+    """Without --steps, every sampling command takes its sampler's count (DEFAULT_STEPS); --steps overrides it."""
+    cm = sampling_ckpt["controlmap"]
+    runs = (("sde", "dpm++2m-sde", []), ("ddpm", "ddpm", []), ("three", "dpm++2m-sde", ["--steps", 3]))
+    for name, sampler, steps in runs:
+        code, _, err = in_process(capsys, "sample", "--ckpt", cm, "--sd", SD_PNG, "--sampler", sampler, *steps,
+                                  "--no-log", "--quiet", "--out", tmp_path / name)
+        assert code == 0, err
+        meta = read_jsonl(tmp_path / name / "sd_bos.json")[0].meta
+        assert (meta["sampler"], meta["steps"]) == (sampler, steps[1] if steps else DEFAULT_STEPS[sampler])
+    assert DEFAULT_STEPS["ddpm"] == 50 and DEFAULT_STEPS["dpm++2m-sde"] == 15
+    code, out, err = in_process(capsys, "bench", "sample", "--ckpt", cm, "--batch", 2, "--repeats", 1, "--sampler",
+                                "dpm++2m-sde")
+    assert code == 0 and "15 dpm++2m-sde steps" in out, err
+
+
 def test_streaming_to_a_viewer(sampling_ckpt, tmp_path, capsys):
     args = ("sample", "--ckpt", sampling_ckpt["controlmap"], "--sd", SD_PNG, "--steps", 2, "--quiet")
     code, _, err = in_process(capsys, *args, "--out", tmp_path / "a", "--connect", "rerun+http://127.0.0.1:1/proxy")
@@ -356,7 +372,7 @@ def test_steps_where_nothing_is_decoded_still_get_a_row(tmp_path):
 def test_bf16_sampling_stays_within_a_stated_tolerance_of_fp32(tmp_path, capsys):
     """--precision bf16 runs the denoising model under bf16 autocast: from the same noise the shipped weights'
     latents differ from fp32's by under 3% (relative norm) and the decoded lanes match fp32's at lane F1 >= 0.95
-    at 1 m (docs/speed.md states the tolerance)."""
+    at 1 m (docs/speed.md states the tolerance); so do its step previews, decoded in bf16."""
     import cv2
 
     from cmtool.eval.lanes import lane_scores
@@ -374,6 +390,12 @@ def test_bf16_sampling_stays_within_a_stated_tolerance_of_fp32(tmp_path, capsys)
         assert 0 < float((x["bf16"] - x["fp32"]).norm() / x["fp32"].norm()) < 0.03, sampler
         for a, b in zip(gens["fp32"].decode(x["fp32"]), gens["fp32"].decode(x["bf16"])):
             assert lane_scores(list(b["lines"]), list(a["lines"]))["f1"] >= 0.95, sampler
+    # step previews are decoded at the model's precision, maps in fp32 whatever it is
+    exact, preview = gens["fp32"].decode(x["fp32"]), gens["bf16"].decode(x["fp32"], preview=True)
+    assert all(np.array_equal(a["lines"], b["lines"]) for a, b in zip(exact, gens["bf16"].decode(x["fp32"])))
+    assert not all(np.array_equal(a["lines"], b["lines"]) for a, b in zip(exact, preview))
+    for a, b in zip(exact, preview):
+        assert lane_scores(list(b["lines"]), list(a["lines"]))["f1"] >= 0.95
     code, _, err = in_process(capsys, "sample", "--sd", REPO / "sample_data" / "sd_bos.png", "--steps", 2,
                               "--precision", "bf16", "--no-log", "--quiet", "--out", tmp_path)
     assert code == 0, err

@@ -6,9 +6,9 @@ from pathlib import Path
 
 import click
 
-from cmtool.cli.common import CITY_CFG_HELP, PRECISION_OPTION, SEED, SMOOTH_OPTION, Finite, _device, _generator
+from cmtool.cli.common import (CITY_CFG_HELP, PRECISION_OPTION, SEED, SMOOTH_OPTION, Finite, _device, _generator,
+                               sampler_options)
 from cmtool.errors import CmtoolError
-from cmtool.sample import DEFAULT_SAMPLER, SAMPLERS
 
 
 @click.group()
@@ -45,8 +45,7 @@ _ABLATE_COMMON = [
                  help="Dataset cache whose scenes give the SD maps."),
     click.option("--split", default="test", show_default=True),
     click.option("--n", default=64, show_default=True, type=click.IntRange(min=1), help="Scenes (the first N)."),
-    click.option("--steps", default=50, show_default=True, type=click.IntRange(min=1), help="Denoising steps."),
-    click.option("--sampler", default=DEFAULT_SAMPLER, show_default=True, type=click.Choice(SAMPLERS)),
+    sampler_options,
     SMOOTH_OPTION,
     click.option("--out", required=True, type=click.Path(file_okay=False, path_type=Path), help="Output folder."),
     click.option("--device", help="torch device [default: cuda when available, else cpu]."),
@@ -113,8 +112,7 @@ def ablate_city_swap(ckpt, data_dir, split, n, steps, sampler, smooth, out, devi
               help="Dataset cache whose scenes give the city labels and the reference maps.")
 @click.option("--split", default="test", show_default=True)
 @click.option("--n", default=128, show_default=True, type=click.IntRange(min=2), help="Scenes (the first N).")
-@click.option("--steps", default=50, show_default=True, type=click.IntRange(min=1), help="Denoising steps.")
-@click.option("--sampler", default=DEFAULT_SAMPLER, show_default=True, type=click.Choice(SAMPLERS))
+@sampler_options
 @click.option("--seed", default=0, show_default=True, type=SEED,
               help="Random seed (the same noise for every checkpoint).")
 @SMOOTH_OPTION

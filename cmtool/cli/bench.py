@@ -6,8 +6,8 @@ from pathlib import Path
 
 import click
 
-from cmtool.cli.common import FEATURE_PRECISION_OPTION, PRECISION_OPTION, Finite, _device, _generator
-from cmtool.sample import DEFAULT_SAMPLER, SAMPLERS
+from cmtool.cli.common import (FEATURE_PRECISION_OPTION, PRECISION_OPTION, WORKERS_OPTION, Finite, _device, _generator,
+                               sampler_options)
 
 
 @click.group()
@@ -19,8 +19,7 @@ def bench():
 @click.option("--ckpt", type=click.Path(path_type=Path),
               help="ControlMap (or DiT) checkpoint or run folder [default: the weights shipped with cmtool].")
 @click.option("--sd", "sd_path", type=click.Path(path_type=Path), help="SD input [default: a procedural crossing].")
-@click.option("--steps", default=50, show_default=True, type=click.IntRange(min=1), help="Denoising steps.")
-@click.option("--sampler", default=DEFAULT_SAMPLER, show_default=True, type=click.Choice(SAMPLERS))
+@sampler_options
 @click.option("--cfg", default=1.0, show_default=True, type=Finite(min=0), help="Guidance weight.")
 @click.option("--batch", default=64, show_default=True, type=click.IntRange(min=2), help="The large batch to compare.")
 @click.option("--repeats", default=3, show_default=True, type=click.IntRange(min=1), help="Timed runs per setting.")
@@ -71,14 +70,16 @@ def bench_dit_cmd(size, batch, repeats):
 @click.option("--no-features", is_flag=True, help="Leave out the ResNet-50 metrics.")
 @click.option("--device", help="torch device [default: cuda when available, else cpu].")
 @FEATURE_PRECISION_OPTION
-def bench_metrics_cmd(eval_dir, method, tile, repeats, no_features, device, precision):
+@WORKERS_OPTION
+def bench_metrics_cmd(eval_dir, method, tile, repeats, no_features, device, precision, workers):
     """Time each family of metrics (topology, lane distances, validity, SD adherence, driving side, legal
     one-way, features, recall) on an evaluation's maps: minimum and median over the repeats; with the features,
     also the ResNet-50 passes alone on the same rasters."""
     from cmtool.eval.bench import bench_metrics, eval_set, report_table
     from cmtool.eval.features import FeatureExtractor
+    from cmtool.eval.scenes import cpu_count
 
     generated, reference, controls = eval_set(eval_dir, method, tile)
     extractor = None if no_features else FeatureExtractor("resnet50-seeded", None, _device(device),
                                                           precision=precision)
-    click.echo(report_table(bench_metrics(generated, reference, controls, extractor, repeats)))
+    click.echo(report_table(bench_metrics(generated, reference, controls, extractor, repeats, workers or cpu_count())))

@@ -2,13 +2,14 @@
 
 from __future__ import annotations
 
+import functools
 import math
 from pathlib import Path
 
 import click
 
 from cmtool.errors import CmtoolError
-from cmtool.sample import DEFAULT_SMOOTH
+from cmtool.sample import DEFAULT_SAMPLER, DEFAULT_SMOOTH, DEFAULT_STEPS, SAMPLERS
 
 
 class Finite(click.FloatRange):
@@ -41,10 +42,29 @@ SMOOTH_OPTION = click.option(
          "(0: the decoder's raw points).")
 
 
+def sampler_options(fn):
+    """``--steps`` and ``--sampler``; without ``--steps`` the command gets the sampler's own step count."""
+    counts = ", ".join(f"{n} for {s}" for s, n in DEFAULT_STEPS.items())
+
+    @functools.wraps(fn)
+    def command(*args, steps, sampler, **kwargs):
+        return fn(*args, steps=steps or DEFAULT_STEPS[sampler], sampler=sampler, **kwargs)
+
+    sampler = click.option("--sampler", default=DEFAULT_SAMPLER, show_default=True, type=click.Choice(SAMPLERS))
+    return click.option("--steps", type=click.IntRange(min=1), help=f"Denoising steps [default: {counts}].")(
+        sampler(command))
+
+
 PRECISION_OPTION = click.option(
     "--precision", default="fp32", show_default=True, type=click.Choice(["fp32", "bf16"]),
-    help="bf16: the denoising model under bf16 autocast, faster where the CPU computes bf16 natively (AVX512-BF16, "
-         "AMX) or on a GPU; maps stay within about 1% of fp32's latents (docs/speed.md).")
+    help="bf16: the denoising model (and the decoding of recorded step previews) under bf16 autocast, faster where "
+         "the CPU computes bf16 natively (AVX512-BF16, AMX) or on a GPU; maps stay within about 1% of fp32's latents "
+         "(docs/speed.md).")
+
+WORKERS_OPTION = click.option(
+    "--workers", type=click.IntRange(min=1),
+    help="Processes that share the per-scene metrics (lane distances, validity, SD adherence) of sets of 256 scenes "
+         "or more [default: one per CPU core].")
 
 FEATURE_PRECISION_OPTION = click.option(
     "--precision", default="fp32", show_default=True, type=click.Choice(["fp32", "bf16"]),

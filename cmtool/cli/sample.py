@@ -7,9 +7,9 @@ from pathlib import Path
 
 import click
 
-from cmtool.cli.common import CITY_CFG_HELP, PRECISION_OPTION, SEED, SMOOTH_OPTION, Finite, _device, _generator
+from cmtool.cli.common import (CITY_CFG_HELP, PRECISION_OPTION, SEED, SMOOTH_OPTION, Finite, _device, _generator,
+                               sampler_options)
 from cmtool.errors import CmtoolError
-from cmtool.sample import DEFAULT_SAMPLER, SAMPLERS
 
 SAMPLE_HELP = """Generate lane-level HD maps from SD maps with ControlMap, recording every denoising step.
 
@@ -39,8 +39,7 @@ Large sets in several processes (CPU or GPUs), the same maps as one process:
               "drivable pose].")
 @click.option("--num", default=1, show_default=True, type=click.IntRange(min=1), help="Maps per SD input.")
 @click.option("--seed", default=0, show_default=True, type=SEED, help="Random seed.")
-@click.option("--steps", default=50, show_default=True, type=click.IntRange(min=1), help="Denoising steps.")
-@click.option("--sampler", default=DEFAULT_SAMPLER, show_default=True, type=click.Choice(SAMPLERS))
+@sampler_options
 @click.option("--eta", default=0.0, show_default=True, type=Finite(min=0),
               help="DDIM noise (0 deterministic, 1 like DDPM).")
 @click.option("--city", default="auto", show_default=True,

@@ -41,9 +41,11 @@ def eval_set(eval_dir: Path, method: str = "controlmap", tile: int = 1):
     return generated * tile, reference * tile, np.concatenate([controls] * tile)
 
 
-def bench_metrics(generated, reference, controls, extractor: FeatureExtractor | None, repeats: int = 3) -> dict:
+def bench_metrics(generated, reference, controls, extractor: FeatureExtractor | None, repeats: int = 3,
+                  workers: int = 1) -> dict:
     """Per metric family (and for the whole call) the seconds of each repeat; with an ``extractor`` also the
-    ResNet-50 passes alone over the same rasters (generated, reference and SD), interleaved with the whole calls."""
+    ResNet-50 passes alone over the same rasters (generated, reference and SD), interleaved with the whole calls.
+    ``workers``: processes for the per-scene families (their seconds are summed over the processes)."""
     families: dict[str, list[float]] = {}
     total, passes = [], []
     images = None
@@ -52,7 +54,7 @@ def bench_metrics(generated, reference, controls, extractor: FeatureExtractor | 
                                  np.stack([sd_image(sd) for sd in controls])])
     for _ in range(repeats):
         began = time.perf_counter()
-        result = evaluate(generated, reference, controls, extractor, features=extractor is not None)
+        result = evaluate(generated, reference, controls, extractor, features=extractor is not None, workers=workers)
         total.append(time.perf_counter() - began)
         for name, seconds in result["seconds"].items():
             families.setdefault(name, []).append(seconds)
@@ -60,7 +62,7 @@ def bench_metrics(generated, reference, controls, extractor: FeatureExtractor | 
             began = time.perf_counter()
             extractor(images)
             passes.append(time.perf_counter() - began)
-    report = {"scenes": len(generated), "repeats": repeats, "families": families, "total": total}
+    report = {"scenes": len(generated), "repeats": repeats, "workers": workers, "families": families, "total": total}
     if extractor is not None:
         report |= {"resnet_passes": passes, "images": len(images), "precision": extractor.precision}
     return report
@@ -77,6 +79,8 @@ def report_table(report: dict) -> str:
     for name, times in named:
         rows.append(f"| {name} | {min(times):.2f} | {statistics.median(times):.2f} |")
     head = f"{report['scenes']} scene pairs, {report['repeats']} repeats"
+    if report["workers"] > 1:
+        head += f", {report['workers']} processes for the per-scene families (their times summed over them)"
     if "resnet_passes" in report:
         head += (f"; all of `evaluate` is {min(report['total']) / min(report['resnet_passes']):.2f}x the ResNet-50 "
                  "passes alone (minimum over minimum)")

@@ -62,10 +62,11 @@ class EvalSettings:
 
 
 def run_eval(gen: Generator, settings: EvalSettings, out: Path, extractor: FeatureExtractor | None,
-             rrd_samples: int = 64, progress: bool = True, info: D.DistInfo = D.SINGLE) -> dict | None:
+             rrd_samples: int = 64, progress: bool = True, info: D.DistInfo = D.SINGLE,
+             workers: int = 1) -> dict | None:
     """Generate (or continue generating) both sets, compute the metrics and write the reports. Under ``torchrun``
     (``info``) the processes take turns at the batches and the main process scores and writes everything; the
-    others return None."""
+    others return None. ``workers``: processes for the per-scene metrics (:func:`cmtool.eval.metrics.evaluate`)."""
     if not gen.has_control:
         raise CmtoolError(f"{gen.path}: eval compares ControlMap with its unguided DiT; give a ControlMap checkpoint")
     data = load_dataset(settings.data, settings.split)
@@ -83,7 +84,7 @@ def run_eval(gen: Generator, settings: EvalSettings, out: Path, extractor: Featu
         shared = {"reference_features": reference_image_features(reference, extractor),
                   "control_features": extractor(np.stack([sd_image(sd) for sd in controls]))}
     results = {m: evaluate(generated[m], reference, controls, extractor, features=extractor is not None,
-                           progress=progress, **shared) for m in METHODS}
+                           progress=progress, workers=workers, **shared) for m in METHODS}
     truth = [check(g) for g in reference]
     report = {"settings": asdict(settings), "methods": results,
               "ground_truth_validity": float(np.mean([r.score for r in truth])),

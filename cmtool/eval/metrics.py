@@ -21,11 +21,9 @@ import numpy as np
 
 from cmtool.errors import CmtoolError
 from cmtool.eval.features import FeatureExtractor, lanes_image, sd_image
-from cmtool.eval.geometric import chamfer_of, driving_side, legal_oneway, sd_adherence
-from cmtool.eval.lanes import pair_distances, scores_at
 from cmtool.eval.retrieval import batch_recall, improved_precision_recall
+from cmtool.eval.scenes import scene_scores
 from cmtool.eval.topology import topology_fd
-from cmtool.eval.validity import check
 from cmtool.progress import Progress
 
 LEFT_HAND = {"SGP"}  # city labels that drive on the left; all others drive on the right
@@ -60,11 +58,13 @@ def drives_on(city: str | None) -> str:
 
 def evaluate(generated, reference, controls: np.ndarray | None = None, extractor: FeatureExtractor | None = None,
              features: bool = True, reference_features: np.ndarray | None = None,
-             control_features: np.ndarray | None = None, progress: bool = False) -> dict:
+             control_features: np.ndarray | None = None, progress: bool = False, workers: int = 1) -> dict:
     """Every metric of ``generated`` against ``reference`` (lists of LaneGraph) and ``controls``
     ((N, 128, 128, 3) SD rasters or None). ``features=False`` skips the ResNet-50 metrics; the
     reference's and controls' features can be passed in when several sets share them. ``progress``: a status
-    line on stderr (scenes done, the family of metrics at work)."""
+    line on stderr (scenes done, the family of metrics at work); ``workers``: processes for the per-scene scores
+    (:func:`cmtool.eval.scenes.scene_scores`); ``seconds`` in the result: each family's time, the per-scene
+    families' summed over the processes."""
     if len(generated) != len(reference):
         raise CmtoolError(f"{len(generated)} generated scenes but {len(reference)} reference scenes; "
                           "scene i of one set pairs with scene i of the other")
@@ -78,7 +78,7 @@ def evaluate(generated, reference, controls: np.ndarray | None = None, extractor
     bar.update(0, family="topology")
     with _timed(seconds, "topology"):
         out["topology_fd"] = topology_fd(generated, reference)
-    out["geometry"] = geometry(generated, reference, controls, seconds, bar)
+    out["geometry"] = geometry(generated, reference, controls, seconds, bar, workers)
     if features:
         extractor = extractor or FeatureExtractor()
         bar.update(0, family="features")
@@ -116,45 +116,18 @@ def reference_image_features(graphs, extractor: FeatureExtractor) -> np.ndarray:
 
 
 def geometry(generated, reference, controls: np.ndarray | None, seconds: dict[str, float] | None = None,
-             bar: Progress | None = None) -> dict:
+             bar: Progress | None = None, workers: int = 1) -> dict:
     """Per-scene geometric scores (``per_scene``, None where undefined) and their averages (with the
     number of scenes each average covers); ``legal_oneway`` is averaged by the lane length judged.
-    ``seconds`` collects the time of each family of scores; ``bar`` counts the scenes done."""
+    ``seconds`` collects the time of each family of scores (summed over processes); ``bar`` counts the scenes
+    done; ``workers``: processes that share the scenes (:func:`cmtool.eval.scenes.scene_scores`)."""
     seconds = {} if seconds is None else seconds
     bar = bar or Progress(len(generated), enabled=False)
-    rows: dict[str, list] = {k: [] for k in ("chamfer_m", "lane_precision", "lane_recall", "lane_f1", "validity",
-                                             "dangling", "crossings", "routable")}
-    if controls is not None:
-        rows.update({"sd_coverage": [], "lane_on_sd": [], "driving_side": [], "legal_oneway": []})
-    judged = []
-    for i, (g, r) in enumerate(zip(generated, reference)):
-        bar.update(0, family="lane distances")
-        with _timed(seconds, "lane distances"):
-            distances = pair_distances(g.lanes, r.lanes)
-            rows["chamfer_m"].append(chamfer_of(distances))
-            scores = scores_at(distances, 1.0)
-            for k in ("precision", "recall", "f1"):
-                rows[f"lane_{k}"].append(scores[k])
-        bar.update(0, family="validity")
-        with _timed(seconds, "validity"):
-            report = check(g)
-            counts = report.counts()
-            rows["validity"].append(report.score)
-            rows["dangling"].append(counts.get("dangling", 0))
-            rows["crossings"].append(counts.get("crossing", 0))
-            rows["routable"].append(report.routable_with_changes)
-        if controls is not None:
-            bar.update(0, family="SD adherence")
-            with _timed(seconds, "SD adherence"):
-                for k, v in sd_adherence(g.lanes, controls[i]).items():
-                    rows[k].append(v)
-            with _timed(seconds, "driving side"):
-                rows["driving_side"].append(driving_side(g.lanes, controls[i], drives_on(g.city or r.city))[0])
-            with _timed(seconds, "legal one-way"):
-                share, length = legal_oneway(g.lanes, controls[i])
-                rows["legal_oneway"].append(share)
-                judged.append(length)
-        bar.update(1)
+    bar.update(0, family="lanes, validity" + (", SD" if controls is not None else ""))
+    sides = [drives_on(g.city or r.city) for g, r in zip(generated, reference)]
+    rows, judged, spent = scene_scores(generated, reference, controls, sides, workers, bar.update)
+    for k, v in spent.items():
+        seconds[k] = seconds.get(k, 0.0) + v
     out = {}
     for k, values in rows.items():
         v = np.asarray(values, float)

@@ -3,7 +3,8 @@
 Times the generation of maps from one SD raster (the default is a procedural Boston-style
 crossing) with a loaded checkpoint, after one warm-up run: at batch 1 without logging and with
 full per-step logging to a temporary ``.rrd`` (the recording closed and on disk), and at a large
-batch without logging. Each figure is the median of ``repeats`` runs.
+batch without logging. The three settings take turns, ``repeats`` rounds; each figure is the median of
+its runs.
 """
 
 from __future__ import annotations
@@ -61,13 +62,19 @@ def bench_sample(gen: Generator, sd: np.ndarray, settings: SampleSettings, batch
             job.prefix = f"sample_{i}/" if n > 1 else ""
         return made
 
+    setups = {key: (jobs(n), SampleSettings(**{**settings.__dict__, "batch": n}), log)
+              for key, n, log in (("batch1_nolog", 1, False), ("batch1_log", 1, True),
+                                  (f"batch{batch}_nolog", batch, False))}
+    times: dict[str, list[float]] = {key: [] for key in setups}
+    for key, (made, run, log) in setups.items():
+        _timed(gen, made, run, log)  # warm-up
+    for _ in range(repeats):  # the settings in turn, so that a change in the machine's load hits them alike
+        for key, (made, run, log) in setups.items():
+            times[key].append(_timed(gen, made, run, log) / len(made))
     results = {}
-    for key, n, log in (("batch1_nolog", 1, False), ("batch1_log", 1, True), (f"batch{batch}_nolog", batch, False)):
-        run = SampleSettings(**{**settings.__dict__, "batch": n})
-        _timed(gen, jobs(n), run, log)  # warm-up
-        times = [_timed(gen, jobs(n), run, log) / n for _ in range(repeats)]
-        results[key] = statistics.median(times)
-        report(f"  {key:<16} {results[key]:8.4f} s/map   (runs: {', '.join(f'{t:.4f}' for t in times)})")
+    for key, runs in times.items():
+        results[key] = statistics.median(runs)
+        report(f"  {key:<16} {results[key]:8.4f} s/map   (runs: {', '.join(f'{t:.4f}' for t in runs)})")
     results["log_ratio"] = results["batch1_log"] / results["batch1_nolog"]
     results["batch_speedup"] = results["batch1_nolog"] / results[f"batch{batch}_nolog"]
     return results

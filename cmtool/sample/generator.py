@@ -27,7 +27,7 @@ from cmtool.sample import DEFAULT_SAMPLER, DEFAULT_SMOOTH
 from cmtool.sample.diffusion import NoiseSchedule, sample, scene_seed, step_generator
 
 NONE = "none"  # the --city value for the null label
-PRECISIONS = ("fp32", "bf16")  # of the denoising model (the decoder runs in fp32)
+PRECISIONS = ("fp32", "bf16")  # of the denoising model and the step previews (maps are decoded in fp32)
 
 
 class Generator:
@@ -51,7 +51,8 @@ class Generator:
     @classmethod
     def load(cls, path, device="cpu", smooth: int = DEFAULT_SMOOTH, precision: str = "fp32") -> "Generator":
         """The checkpoint at ``path`` and its RVAE; ``smooth``: Bézier control points of decoded polylines
-        (0: raw); ``precision``: "bf16" runs the denoising model under bf16 autocast (the decoder stays fp32)."""
+        (0: raw); ``precision``: "bf16" runs the denoising model and the decoding of step previews under bf16
+        autocast (maps are decoded in fp32)."""
         path = ckpt.resolve(path)
         config = ckpt.load_config(path)
         if config["kind"] == "rvae":
@@ -123,11 +124,15 @@ class Generator:
                           sampler=sampler, eta=eta, generator=generator, noise=noise, callback=callback)
 
     @torch.no_grad()
-    def decode(self, latents: torch.Tensor, threshold: float = 0.5) -> list[dict[str, np.ndarray]]:
+    def decode(self, latents: torch.Tensor, threshold: float = 0.5,
+               preview: bool = False) -> list[dict[str, np.ndarray]]:
         """Scaled latents (N, C, H, W) -> per latent ``{"lines", "green", "red"}`` polylines (metres), each
         replaced by its least-squares Bézier curve unless ``smooth`` is 0; a graph decoder's predicted
-        ``"successors"`` come along, their lanes joined at shared points (after the smoothing)."""
-        elements = decoded_elements(self.rvae.decode(latents.to(self.device).float() / self.scale), threshold)
+        ``"successors"`` come along, their lanes joined at shared points (after the smoothing). The decoder runs
+        in fp32, but for a ``preview`` (a denoising step's estimate in a recording) at the model's precision."""
+        with torch.autocast(self.device.type, dtype=torch.bfloat16, enabled=preview and self.precision == "bf16"):
+            decoded = self.rvae.decode(latents.to(self.device).float() / self.scale)
+        elements = decoded_elements(decoded, threshold)
         for el in elements:
             for name in ELEMENTS:
                 if self._fit is not None:

@@ -16,6 +16,7 @@ import math
 import socket
 import time
 from dataclasses import dataclass
+from functools import partial
 from pathlib import Path
 from urllib.parse import urlsplit
 
@@ -180,7 +181,7 @@ def _batch_maps(gen: Generator, batch: list[Job], start: int, settings: SampleSe
     time; the batch's noise depends on the seed and ``start`` alone, as in ``cmtool eval``."""
     logger = None
     if rec is not None:
-        logger = TrajectoryLogger(rec, [j.prefix for j in batch], gen.decode, settings.cfg)
+        logger = TrajectoryLogger(rec, [j.prefix for j in batch], partial(gen.decode, preview=True), settings.cfg)
     sds = [j.source.sd for j in batch]
     sd = None if all(s is None for s in sds) else np.stack(sds)
     began = time.perf_counter()
