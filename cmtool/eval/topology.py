@@ -96,7 +96,11 @@ def frechet_1d(a: np.ndarray, b: np.ndarray) -> float:
     return math.sqrt(max((float(np.mean(a)) - float(np.mean(b))) ** 2 + va + vb - 2.0 * math.sqrt(va * vb), 0.0))
 
 
+def frechet_distances(a: dict[str, np.ndarray], b: dict[str, np.ndarray]) -> dict[str, float]:
+    """Fréchet distance per statistic (connectivity and convenience x10) between two sets' pooled statistics."""
+    return {k: SCALE[k] * frechet_1d(a[k], b[k]) for k in STATISTICS}
+
+
 def topology_fd(generated, reference) -> dict[str, float]:
     """Fréchet distance per statistic (connectivity and convenience x10) between two sets of lane graphs."""
-    a, b = pooled_statistics(generated), pooled_statistics(reference)
-    return {k: SCALE[k] * frechet_1d(a[k], b[k]) for k in STATISTICS}
+    return frechet_distances(pooled_statistics(generated), pooled_statistics(reference))
