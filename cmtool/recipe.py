@@ -104,10 +104,11 @@ class DataRecipe:
 class TrainRecipe:
     """How a stage trains: inputs, output, optimiser, schedule, checkpoints (``[train]``)."""
 
-    stage: str = ""  # rvae | decoder | dit | controlnet: the stage this recipe trains
+    stage: str = ""  # rvae | decoder | encoder | dit | controlnet: the stage this recipe trains
     data: str = ""  # dataset folder (cmtool data build --out)
     out: str = ""  # run folder [default: --out]
-    rvae: str = ""  # RVAE run folder with its latent cache (decoder, dit, controlnet stages)
+    rvae: str = ""  # RVAE run folder with its latent cache (decoder, dit, controlnet stages); encoder stage: the
+    #                 RVAE (run or packed weights) whose decoder the new encoder is trained for
     dit: str = ""  # DiT run or checkpoint folder (controlnet stage)
     branch_from: str = ""  # controlnet: start the control branch from this ControlMap run or checkpoint
     #                        (same [control]), e.g. after its DiT was trained further; "" = zero-initialised
@@ -148,8 +149,9 @@ class TrainRecipe:
                     "min_snr_gamma"):
             if getattr(self, key) < 0:
                 raise CmtoolError(f"{where}: train.{key}: must not be negative, got {getattr(self, key)}")
-        if self.stage not in ("", "rvae", "decoder", "dit", "controlnet"):
-            raise CmtoolError(f"{where}: train.stage: expected rvae, decoder, dit or controlnet, got {self.stage!r}")
+        if self.stage not in ("", "rvae", "decoder", "encoder", "dit", "controlnet"):
+            raise CmtoolError(f"{where}: train.stage: expected rvae, decoder, encoder, dit or controlnet, "
+                              f"got {self.stage!r}")
         if self.mirror > 0 and self.stage not in ("", "dit", "controlnet"):
             raise CmtoolError(f"{where}: train.mirror: mirrored scenes are a dit- and controlnet-stage option")
         if self.min_snr_gamma and self.stage not in ("", "dit", "controlnet"):

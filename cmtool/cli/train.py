@@ -13,7 +13,7 @@ from cmtool.train import PRECISIONS
 
 
 @click.command("train")
-@click.argument("stage", type=click.Choice(["rvae", "decoder", "dit", "controlnet", "pipeline"]))
+@click.argument("stage", type=click.Choice(["rvae", "decoder", "encoder", "dit", "controlnet", "pipeline"]))
 @click.option("--recipe", required=True, type=click.Path(path_type=Path), help="Recipe TOML (see recipes/).")
 @click.option("--out", type=click.Path(file_okay=False, path_type=Path),
               help="Run folder [default: the recipe's train.out].")
@@ -32,7 +32,8 @@ from cmtool.train import PRECISIONS
                                             "(ports 9876 and 9090) while it trains: watch it from a browser elsewhere.")
 def train_cmd(stage, recipe, out, resume, data_dir, steps, precision, device, quiet, serve):
     """Train one stage: rvae (stage 1), dit (stage 2) or controlnet (stage 3); decoder trains a
-    finished RVAE's decoder further on its frozen encoder's latents (DiTs trained on them stay valid).
+    finished RVAE's decoder further on its frozen encoder's latents (DiTs trained on them stay valid);
+    encoder trains an encoder for a frozen decoder, e.g. the shipped one (cmtool/weights/rvae).
     pipeline runs the whole chain of a pipeline recipe (recipes/tiny-cpu/pipeline.toml): data, RVAE,
     decoder, DiT, ControlMap, packed weights and their evaluation, each stage into a folder of --out.
 

@@ -1,5 +1,5 @@
-"""The training stages: RVAE (1), its decoder fine-tuned on a frozen encoder (1b), DiT baseline (2),
-ControlMap's control branch (3)."""
+"""The training stages: RVAE (1), its decoder fine-tuned on a frozen encoder (1b), an encoder for a frozen
+decoder (1c), DiT baseline (2), ControlMap's control branch (3)."""
 
 from __future__ import annotations
 
@@ -18,7 +18,7 @@ from cmtool.eval.metrics import drives_on
 from cmtool.eval.reconstruction import reconstruction_scores
 from cmtool.model.controlmap import ControlMap, sd_tensor
 from cmtool.model.dit import DiT, DiTConfig
-from cmtool.model.rvae import RVAE, decoded_elements, same_encoder
+from cmtool.model.rvae import ENCODER_PREFIXES, RVAE, decoded_elements, same_encoder
 from cmtool.model.rvae_loss import denoise_input, rvae_loss
 from cmtool.sample.diffusion import NoiseSchedule, sample
 from cmtool.train.data import CachedPosteriors, Latents, SceneRasters, shift_sideways
@@ -178,6 +178,63 @@ class DecoderStage(RVAEStage):
               f"the parent RVAE: F1 {before:.3f})")
         return {"latent_scale": self.parent_config["latent_scale"], "latents": str(self.latents),
                 "reconstruction": recon}
+
+
+class EncoderStage(RVAEStage):
+    """Stage 1c: train an encoder for a frozen decoder, e.g. the shipped decoder-only weights.
+
+    The decoder (and with it the latent space every DiT and ControlMap trained on it reads) is the
+    parent's, loaded and frozen; a fresh encoder learns to map HD rasters into that space under the
+    RVAE loss. The parent's latent scale is kept, so the result encodes maps for the parent's DiT and
+    ControlMap (SDEdit from a layout, inpainting, a latent cache for a new control branch). The model
+    is the parent's (``[rvae]`` is not used); ``[rvae_loss]`` weighs the loss.
+    """
+
+    name = "encoder"
+
+    def __init__(self, recipe, device):
+        Stage.__init__(self, recipe, device)
+        self.data_dir = _path(recipe.train.data, "data", recipe.path)
+        self.parent = ckpt.resolve(_path(recipe.train.rvae, "rvae", recipe.path)).resolve()
+        self.parent_config = ckpt.load_config(self.parent)
+        if self.parent_config["kind"] != "rvae" or "latent_scale" not in self.parent_config:
+            raise CmtoolError(f"{self.parent}: train.rvae must be an RVAE checkpoint with a latent scale "
+                              "(a finished RVAE run, or packed weights such as cmtool/weights/rvae)")
+        _check_queries(self.parent_config["model"], self.data_dir, self.parent,
+                       "the encoder keeps its decoder's queries: train it on data built with data.{key} = {m}")
+        self._preview = None
+
+    def model(self):
+        model = ckpt.build_model({**self.parent_config, "weights": "full"}, str(self.parent))
+        decoder = {k: v for k, v in ckpt.read_weights(self.parent).items() if not k.startswith(ENCODER_PREFIXES)}
+        own = model.state_dict()
+        missing = sorted(k for k in own if not k.startswith(ENCODER_PREFIXES) and k not in decoder)
+        if missing or set(decoder) - set(own):
+            raise CmtoolError(f"{self.parent}: its decoder weights do not match its config "
+                              f"({'missing ' + missing[0] if missing else 'unexpected weights'})")
+        model.load_state_dict({k: v.to(own[k].dtype) for k, v in decoder.items()}, strict=False)
+        for name, p in model.named_parameters():
+            p.requires_grad_(name.startswith(ENCODER_PREFIXES))
+        return model
+
+    def config(self):
+        return {"kind": self.kind, "model": self.parent_config["model"],
+                "loss": dataclasses.asdict(self.recipe.rvae_loss), "data": str(self.data_dir.resolve()),
+                "decoder_from": str(self.parent)}
+
+    def finish(self, model, run_dir):
+        parent = ckpt.read_weights(self.parent)
+        own = model.state_dict()
+        if any(not torch.equal(v.to(own[k].dtype).cpu(), own[k].cpu()) for k, v in parent.items()
+               if not k.startswith(ENCODER_PREFIXES)):
+            raise CmtoolError(f"{run_dir}: the decoder changed during encoder training (it must stay frozen)")
+        scale = write_latents(model, self.data_dir, run_dir / "latents", self.device)
+        kept = float(self.parent_config["latent_scale"])
+        recon = reconstruction_scores(model, self.data_dir, _preview_split(self.data_dir), self.device, RECON_EVAL)
+        print(f"encoder: the latent scale of its train means {scale:.4f} (the decoder's, kept: {kept:.4f}); "
+              f"held-out reconstruction at 1 m: precision {recon['precision']:.3f} recall {recon['recall']:.3f} "
+              f"F1 {recon['f1']:.3f} ({recon['scenes']} scenes)")
+        return {"latent_scale": kept, "own_latent_scale": scale, "latents": "latents", "reconstruction": recon}
 
 
 class _DiffusionStage(Stage):
@@ -410,4 +467,4 @@ class ControlNetStage(_DiffusionStage):
         return [(f"scene {k}: SD and generated", f"sample_{k}", ["**"]) for k in range(PREVIEWS)]
 
 
-STAGES = {"rvae": RVAEStage, "decoder": DecoderStage, "dit": DiTStage, "controlnet": ControlNetStage}
+STAGES = {"rvae": RVAEStage, "decoder": DecoderStage, "encoder": EncoderStage, "dit": DiTStage, "controlnet": ControlNetStage}
