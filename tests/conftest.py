@@ -56,9 +56,10 @@ def perturb(model: torch.nn.Module, scale: float = 0.05) -> None:
 def tiny_data(tmp_path_factory):
     """The tiny dataset cache (recipes/data_tiny.toml: 24 train scenes, 8 BOS test scenes)."""
     from cmtool.data.cache import build_dataset
+    from cmtool.train.recipe import load_recipe
 
     data = tmp_path_factory.mktemp("data") / "tiny"
-    build_dataset(REPO / "recipes" / "data_tiny.toml", data, workers=1, progress=False)
+    build_dataset(load_recipe(REPO / "recipes" / "data_tiny.toml"), data, workers=1, progress=False)
     return data
 
 
@@ -68,7 +69,7 @@ def sampling_ckpt(tmp_path_factory):
     changes the output), wired like a trained run: returns the ControlMap and DiT checkpoint dirs."""
     import dataclasses
 
-    from cmtool import checkpoint as ckpt
+    from cmtool.model import checkpoint as ckpt
     from cmtool.model.config import ControlConfig, DiTConfig, RVAEConfig, ScheduleConfig
     from cmtool.model.controlmap import ControlMap
     from cmtool.model.dit import DiT

@@ -5,10 +5,10 @@ from pathlib import Path
 import numpy as np
 import pytest
 
+from cmtool.core.errors import CmtoolError
 from cmtool.data import cache
 from cmtool.data.cache import build_dataset, load_dataset, load_manifest
-from cmtool.errors import CmtoolError
-from cmtool.recipe import load_recipe
+from cmtool.train.recipe import load_recipe
 
 REPO = Path(__file__).resolve().parents[1]
 TINY = REPO / "recipes" / "data_tiny.toml"
@@ -18,7 +18,7 @@ SHARED_DATA = REPO / ".." / "shared" / "data"
 @pytest.fixture(scope="module")
 def tiny(tmp_path_factory):
     out = tmp_path_factory.mktemp("tiny")
-    summary = build_dataset(TINY, out, workers=2, progress=False)
+    summary = build_dataset(load_recipe(TINY), out, workers=2, progress=False)
     return out, summary
 
 
@@ -60,7 +60,7 @@ def test_scenes_read_back_with_valid_edges(tiny):
 
 def test_build_is_deterministic(tiny, tmp_path):
     out, _ = tiny
-    build_dataset(TINY, tmp_path, workers=1, progress=False)
+    build_dataset(load_recipe(TINY), tmp_path, workers=1, progress=False)
     for split in ("train", "test"):
         a, b = arrays(out, split), arrays(tmp_path, split)
         for key in a:
@@ -68,19 +68,19 @@ def test_build_is_deterministic(tiny, tmp_path):
 
 
 def test_resume_rebuilds_only_missing_shard(tmp_path):
-    build_dataset(TINY, tmp_path, workers=1, progress=False)
+    build_dataset(load_recipe(TINY), tmp_path, workers=1, progress=False)
     shards = sorted(tmp_path.glob("*/*.npz"))
     assert len(shards) == 8  # 4 maps x 8 scenes, 4 scenes per shard
     before = {p: p.stat().st_mtime_ns for p in shards}
     reference = arrays(tmp_path, "train")
     shards[3].unlink()
-    summary = build_dataset(TINY, tmp_path, workers=1, progress=False)
+    summary = build_dataset(load_recipe(TINY), tmp_path, workers=1, progress=False)
     assert summary["units_built"] == 1 and summary["units_skipped"] == 3
     assert [p for p in shards if p.stat().st_mtime_ns != before[p]] == [shards[3]]
     again = arrays(tmp_path, "train")
     for key in reference:
         np.testing.assert_array_equal(reference[key], again[key], err_msg=key)
-    assert build_dataset(TINY, tmp_path, workers=1, progress=False)["units_built"] == 0
+    assert build_dataset(load_recipe(TINY), tmp_path, workers=1, progress=False)["units_built"] == 0
 
 
 def test_interrupted_build_leaves_no_partial_shard(tmp_path, monkeypatch):
@@ -95,13 +95,13 @@ def test_interrupted_build_leaves_no_partial_shard(tmp_path, monkeypatch):
 
     monkeypatch.setattr(cache.np, "savez_compressed", failing)
     with pytest.raises(KeyboardInterrupt):
-        build_dataset(TINY, tmp_path, workers=1, progress=False)
+        build_dataset(load_recipe(TINY), tmp_path, workers=1, progress=False)
     assert len(list(tmp_path.glob("*/*.npz"))) == 2
     assert not list(tmp_path.glob("*/.*"))  # no temporary file left behind
     with pytest.raises(CmtoolError, match="did not finish"):
         load_manifest(tmp_path)
     monkeypatch.undo()
-    summary = build_dataset(TINY, tmp_path, workers=1, progress=False)
+    summary = build_dataset(load_recipe(TINY), tmp_path, workers=1, progress=False)
     assert summary["units_skipped"] == 1 and len(list(tmp_path.glob("*/*.npz"))) == 8
 
 
@@ -110,11 +110,11 @@ def test_other_recipe_into_same_folder_is_refused(tiny, tmp_path):
     other = tmp_path / "other.toml"
     other.write_text(TINY.read_text().replace("scenes_per_map = 8", "scenes_per_map = 6"))
     with pytest.raises(CmtoolError, match="different recipe"):
-        build_dataset(other, out, workers=1, progress=False)
+        build_dataset(load_recipe(other), out, workers=1, progress=False)
     (tmp_path / "stuff").mkdir()
     (tmp_path / "stuff" / "notes.txt").write_text("mine")
     with pytest.raises(CmtoolError, match="not a cmtool dataset"):
-        build_dataset(other, tmp_path / "stuff", workers=1, progress=False)
+        build_dataset(load_recipe(other), tmp_path / "stuff", workers=1, progress=False)
 
 
 def capped(tmp_path, num_lines: int) -> Path:
@@ -127,8 +127,8 @@ def capped(tmp_path, num_lines: int) -> Path:
 def test_line_cap_cuts_are_counted_per_split_and_source(tmp_path, capsys):
     from tests.conftest import in_process
 
-    build_dataset(capped(tmp_path, 200), tmp_path / "all", workers=1, progress=False)  # no scene has 200 pieces
-    summary = build_dataset(capped(tmp_path, 5), tmp_path / "cap", workers=1, progress=False)
+    build_dataset(load_recipe(capped(tmp_path, 200)), tmp_path / "all", workers=1, progress=False)  # no scene has 200 pieces
+    summary = build_dataset(load_recipe(capped(tmp_path, 5)), tmp_path / "cap", workers=1, progress=False)
     assert summary["num_lines"] == 5
     manifest = load_manifest(tmp_path / "cap")
     for split, sources in (("train", ("LAV", "PIT", "SGP")), ("test", ("BOS",))):
@@ -142,7 +142,7 @@ def test_line_cap_cuts_are_counted_per_split_and_source(tmp_path, capsys):
         assert summary["splits"][split]["line_cap"] == expected == manifest["splits"][split]["line_cap"]
     # a resumed build reads the counts back from the shards: one shard rebuilt, then none
     sorted((tmp_path / "cap").glob("train/*.npz"))[2].unlink()
-    resumed = build_dataset(capped(tmp_path, 5), tmp_path / "cap", workers=1, progress=False)
+    resumed = build_dataset(load_recipe(capped(tmp_path, 5)), tmp_path / "cap", workers=1, progress=False)
     assert resumed["units_built"] == 1 and resumed["splits"] == summary["splits"]
     code, out, _ = in_process(capsys, "data", "build", "--recipe", capped(tmp_path, 5), "--out", tmp_path / "cap")
     train = summary["splits"]["train"]["line_cap"]
@@ -156,7 +156,7 @@ def test_line_cap_cuts_are_counted_per_split_and_source(tmp_path, capsys):
 def test_no_frame_stands_on_a_road_the_jitter_dropped(tmp_path):
     recipe = tmp_path / "drop.toml"
     recipe.write_text(TINY.read_text().replace("drop_minor = 0.02", "drop_minor = 0.5"))
-    build_dataset(recipe, tmp_path / "out", workers=1, progress=False)
+    build_dataset(load_recipe(recipe), tmp_path / "out", workers=1, progress=False)
     data = load_dataset(tmp_path / "out")
     centre = data.sd[:, 56:72, 56:72, 0]  # 8 m around the ego: its road, shifted by the jitter at most ~3 m
     assert len(data) == 32 and (centre > 0).any(axis=(1, 2)).all()
@@ -164,7 +164,7 @@ def test_no_frame_stands_on_a_road_the_jitter_dropped(tmp_path):
 
 def test_shards_built_before_the_cut_and_frame_arrays_still_load(tmp_path):
     out = tmp_path / "out"
-    build_dataset(capped(tmp_path, 5), out, workers=1, progress=False)
+    build_dataset(load_recipe(capped(tmp_path, 5)), out, workers=1, progress=False)
     reference = arrays(out, "train")
     old = sorted(out.glob("train/*.npz"))[0]  # the first 4 train scenes
     with np.load(old) as z:
@@ -174,7 +174,7 @@ def test_shards_built_before_the_cut_and_frame_arrays_still_load(tmp_path):
     assert reference["cut"][:4].sum() > 0 and data.cut[:4].tolist() == [0] * 4 and data.scene(0).cut == 0
     assert data.kind[:4].tolist() == [""] * 4 and data.scene(0).kind == "" and all(data.kind[4:])
     assert np.array_equal(data.cut[4:], reference["cut"][4:]) and np.array_equal(data.lines, reference["lines"])
-    summary = build_dataset(capped(tmp_path, 5), out, workers=1, progress=False)  # resumes, counts it as 0
+    summary = build_dataset(load_recipe(capped(tmp_path, 5)), out, workers=1, progress=False)  # resumes, counts it as 0
     assert summary["units_built"] == 0
     assert summary["splits"]["train"]["line_cap"]["pieces_cut"] == int(reference["cut"][4:].sum())
     assert summary["splits"]["train"]["frames"]["kinds"]["unknown"] == 4
@@ -200,7 +200,7 @@ def test_build_reports_the_mix_of_frame_kinds(tiny, tmp_path, capsys):
     mix = "[data.frame_mix]\njunction = 0\napproach = 0\nexit = 0\nend = 0\ncurve = 0\nstraight = 1\n"
     body = TINY.read_text()
     straight.write_text(body[:body.index("[data.frame_mix]")] + mix + body[body.index("[data.sd_jitter]"):])
-    only = build_dataset(straight, tmp_path / "straight", workers=1, progress=False)
+    only = build_dataset(load_recipe(straight), tmp_path / "straight", workers=1, progress=False)
     assert set(only["splits"]["test"]["frames"]["kinds"]) == {"straight"}
 
 
@@ -248,7 +248,7 @@ def test_real_maps_join_the_split_they_name(tmp_path):
         "[data]\nmaps_per_city = 0\ntest_maps_per_city = 0\nscenes_per_map = 3\n"
         f"[[data.real_maps]]\nformat = 'av2'\npath = '{files[0]}'\nsplit = 'real'\n"
     )
-    summary = build_dataset(recipe, tmp_path / "out", workers=1, progress=False)
+    summary = build_dataset(load_recipe(recipe), tmp_path / "out", workers=1, progress=False)
     assert list(summary["splits"]) == ["real"] and summary["splits"]["real"]["scenes"] == 3
     assert list(summary["splits"]["real"]["line_cap"]["sources"]) == [f"av2:{files[0].name}"]
     data = load_dataset(tmp_path / "out", "real")
@@ -260,7 +260,7 @@ def test_real_maps_join_the_split_they_name(tmp_path):
 def test_progress_line_reports_rate_and_eta():
     import io
 
-    from cmtool.progress import Progress, format_seconds
+    from cmtool.core.progress import Progress, format_seconds
 
     stream = io.StringIO()
     with Progress(total=10, label="build", unit="scenes", stream=stream) as bar:

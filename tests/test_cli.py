@@ -5,13 +5,13 @@ import json
 import numpy as np
 import pytest
 import shapely
+from conftest import SHARED_DATA
 
-from cmtool.data.hdmap import HDMap
-from cmtool.data.roadgraph import road_graph
 from cmtool.data.scene import drivable_lanes
 from cmtool.data.sd_derive import derive_sd
 from cmtool.data.sd_raster import sd_raster_from_image
-from conftest import SHARED_DATA
+from cmtool.maps.hdmap import HDMap
+from cmtool.maps.roadgraph import road_graph
 
 
 def assert_one_line_error(result, *fragments):

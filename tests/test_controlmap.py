@@ -3,7 +3,7 @@
 import pytest
 import torch
 
-from cmtool.errors import CmtoolError
+from cmtool.core.errors import CmtoolError
 from cmtool.model.config import PAPER_CONTROL_WIDTHS, ControlConfig, DiTConfig
 from cmtool.model.controlmap import ControlMap
 from cmtool.model.dit import DiT
@@ -107,15 +107,15 @@ def test_default_config_fits_the_tiny_dit():
         cm = ControlMap(dit, ControlConfig())
     assert count(cm) > count(dit)
     assert ControlConfig(widths=[32, 64, 128, 192]).widths == (32, 64, 128, 192)
-    assert cm.cfg.num_blocks <= dit.cfg.depth
+    assert cm.config.num_blocks <= dit.config.depth
 
 
-@pytest.mark.parametrize("cfg, field", [
+@pytest.mark.parametrize("config, field", [
     (ControlConfig(num_blocks=4), "control.num_blocks"),
     (ControlConfig(num_blocks=1, widths=(16, 24, 32, 48)), "control.widths"),
     (ControlConfig(num_blocks=1, widths=(32, 64, 128)), "control.widths"),
     (ControlConfig(num_blocks=1, image_px=64), "control.image_px"),
 ])
-def test_bad_configs_raise(cfg, field):
+def test_bad_configs_raise(config, field):
     with pytest.raises(CmtoolError, match=field):
-        ControlMap(small_dit(), cfg)
+        ControlMap(small_dit(), config)

@@ -6,11 +6,13 @@ import pytest
 import torch
 from torch import nn
 
-from cmtool.errors import CmtoolError
+from cmtool.core.errors import CmtoolError
+from cmtool.diffusion.noise import step_generator
+from cmtool.diffusion.samplers import StepInfo, sample
+from cmtool.diffusion.schedule import NoiseSchedule
 from cmtool.model.config import ControlConfig, DiTConfig, ScheduleConfig
 from cmtool.model.controlmap import ControlMap
 from cmtool.model.dit import DiT
-from cmtool.sample.diffusion import NoiseSchedule, StepInfo, sample, step_generator
 from tests.conftest import perturb
 
 pytestmark = pytest.mark.usefixtures("one_thread")  # tiny models run fastest single-threaded
@@ -254,3 +256,26 @@ def test_logsnr_timesteps_are_distinct_and_denser_near_the_data():
         assert len(ts) == n and ts[0] == 999 and ts[-1] == 0 and all(a > b for a, b in zip(ts, ts[1:]))
     assert SCHEDULE.timesteps(1, "logsnr") == [999]
     assert SCHEDULE.timesteps(10, "logsnr")[-2] < SCHEDULE.timesteps(10)[-2] / 10
+
+
+@pytest.mark.parametrize("sampler", ["ddpm", "ddim", "dpm++2m-sde"])
+def test_sdedit_keeps_more_of_the_start_the_lower_the_strength(models, sampler):
+    dit, cm = models
+    init = torch.randn(2, *dit.latent_shape, generator=gen(5))
+    noise = torch.randn(2, *dit.latent_shape, generator=gen(6))
+    dists = []
+    for strength in (0.02, 0.3, 1.0):
+        calls = []
+        x = sample(cm, SCHEDULE, Y, control=CTRL, cfg=1.0, steps=20, sampler=sampler, noise=noise, init=init,
+                   strength=strength, generator=gen(1), callback=lambda info: calls.append(info.t))
+        assert max(calls) <= round(strength * (SCHEDULE.train_steps - 1)) and calls == sorted(calls, reverse=True)
+        dists.append(float((x - init).pow(2).mean()))
+    assert dists[0] < dists[1] < dists[2] and dists[0] < 0.05 * dists[2]  # a small strength keeps the start
+    plain = sample(cm, SCHEDULE, Y, control=CTRL, cfg=1.0, steps=20, sampler=sampler, noise=noise, generator=gen(1))
+    assert not torch.equal(plain, sample(cm, SCHEDULE, Y, control=CTRL, cfg=1.0, steps=20, sampler=sampler,
+                                         noise=noise, init=init, strength=0.3, generator=gen(1)))
+    for bad in (0.0, 1.5, math.nan):
+        with pytest.raises(CmtoolError, match="strength"):
+            sample(cm, SCHEDULE, Y, steps=3, init=init, strength=bad)
+    with pytest.raises(CmtoolError, match="init: expected shape"):
+        sample(cm, SCHEDULE, Y, steps=3, init=init[:1], strength=0.5)

@@ -3,7 +3,7 @@
 import pytest
 import torch
 
-from cmtool.errors import CmtoolError
+from cmtool.core.errors import CmtoolError
 from cmtool.model.config import SIZES, DiTConfig
 from cmtool.model.dit import DiT, sincos_pos_embed_2d
 from tests.conftest import perturb
@@ -46,7 +46,7 @@ def test_parameter_counts(size):
     with torch.device("meta"):
         model = DiT(DiTConfig(size=size))
     depth, hidden, heads = SIZES[size]
-    assert (model.cfg.depth, model.cfg.hidden, model.cfg.heads) == (depth, hidden, heads)
+    assert (model.config.depth, model.config.hidden, model.config.heads) == (depth, hidden, heads)
     assert sum(p.numel() for p in model.parameters()) == expected_params(depth, hidden)
 
 
@@ -97,8 +97,8 @@ def test_same_seed_same_weights_and_output():
 
 
 def test_config_overrides_and_errors():
-    cfg = DiTConfig(size="S", depth=3).resolved()
-    assert (cfg.depth, cfg.hidden, cfg.heads) == (3, 384, 6)
+    config = DiTConfig(size="S", depth=3).resolved()
+    assert (config.depth, config.hidden, config.heads) == (3, 384, 6)
     with pytest.raises(CmtoolError, match="dit.size"):
         DiTConfig(size="huge").resolved()
     with pytest.raises(CmtoolError, match="dit.hidden"):
@@ -121,7 +121,7 @@ def test_bench_dit_compares_with_diffusers_of_the_same_shape(capsys):
     assert "cmtool 5.5M, diffusers" in out and "speed-up over diffusers fp32" in out
     for setting in ("cmtool fp32", "cmtool bf16", "diffusers fp32", "diffusers bf16"):
         assert setting in out
-    from cmtool.model.dit_bench import bench_dit
+    from cmtool.eval.bench_dit import bench_dit
 
     result = bench_dit("tiny", 2, 1, report=lambda line: None)
     assert 0 < result["cmtool bf16 difference"] < 0.05 and 0 < result["diffusers bf16 difference"] < 0.05

@@ -5,6 +5,7 @@ import json
 import pytest
 from rerun.chunk import RrdReader
 
+from cmtool.formats.sumo import netconvert_path
 from tests.conftest import in_process
 
 pytestmark = pytest.mark.usefixtures("one_thread")
@@ -19,7 +20,8 @@ def test_eval_writes_reports_and_resumes(sampling_ckpt, tiny_data, tmp_path, cap
     code, stdout, err = in_process(capsys, *args, "--n", 4)
     assert code == 0, err
     report = json.loads((out / "metrics.json").read_text())
-    assert set(report["methods"]) == {"unguided", "controlmap"} and report["settings"]["n"] == 4
+    baselines = ["rules"] + (["netconvert"] if netconvert_path() else [])
+    assert list(report["methods"]) == ["unguided", *baselines, "controlmap"] and report["settings"]["n"] == 4
     for m in report["methods"].values():
         assert m["scenes"] == 4 and 0.0 <= m["geometry"]["lane_f1"]["mean"] <= 1.0
         assert set(m["topology_fd"]) == {"connectivity", "density", "reach", "convenience"}
@@ -29,7 +31,11 @@ def test_eval_writes_reports_and_resumes(sampling_ckpt, tiny_data, tmp_path, cap
         assert geo["legal_oneway"]["mean"] != geo["legal_oneway"]["mean"] or 0.0 <= geo["legal_oneway"]["mean"] <= 1.0
     assert 0.0 < report["ground_truth_validity"] <= 1.0
     summary = (out / "summary.md").read_text()
-    assert "| metric | unguided | ControlMap |" in summary and "split test, 4 scenes" in summary
+    assert f"| metric | unguided | {' | '.join(baselines)} | ControlMap |" in summary and "split test, 4 scenes" in summary
+    frames = report["frames"]
+    assert sum(frames["scenes"].values()) == 4 and set(frames["lane_f1"]) == set(report["methods"])
+    assert frames["lanes_per_map"]["rules"] > 0 and "| lane F1 @1 m, junction frames" in summary
+    assert (out / "gallery.png").stat().st_size > 0
     assert "| validity score ↑ |" in summary and "validity score of the ground truth itself" in summary
     assert "| lanes joined to nothing, per map ↓ |" in summary and "| lane crossings outside junctions, per map ↓ |" \
         in summary and "| lane length on one-way SD roads running the legal way ↑ |" in summary
@@ -169,7 +175,7 @@ def test_eval_cache_tells_weights_apart_at_the_same_path(sampling_ckpt, tiny_dat
 
     from safetensors.torch import load_file, save_file
 
-    from cmtool import checkpoint as ckpt
+    from cmtool.model import checkpoint as ckpt
 
     src = ckpt.resolve(sampling_ckpt["controlmap"])
     cm = tmp_path / "cm"

@@ -8,9 +8,9 @@ import numpy as np
 import pytest
 import shapely
 
-from cmtool.data.geo import LocalProjection
-from cmtool.data.lanegraph import LaneGraph, write_jsonl
-from cmtool.geometry import resample
+from cmtool.core.geo import LocalProjection
+from cmtool.core.geometry import resample
+from cmtool.maps.lanegraph import LaneGraph, write_jsonl
 from tests.conftest import SHARED_DATA, in_process
 
 
@@ -64,7 +64,7 @@ def neighbours_scene():
 
 
 def test_lanelet2_export_loads_back_with_our_importer(tmp_path, capsys):
-    from cmtool.data.importers import import_hd_map
+    from cmtool.formats.importers import import_hd_map
 
     write_jsonl(tmp_path / "s.jsonl", [neighbours_scene()])
     code, out, err = in_process(capsys, "export", "--format", "lanelet2", tmp_path / "s.jsonl", "--origin", "49.0,8.4",
@@ -95,7 +95,7 @@ def test_lanelet2_export_warns_about_lanes_that_fail_validation(tmp_path, capsys
 
 
 def test_lanelet2_package_routes_the_exported_map(tmp_path):
-    from cmtool.data.lanelet2_export import write_lanelet2
+    from cmtool.formats.lanelet2_export import write_lanelet2
 
     write_lanelet2(neighbours_scene(), tmp_path / "s.osm", 49.0, 8.4)
     lanelet_map, graph = lanelet2_routing(tmp_path / "s.osm", 49.0, 8.4)
@@ -160,7 +160,7 @@ def lanelet2_routes(path, lat0, lon0):
 
 def source_routes(graph):
     """Ordered lane pairs joined by successor edges and lane changes of the lane graph (a plain search)."""
-    from cmtool.eval.validity import lane_changes
+    from cmtool.metrics.validity import lane_changes
 
     adj = {i: set() for i in range(len(graph.lanes))}
     for i, j in list(graph.successors) + lane_changes(graph):
@@ -177,8 +177,8 @@ def source_routes(graph):
 
 
 def real_and_procedural_maps():
-    from cmtool.data.importers import import_hd_map
     from cmtool.data.synth import generate_city
+    from cmtool.formats.importers import import_hd_map
 
     for path in sorted((SHARED_DATA / "av2").glob("*.json")):
         yield "av2", import_hd_map("av2", path)
@@ -194,9 +194,9 @@ def test_lanelet2_routes_lane_changes_and_junctions_as_the_source_allows(tmp_pat
     start abreast of its neighbour, or a lane turns tighter than half its width."""
     pytest.importorskip("lanelet2")
     from cmtool.data.frames import hd_poses
-    from cmtool.data.lanelet2_export import write_lanelet2
     from cmtool.data.scene import SceneCropper
-    from cmtool.eval.validity import lane_changes
+    from cmtool.formats.lanelet2_export import write_lanelet2
+    from cmtool.metrics.validity import lane_changes
 
     totals = {}
     for name, hd in real_and_procedural_maps():
@@ -223,9 +223,9 @@ def lanelet2_successors(path, lat0, lon0):
 def test_procedural_scenes_route_the_same_in_the_lanelet2_package(tmp_path):
     pytest.importorskip("lanelet2")
     from cmtool.data.frames import hd_poses
-    from cmtool.data.lanelet2_export import write_lanelet2
     from cmtool.data.scene import SceneCropper
     from cmtool.data.synth import generate_city
+    from cmtool.formats.lanelet2_export import write_lanelet2
 
     for city in ("LAV", "SGP", "BOS"):
         hd = generate_city(city, seed=2, extent=300.0)
@@ -240,10 +240,10 @@ def test_procedural_scenes_route_the_same_in_the_lanelet2_package(tmp_path):
 
 def test_procedural_scenes_keep_every_lane_and_successor_through_lanelet2(tmp_path):
     from cmtool.data.frames import hd_poses
-    from cmtool.data.importers import import_hd_map
-    from cmtool.data.lanelet2_export import write_lanelet2
     from cmtool.data.scene import SceneCropper
     from cmtool.data.synth import generate_city
+    from cmtool.formats.importers import import_hd_map
+    from cmtool.formats.lanelet2_export import write_lanelet2
 
     for city in ("SGP", "BOS"):  # SGP and BOS have forks and merges at their junctions
         hd = generate_city(city, seed=1, extent=300.0)
@@ -260,7 +260,7 @@ def test_procedural_scenes_keep_every_lane_and_successor_through_lanelet2(tmp_pa
 def test_ground_truth_of_a_lanelet2_map_exports_back_where_it_lies(tmp_path, capsys):
     """`sample --from-hd` of an imported Lanelet2 map knows where its frame lies: exported without --origin,
     the ground truth's lanes land on the source map's own lat/lon."""
-    from cmtool.data.importers import import_hd_map
+    from cmtool.formats.importers import import_hd_map
     from cmtool.sample.inputs import hd_inputs
 
     hd = import_hd_map("lanelet2", SHARED_DATA / "lanelet2" / "mapping_example.osm")

@@ -161,7 +161,7 @@ def ws(tmp_path_factory, tiny_data):
     p["lanelet2_as_osm"] = LANELET2
 
     # checkpoints: the shipped ControlMap with one config field broken
-    from cmtool.release import bundled_checkpoint
+    from cmtool.model.release import bundled_checkpoint
 
     shipped = bundled_checkpoint()
     p["ckpt"] = shipped

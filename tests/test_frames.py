@@ -6,12 +6,12 @@ import math
 import numpy as np
 import pytest
 import shapely
+from conftest import SHARED_DATA, in_process
 
 from cmtool.data.frames import DEFAULT_MIX, FrameSampler, frame_stats, mix_table
-from cmtool.data.roadgraph import road_graph
 from cmtool.data.scene import Pose
-from cmtool.data.sdmap import Road, SDMap
-from conftest import SHARED_DATA, in_process
+from cmtool.maps.roadgraph import road_graph
+from cmtool.maps.sdmap import Road, SDMap
 
 FINLAND = SHARED_DATA / "osm" / "finland_test.osm.pbf"
 
@@ -125,7 +125,7 @@ def test_frame_stats_on_known_frames():
 
 def test_stats_and_sampler_on_real_osm():
     pytest.importorskip("osmium")
-    from cmtool.data.osm import read_osm
+    from cmtool.formats.osm import read_osm
 
     sd = read_osm(FINLAND)
     sampler = FrameSampler(sd)

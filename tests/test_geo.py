@@ -1,7 +1,7 @@
 import numpy as np
 
-from cmtool.data.geo import LocalProjection
-from cmtool.geometry import from_frame, offset, resample, to_frame
+from cmtool.core.geo import LocalProjection
+from cmtool.core.geometry import from_frame, offset, resample, to_frame
 
 
 def test_projection_distances_match_geodesy():

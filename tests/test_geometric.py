@@ -6,8 +6,8 @@ import numpy as np
 import pytest
 
 from cmtool.data.sd_raster import rasterize_sd
-from cmtool.data.sdmap import Road, SDMap
-from cmtool.eval.geometric import chamfer, driving_side, legal_oneway, oncoming_side, sd_adherence
+from cmtool.maps.sdmap import Road, SDMap
+from cmtool.metrics.geometric import chamfer, driving_side, legal_oneway, oncoming_side, sd_adherence
 
 
 def line(y, x0=-30.0, x1=30.0, n=20):

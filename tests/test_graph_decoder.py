@@ -4,8 +4,8 @@ import numpy as np
 import pytest
 import torch
 
-from cmtool.data.lanegraph import join_successors
-from cmtool.errors import CmtoolError
+from cmtool.core.errors import CmtoolError
+from cmtool.maps.lanegraph import join_successors
 from cmtool.model.config import RVAEConfig, RVAELossConfig
 from cmtool.model.graph import sample_points
 from cmtool.model.rvae import RVAE, decoded_elements
@@ -108,9 +108,9 @@ def test_loss_has_every_term_and_trains_every_part():
     torch.manual_seed(0)
     model = RVAE(RVAEConfig(**SMALL))
     batch = _batch()
-    cfg = RVAELossConfig(aux_weight=1.0, direction_weight=2.0, successor_weight=5.0, denoise_weight=1.0)
-    decoded, mean, logvar = model(torch.rand(2, 6, 128, 128), aux=True, denoise=denoise_input(batch, cfg))
-    total, parts = rvae_loss(decoded, mean, logvar, batch, cfg)
+    config = RVAELossConfig(aux_weight=1.0, direction_weight=2.0, successor_weight=5.0, denoise_weight=1.0)
+    decoded, mean, logvar = model(torch.rand(2, 6, 128, 128), aux=True, denoise=denoise_input(batch, config))
+    total, parts = rvae_loss(decoded, mean, logvar, batch, config)
     assert {"l1/lines", "exist/lines", "dir/lines", "succ/lines", "aux", "denoise", "kl"} <= set(parts)
     assert all(np.isfinite(v) for v in parts.values()) and parts["succ/lines"] > 0 and parts["denoise"] > 0
     total.backward()
@@ -135,16 +135,16 @@ def test_denoising_queries_are_hidden_from_the_matched_ones():
 
 def test_denoise_loss_is_zero_only_for_the_true_lines():
     batch = _batch()
-    cfg = RVAELossConfig(direction_weight=2.0, successor_weight=5.0, denoise_weight=1.0)
+    config = RVAELossConfig(direction_weight=2.0, successor_weight=5.0, denoise_weight=1.0)
     succ_logit = torch.where(batch["succ"], 30.0, -30.0)
     exact = [{"lines": batch["lines"].clone(), "succ_logit": succ_logit}]
-    assert denoise_loss(exact, batch, cfg) < 1e-6
+    assert denoise_loss(exact, batch, config) < 1e-6
     shifted = [{"lines": batch["lines"] + torch.tensor([0.0, 1.0]), "succ_logit": succ_logit}]
-    assert denoise_loss(shifted, batch, cfg) == pytest.approx(64.0 * 6 * (1.0 / 32.0) / 100, rel=1e-4)  # 6 lines, 1 m off, 100 slots
+    assert denoise_loss(shifted, batch, config) == pytest.approx(64.0 * 6 * (1.0 / 32.0) / 100, rel=1e-4)  # 6 lines, 1 m off, 100 slots
     # padded slots (mask False) are never scored, whatever they hold
     padded = [{"lines": torch.where(batch["line_mask"][..., None, None], batch["lines"], 99.0),
                "succ_logit": succ_logit}]
-    assert denoise_loss(padded, batch, cfg) < 1e-6
+    assert denoise_loss(padded, batch, config) < 1e-6
 
 
 def test_decoded_successors_are_pairs_of_kept_lines():
@@ -174,8 +174,8 @@ def test_join_successors_shares_joints_without_kinks():
 
 
 def test_successor_counts_match_lanes_before_links():
-    from cmtool.data.lanegraph import LaneGraph
-    from cmtool.eval.reconstruction import successor_counts
+    from cmtool.maps.lanegraph import LaneGraph
+    from cmtool.train.reconstruction import successor_counts
 
     def lane(x0, y):
         return np.stack([np.linspace(x0, x0 + 19, 20), np.full(20, y)], 1)

@@ -3,9 +3,9 @@ import json
 import numpy as np
 import pytest
 
-from cmtool.data.hdmap import Crosswalk, HDMap, Lane, StopLine
-from cmtool.data.sdmap import Road, SDMap
-from cmtool.errors import CmtoolError
+from cmtool.core.errors import CmtoolError
+from cmtool.maps.hdmap import Crosswalk, HDMap, Lane, StopLine
+from cmtool.maps.sdmap import Road, SDMap
 
 
 def small_map() -> HDMap:

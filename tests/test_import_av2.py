@@ -8,9 +8,9 @@ import pytest
 import shapely
 from shapely.geometry import LineString, Polygon
 
-from cmtool.data.hdmap import HDMap
-from cmtool.data.importers import import_hd_map
-from cmtool.errors import CmtoolError
+from cmtool.core.errors import CmtoolError
+from cmtool.formats.importers import import_hd_map
+from cmtool.maps.hdmap import HDMap
 
 DATA = Path(__file__).resolve().parents[1] / ".." / "shared" / "data" / "av2"
 FILES = sorted(DATA.glob("*.json")) if DATA.is_dir() else []

@@ -9,9 +9,9 @@ import pytest
 import shapely
 from shapely.geometry import LineString
 
-from cmtool.data.hdmap import HDMap
-from cmtool.data.importers import import_hd_map
-from cmtool.errors import CmtoolError
+from cmtool.core.errors import CmtoolError
+from cmtool.formats.importers import import_hd_map
+from cmtool.maps.hdmap import HDMap
 
 MAP = Path(__file__).resolve().parents[1] / ".." / "shared" / "data" / "lanelet2" / "mapping_example.osm"
 ROAD = ("road", "highway", "play_street", "emergency_lane", "bus_lane")

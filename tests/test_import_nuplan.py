@@ -4,11 +4,11 @@ import sqlite3
 
 import numpy as np
 import pytest
-
-from cmtool.data.hdmap import HDMap
-from cmtool.data.importers import import_hd_map
-from cmtool.errors import CmtoolError
 from nuplan_fixture import CONNECTORS, LANES, build_gpkg, connector_line, lane_line
+
+from cmtool.core.errors import CmtoolError
+from cmtool.formats.importers import import_hd_map
+from cmtool.maps.hdmap import HDMap
 
 
 @pytest.fixture

@@ -1,9 +1,9 @@
-"""Lane precision / recall / F1 (cmtool.eval.lanes) on hand-made polylines."""
+"""Lane precision / recall / F1 (cmtool.metrics.lanes) on hand-made polylines."""
 
 import numpy as np
 import pytest
 
-from cmtool.eval.lanes import distance_to_polylines, lane_scores, near_polylines
+from cmtool.metrics.lanes import distance_to_polylines, lane_scores, near_polylines
 
 STRAIGHT = np.array([[0.0, 0.0], [20.0, 0.0]])
 BEND = np.array([[0.0, 5.0], [10.0, 5.0], [10.0, 20.0]])

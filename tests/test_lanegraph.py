@@ -3,8 +3,8 @@ import json
 import numpy as np
 import pytest
 
-from cmtool.data.lanegraph import LaneGraph, infer_successors, read_jsonl, write_jsonl
-from cmtool.errors import CmtoolError
+from cmtool.core.errors import CmtoolError
+from cmtool.maps.lanegraph import LaneGraph, infer_successors, read_jsonl, write_jsonl
 
 
 def scene(city="SGP"):

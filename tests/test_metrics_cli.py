@@ -5,9 +5,9 @@ import json
 import numpy as np
 import pytest
 
-from cmtool.data.lanegraph import LaneGraph, infer_successors, write_jsonl
 from cmtool.data.sd_raster import rasterize_sd
-from cmtool.data.sdmap import Road, SDMap
+from cmtool.maps.lanegraph import LaneGraph, infer_successors, write_jsonl
+from cmtool.maps.sdmap import Road, SDMap
 from tests.conftest import in_process
 
 pytestmark = pytest.mark.usefixtures("one_thread")
@@ -52,8 +52,8 @@ def test_metrics_end_to_end(tmp_path, capsys):
 def test_processes_share_the_scenes_with_the_same_numbers(tmp_path, capsys):
     """--workers 2 scores a set above POOL_MIN_SCENES in two processes, value for value as one process does (and
     the topology distances as computed set by set)."""
-    from cmtool.eval.scenes import POOL_MIN_SCENES
-    from cmtool.eval.topology import topology_fd
+    from cmtool.metrics.scenes import POOL_MIN_SCENES
+    from cmtool.metrics.topology import topology_fd
 
     ref, sd = scenes(POOL_MIN_SCENES + 44, 0)
     other, _ = scenes(POOL_MIN_SCENES + 44, 1)

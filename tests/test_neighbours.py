@@ -6,10 +6,10 @@ import re
 import numpy as np
 import pytest
 
-from cmtool.data.lanegraph import LaneGraph, read_jsonl, write_jsonl
-from cmtool.data.neighbours import abreast, find_neighbours, infer_neighbours, lane_widths, same_direction, side_of
-from cmtool.errors import CmtoolError
-from cmtool.eval.validity import check
+from cmtool.core.errors import CmtoolError
+from cmtool.maps.lanegraph import LaneGraph, read_jsonl, write_jsonl
+from cmtool.maps.neighbours import abreast, find_neighbours, infer_neighbours, lane_widths, same_direction, side_of
+from cmtool.metrics.validity import check
 from tests.conftest import SHARED_DATA
 
 
@@ -45,8 +45,8 @@ def test_neighbours_from_geometry():
 def test_source_neighbours_are_kept_and_agree_with_the_geometry():
     """Argoverse 2 crops: the pairs the map records (same direction) and those the geometry finds agree."""
     from cmtool.data.frames import hd_poses
-    from cmtool.data.importers import import_hd_map
     from cmtool.data.scene import SceneCropper
+    from cmtool.formats.importers import import_hd_map
 
     recorded = found = both = oncoming = 0
     for path in sorted((SHARED_DATA / "av2").glob("*.json")):

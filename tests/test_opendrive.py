@@ -10,14 +10,14 @@ import numpy as np
 import pytest
 import shapely
 
+from cmtool.core.errors import CmtoolError
 from cmtool.data.frames import hd_poses
-from cmtool.data.importers import import_hd_map
-from cmtool.data.lanegraph import LaneGraph
-from cmtool.data.neighbours import graph_neighbours, lane_widths
-from cmtool.data.opendrive_export import to_opendrive, write_opendrive
 from cmtool.data.scene import SceneCropper
 from cmtool.data.synth import generate_city
-from cmtool.errors import CmtoolError
+from cmtool.formats.importers import import_hd_map
+from cmtool.formats.opendrive_export import to_opendrive, write_opendrive
+from cmtool.maps.lanegraph import LaneGraph
+from cmtool.maps.neighbours import graph_neighbours, lane_widths
 from tests.conftest import SHARED_DATA
 
 ORIGIN = (42.36, -71.06)

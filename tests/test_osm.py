@@ -3,8 +3,8 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from cmtool.data.osm import parse_lanes, parse_oneway, read_osm, road_class_of
-from cmtool.errors import CmtoolError
+from cmtool.core.errors import CmtoolError
+from cmtool.formats.osm import parse_lanes, parse_oneway, read_osm, road_class_of
 
 FIXTURE = Path(__file__).resolve().parent / "fixtures" / "small.osm"
 
@@ -121,9 +121,9 @@ def test_tag_parsing():
 
 
 def test_written_osm_reads_back_as_the_same_roads(tmp_path):
-    from cmtool.data.osm import write_osm
     from cmtool.data.sd_derive import derive_sd
     from cmtool.data.synth import generate_city
+    from cmtool.formats.osm import write_osm
 
     sd = derive_sd(generate_city("BOS", seed=3, extent=300.0))
     write_osm(sd, tmp_path / "town.osm", 42.355, -71.065)

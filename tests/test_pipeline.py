@@ -11,8 +11,8 @@ import time
 
 import pytest
 
-from cmtool import checkpoint as ckpt
-from cmtool.data.jsonio import read_json
+from cmtool.core.jsonio import read_json
+from cmtool.model import checkpoint as ckpt
 from tests.conftest import REPO
 from tests.test_train import cli, write_recipe
 
@@ -122,8 +122,8 @@ def test_shipped_pipeline_recipes_load_and_pack_under_their_size(name, limit):
     from cmtool.model.controlmap import ControlMap
     from cmtool.model.dit import DiT
     from cmtool.model.rvae import ENCODER_PREFIXES, RVAE
-    from cmtool.recipe import load_recipe
-    from cmtool.train.pipeline import stage_recipes
+    from cmtool.pipeline import stage_recipes
+    from cmtool.train.recipe import load_recipe
 
     files = stage_recipes(load_recipe(REPO / "recipes" / name / "pipeline.toml"))
     recipes = {stage: load_recipe(path) for stage, path in files.items() if stage != "data"}

@@ -5,13 +5,13 @@ import numpy as np
 import pytest
 import torch
 
-from cmtool import checkpoint as ckpt
-from cmtool.data.jsonio import file_mode
-from cmtool.data.lanegraph import read_jsonl
+from cmtool.core.errors import CmtoolError
+from cmtool.core.jsonio import file_mode
 from cmtool.data.sd_raster import read_sd_image
-from cmtool.errors import CmtoolError
-from cmtool.release import BUNDLED, MANIFEST, bundled_checkpoint, verify
-from cmtool.sample.generator import Generator
+from cmtool.maps.lanegraph import read_jsonl
+from cmtool.model import checkpoint as ckpt
+from cmtool.model.release import BUNDLED, MANIFEST, bundled_checkpoint, verify
+from cmtool.sample.generator import MapGenerator
 from tests.conftest import REPO, in_process
 
 
@@ -53,14 +53,14 @@ def test_pack_writes_float16_weights_that_sample_like_the_original(sampling_ckpt
     assert weights and not any(k.startswith(("trunk.", "to_latent.")) for k in weights)
     assert all(v.dtype == torch.float16 for v in weights.values())
 
-    original, packed = Generator.load(sampling_ckpt["controlmap"]), Generator.load(tmp_path / "w" / "controlmap")
+    original, packed = MapGenerator.load(sampling_ckpt["controlmap"]), MapGenerator.load(tmp_path / "w" / "controlmap")
     noise = torch.randn(1, *original.model.latent_shape, generator=torch.Generator().manual_seed(0))
     sd = read_sd_image(REPO / "sample_data" / "sd_lav.png")[0][None]
     a = original.sample(sd, [original.label("LAV")], cfg=1.0, steps=5, sampler="ddim", noise=noise)
     b = packed.sample(sd, [packed.label("LAV")], cfg=1.0, steps=5, sampler="ddim", noise=noise)
     assert torch.allclose(a, b, atol=0.05 * float(a.abs().max()))
     with pytest.raises(CmtoolError, match="decoder only"):
-        packed.rvae.encode(torch.zeros(1, packed.rvae.cfg.in_channels, 128, 128))
+        packed.rvae.encode(torch.zeros(1, packed.rvae.config.in_channels, 128, 128))
 
     (tmp_path / "w" / "rvae" / ckpt.WEIGHTS).write_bytes(b"tampered")
     assert verify(tmp_path / "w") == ["rvae/model.safetensors: checksum differs from MANIFEST.json"]
@@ -72,11 +72,11 @@ def test_pack_refuses_other_checkpoints(sampling_ckpt, tmp_path, capsys):
 
 
 def test_pack_splits_weights_into_files_under_the_limit(sampling_ckpt, tmp_path, capsys, monkeypatch):
-    import cmtool.release
+    import cmtool.model.release
 
     code, _, err = in_process(capsys, "pack", "--ckpt", sampling_ckpt["controlmap"], "--out", tmp_path / "whole")
     assert code == 0, err
-    monkeypatch.setattr(cmtool.release, "MAX_FILE_BYTES", 64 * 1024)
+    monkeypatch.setattr(cmtool.model.release, "MAX_FILE_BYTES", 64 * 1024)
     code, _, err = in_process(capsys, "pack", "--ckpt", sampling_ckpt["controlmap"], "--out", tmp_path / "split")
     assert code == 0, err
     assert verify(tmp_path / "split") == []

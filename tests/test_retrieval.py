@@ -6,11 +6,11 @@ import numpy as np
 import pytest
 import torch
 
+from cmtool.core.errors import CmtoolError
 from cmtool.data.sd_raster import rasterize_sd
-from cmtool.data.sdmap import Road, SDMap
-from cmtool.errors import CmtoolError
-from cmtool.eval.features import FeatureExtractor, imagenet_weights, lanes_image, sd_image
-from cmtool.eval.retrieval import batch_recall, improved_precision_recall
+from cmtool.maps.sdmap import Road, SDMap
+from cmtool.metrics.features import FeatureExtractor, imagenet_weights, lanes_image, sd_image
+from cmtool.metrics.retrieval import batch_recall, improved_precision_recall
 
 pytestmark = pytest.mark.usefixtures("one_thread")
 

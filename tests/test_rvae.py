@@ -4,13 +4,13 @@ import numpy as np
 import pytest
 import torch
 
+from cmtool.core.errors import CmtoolError
+from cmtool.core.geometry import bezier_fit_matrix
 from cmtool.data.frames import hd_poses
 from cmtool.data.hd_raster import rasterize_scene
 from cmtool.data.scene import SceneCropper
 from cmtool.data.synth import generate_city
-from cmtool.errors import CmtoolError
-from cmtool.eval.lanes import lane_scores
-from cmtool.geometry import bezier_fit_matrix
+from cmtool.metrics.lanes import lane_scores
 from cmtool.model.config import RVAEConfig, RVAELossConfig
 from cmtool.model.rvae import ELEMENTS, RVAE, decoded_elements
 from cmtool.model.rvae_loss import kl_divergence, match, rvae_loss
@@ -110,19 +110,19 @@ def test_match_recovers_permutation():
 def test_loss_zero_when_prediction_is_permuted_target():
     rng = np.random.default_rng(1)
     batch = random_batch(2, rng)
-    decoded, cfg = {}, RVAELossConfig()
+    decoded, config = {}, RVAELossConfig()
     for name, mask in (("lines", "line_mask"), ("green", "green_mask"), ("red", "red_mask")):
         perm = rng.permutation(batch[name].shape[1])
         decoded[name] = batch[name][:, perm]
         decoded[f"{name}_logit"] = torch.where(batch[mask][:, perm], 20.0, -20.0)
     zeros = torch.zeros(2, 64, 8, 8)
-    total, parts = rvae_loss(decoded, zeros, zeros, batch, cfg)
+    total, parts = rvae_loss(decoded, zeros, zeros, batch, config)
     assert total.item() < 1e-6 and set(parts) == {f"{k}/{n}" for k in ("l1", "exist") for n in ELEMENTS} | {"kl"}
     decoded["lines"] = decoded["lines"] + 1.0  # 1 m off in x and y: L1 = 2 m = 1/16 half-frame, per valid line
-    total, parts = rvae_loss(decoded, zeros, zeros, batch, cfg)
+    total, parts = rvae_loss(decoded, zeros, zeros, batch, config)
     valid = batch["line_mask"].float().mean().item()
     assert parts["l1/lines"] == pytest.approx(valid / 16, rel=1e-5)
-    assert total.item() == pytest.approx(cfg.l1_weight * valid / 16, rel=1e-4)
+    assert total.item() == pytest.approx(config.l1_weight * valid / 16, rel=1e-4)
 
 
 def test_aux_outputs_match_the_torch_decoder_and_add_their_loss():
@@ -145,9 +145,9 @@ def test_aux_outputs_match_the_torch_decoder_and_add_their_loss():
         perfect[f"{name}_logit"] = torch.where(batch[mask], 20.0, -20.0)
     shifted = {**perfect, "lines": perfect["lines"] + 1.0}  # L1 = 1/16 half-frame per valid line
     zeros = torch.zeros(2, 64, 8, 8)
-    cfg = RVAELossConfig(aux_weight=0.5)
-    total, parts = rvae_loss({**perfect, "aux": [shifted, perfect]}, zeros, zeros, batch, cfg)
-    expected = 0.5 * cfg.l1_weight * batch["line_mask"].float().mean().item() / 16
+    config = RVAELossConfig(aux_weight=0.5)
+    total, parts = rvae_loss({**perfect, "aux": [shifted, perfect]}, zeros, zeros, batch, config)
+    expected = 0.5 * config.l1_weight * batch["line_mask"].float().mean().item() / 16
     assert parts["aux"] == pytest.approx(expected, rel=1e-4) and total.item() == pytest.approx(expected, rel=1e-4)
     total, parts = rvae_loss({**perfect, "aux": [shifted]}, zeros, zeros, batch, RVAELossConfig())
     assert "aux" not in parts and total.item() < 1e-6
@@ -186,13 +186,13 @@ def test_overfits_eight_scenes():
     torch.manual_seed(0)
     scenes, rasters, batch = overfit_scenes()
     model = RVAE(RVAEConfig(d_model=128, decoder_layers=2, heads=4, ffn=256, dropout=0.0))
-    cfg = RVAELossConfig(kl_weight=0.0)
+    config = RVAELossConfig(kl_weight=0.0)
     steps = 400  # 300 reached F1 0.92 on the scenes framed on roads (200 sufficed for the old lane-framed ones)
     opt = torch.optim.AdamW(model.parameters(), lr=3e-3, weight_decay=0.01)
     sched = torch.optim.lr_scheduler.OneCycleLR(opt, max_lr=3e-3, total_steps=steps, pct_start=0.1)
     for _ in range(steps):
         decoded, mean, logvar = model(rasters, sample=False)
-        loss, _ = rvae_loss(decoded, mean, logvar, batch, cfg)
+        loss, _ = rvae_loss(decoded, mean, logvar, batch, config)
         opt.zero_grad()
         loss.backward()
         torch.nn.utils.clip_grad_norm_(model.parameters(), 1.0)

@@ -17,12 +17,13 @@ import torch
 from rerun.chunk import RrdReader
 
 from cmtool.cli import main
-from cmtool.data.hdmap import HDMap
-from cmtool.data.lanegraph import LaneGraph, infer_successors, read_jsonl
 from cmtool.data.sd_raster import read_sd_image
-from cmtool.eval.geometric import legal_oneway
-from cmtool.eval.validity import check
-from cmtool.sample import DEFAULT_SAMPLER, DEFAULT_SMOOTH, DEFAULT_STEPS
+from cmtool.diffusion.settings import DEFAULT_SAMPLER, DEFAULT_STEPS
+from cmtool.maps.hdmap import HDMap
+from cmtool.maps.lanegraph import LaneGraph, infer_successors, read_jsonl
+from cmtool.metrics.geometric import legal_oneway
+from cmtool.metrics.validity import check
+from cmtool.sample import DEFAULT_SMOOTH
 from cmtool.viz.trajectory import strips_column, tensor_column
 from tests.conftest import REPO, in_process
 
@@ -345,7 +346,7 @@ def test_steps_where_nothing_is_decoded_still_get_a_row(tmp_path):
     """A step whose x0 decodes to no lanes or no lights logs an empty row, not an error."""
     import torch
 
-    from cmtool.sample.diffusion import StepInfo
+    from cmtool.diffusion.samplers import StepInfo
     from cmtool.viz.trajectory import TrajectoryLogger
 
     def decode(latents):  # lanes at even steps only, never lights
@@ -375,13 +376,13 @@ def test_bf16_sampling_stays_within_a_stated_tolerance_of_fp32(tmp_path, capsys)
     at 1 m (docs/speed.md states the tolerance); so do its step previews, decoded in bf16."""
     import cv2
 
-    from cmtool.eval.lanes import lane_scores
-    from cmtool.release import bundled_checkpoint
-    from cmtool.sample.generator import Generator
+    from cmtool.metrics.lanes import lane_scores
+    from cmtool.model.release import bundled_checkpoint
+    from cmtool.sample.generator import MapGenerator
 
     sd = np.stack([cv2.cvtColor(cv2.imread(str(REPO / "sample_data" / f"sd_{c}.png")), cv2.COLOR_BGR2RGB)
                    for c in ("bos", "lav", "pit", "sgp")])
-    gens = {p: Generator.load(bundled_checkpoint(), "cpu", precision=p) for p in ("fp32", "bf16")}
+    gens = {p: MapGenerator.load(bundled_checkpoint(), "cpu", precision=p) for p in ("fp32", "bf16")}
     noise = torch.randn((4, *gens["fp32"].model.latent_shape), generator=torch.Generator().manual_seed(0))
     for sampler in ("ddpm", "ddim"):
         x = {p: g.sample(sd, [3] * 4, cfg=1.0, steps=10, sampler=sampler, noise=noise,

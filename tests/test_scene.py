@@ -3,8 +3,8 @@
 import numpy as np
 import pytest
 
-from cmtool.data.hdmap import HDMap, Lane, StopLine
 from cmtool.data.scene import Pose, Scene, extract_scene
+from cmtool.maps.hdmap import HDMap, Lane, StopLine
 
 
 def straight(x0, y0, x1, y1, n=30):

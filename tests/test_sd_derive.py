@@ -5,13 +5,13 @@ import pytest
 import shapely
 from fixtures.hdmaps import add_road, connect_intersection, crossroads
 
+from cmtool.core.geometry import from_frame
 from cmtool.data.frames import hd_poses
-from cmtool.data.hdmap import HDMap, Lane
 from cmtool.data.scene import SceneCropper
 from cmtool.data.sd_derive import SDJitter, derive_sd, road_class, road_network
 from cmtool.data.sd_raster import rasterize_sd
-from cmtool.data.sdmap import SDMap
-from cmtool.geometry import from_frame
+from cmtool.maps.hdmap import HDMap, Lane
+from cmtool.maps.sdmap import SDMap
 
 AV2 = Path(__file__).resolve().parents[1] / ".." / "shared" / "data" / "av2"
 BEYOND_M = 4.0  # a lane point is covered when at most this far outside an SD road taken as lanes x 3.5 m wide
@@ -146,7 +146,7 @@ def av2_maps() -> list:
     files = sorted(AV2.glob("*.json"))
     if not files:
         pytest.skip("shared Argoverse 2 sample data not available")
-    importers = pytest.importorskip("cmtool.data.importers")
+    importers = pytest.importorskip("cmtool.formats.importers")
     return [(path, importers.import_hd_map("av2", path)) for path in files]
 
 

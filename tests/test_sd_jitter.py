@@ -5,7 +5,7 @@ import pytest
 import shapely
 
 from cmtool.data.sd_jitter import SDJitter, apply_jitter
-from cmtool.data.sdmap import Road, SDMap
+from cmtool.maps.sdmap import Road, SDMap
 
 
 def town() -> SDMap:

@@ -2,9 +2,9 @@ import cv2
 import numpy as np
 import pytest
 
+from cmtool.core.errors import CmtoolError
 from cmtool.data.sd_raster import convert_sd_image, decode_sd, direction_value, rasterize_sd, sd_raster_from_image
-from cmtool.data.sdmap import Road, SDMap
-from cmtool.errors import CmtoolError
+from cmtool.maps.sdmap import Road, SDMap
 
 
 def road(points, lanes=None, oneway=0):

@@ -7,10 +7,9 @@ import numpy as np
 import pytest
 from rerun.chunk import RrdReader
 
+from cmtool.core.errors import CmtoolError
 from cmtool.data.cache import load_dataset
-from cmtool.errors import CmtoolError
 from cmtool.viz.show import pick, show_dataset
-
 
 
 @pytest.fixture(scope="module")

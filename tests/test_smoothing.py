@@ -6,9 +6,9 @@ import json
 import numpy as np
 import pytest
 
-from cmtool.data.lanegraph import LaneGraph, infer_successors
-from cmtool.eval.validity import check
-from cmtool.geometry import bezier_fit_matrix
+from cmtool.core.geometry import bezier_fit_matrix
+from cmtool.maps.lanegraph import LaneGraph, infer_successors
+from cmtool.metrics.validity import check
 from tests.conftest import REPO, in_process
 
 SD_PNG = REPO / "sample_data" / "sd_lav.png"

@@ -2,8 +2,8 @@ import numpy as np
 import pytest
 from fixtures.hdmaps import add_road, connect_intersection, crossroads
 
-from cmtool.data.hdmap import HDMap
 from cmtool.data.stats import map_stats
+from cmtool.maps.hdmap import HDMap
 
 KEYS = {"lanes_per_road", "block_length_m", "intersection_degree", "curvature_deg_per_100m", "oneway_share",
         "lane_width_m", "lanes", "intersections", "road_km"}

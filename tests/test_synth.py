@@ -7,9 +7,9 @@ import numpy as np
 import pytest
 import shapely
 
-from cmtool.data.hdmap import HDMap
+from cmtool.core.errors import CmtoolError
 from cmtool.data.synth import CITIES, generate_city
-from cmtool.errors import CmtoolError
+from cmtool.maps.hdmap import HDMap
 
 CASES = [(city, seed, extent) for city in CITIES for seed, extent in ((0, 800.0), (5, 500.0))]
 

@@ -6,7 +6,7 @@ from types import SimpleNamespace
 import numpy as np
 import pytest
 
-from cmtool.eval.topology import frechet_1d, keypoint_graph, pooled_statistics, scene_statistics, topology_fd
+from cmtool.metrics.topology import frechet_1d, keypoint_graph, pooled_statistics, scene_statistics, topology_fd
 
 
 def stats(num_lanes, successors):
@@ -82,7 +82,7 @@ def test_component_search_equals_the_all_pairs_matrix(monkeypatch):
     from scipy.sparse import csr_matrix
     from scipy.sparse.csgraph import shortest_path
 
-    from cmtool.eval import topology
+    from cmtool.metrics import topology
 
     def dense(graph):
         n, e = graph.n, graph.edges

@@ -16,8 +16,8 @@ import torch
 from rerun.chunk import RrdReader
 from safetensors.torch import load_file, save_file
 
-from cmtool import checkpoint as ckpt
-from cmtool.errors import CmtoolError
+from cmtool.core.errors import CmtoolError
+from cmtool.model import checkpoint as ckpt
 from cmtool.train.loop import cpu_has_native_bf16
 from tests.conftest import REPO
 
@@ -26,6 +26,7 @@ TINY_MODELS = {
     "dit": '[dit]\nsize = "tiny"\ndepth = 2\nhidden = 32\nheads = 2\n',
     "controlnet": '[dit]\nsize = "tiny"\ndepth = 2\nhidden = 32\nheads = 2\n[control]\nnum_blocks = 2\nwidths = [8, 8, 16, 16]\ngroups = 4\n',
     "decoder": "",  # the decoder stage takes its model from the RVAE run
+    "encoder": "",  # ... and the encoder stage from the RVAE whose decoder it trains for
 }
 
 
@@ -155,6 +156,27 @@ def _encoder(tensors):
     return {k: v for k, v in tensors.items() if k.startswith(("trunk.", "to_latent."))}
 
 
+def test_encoder_stage_trains_an_encoder_for_a_frozen_packed_decoder(runs, tmp_path):
+    root = runs["root"]
+    packed = cli("pack", "--ckpt", runs["controlnet"], "--out", tmp_path / "w")  # a decoder-only RVAE, as shipped
+    assert packed.returncode == 0, packed.stderr
+    recipe = write_recipe(tmp_path / "encoder.toml", "encoder", 4, data=str(runs["data"]),
+                          rvae=str(tmp_path / "w" / "rvae"))
+    result = cli("train", "encoder", "--recipe", recipe, "--out", tmp_path / "enc", "--quiet")
+    assert result.returncode == 0, result.stderr
+    assert "encoder: the latent scale of its train means" in result.stdout
+    parent, config = ckpt.load_config(tmp_path / "w" / "rvae"), ckpt.load_config(tmp_path / "enc")
+    assert config["latent_scale"] == parent["latent_scale"] and config["own_latent_scale"] > 0
+    assert (tmp_path / "enc" / "latents" / "train.npz").is_file() and config["decoder_from"]
+    decoder = load_file(str(tmp_path / "w" / "rvae" / ckpt.WEIGHTS))
+    after = load_file(str(ckpt.resolve(tmp_path / "enc") / ckpt.WEIGHTS))
+    assert all(torch.equal(v.float(), after[k]) for k, v in decoder.items())  # the decoder stayed as packed
+    trained = load_file(str(ckpt.resolve(root / "rvae") / ckpt.WEIGHTS))
+    assert _encoder(after) and not torch.equal(after["trunk.0.weight"], trained["trunk.0.weight"])
+    assert "frozen, from" in cli("info", tmp_path / "enc").stdout
+    assert "which stays frozen" in cli("info", recipe).stdout
+
+
 def test_decoder_stage_trains_the_decoder_on_the_frozen_encoder(runs, tmp_path):
     root = runs["root"]
     recipe = write_recipe(tmp_path / "decoder.toml", "decoder", 4, data=str(runs["data"]), rvae=str(root / "rvae"))
@@ -200,9 +222,9 @@ def test_decoder_stage_trains_the_decoder_on_the_frozen_encoder(runs, tmp_path):
 
 def test_mirrored_scenes_take_a_label_of_the_other_driving_side(runs, tmp_path):
     from cmtool.data.cache import load_dataset
-    from cmtool.eval.metrics import drives_on
-    from cmtool.recipe import load_recipe
+    from cmtool.maps.hdmap import drives_on
     from cmtool.train.data import SceneRasters
+    from cmtool.train.recipe import load_recipe
     from cmtool.train.stages import ControlNetStage, DiTStage
 
     # the mirrored HD raster is the plain one flipped left-right (to within the one pixel by which
@@ -247,7 +269,7 @@ def test_mirrored_scenes_take_a_label_of_the_other_driving_side(runs, tmp_path):
 
 
 def test_control_branch_starts_from_another_controlmap(runs, tmp_path):
-    from cmtool.recipe import load_recipe
+    from cmtool.train.recipe import load_recipe
     from cmtool.train.stages import ControlNetStage
 
     root = runs["root"]
@@ -274,7 +296,7 @@ def test_control_branch_starts_from_another_controlmap(runs, tmp_path):
 
 
 def test_dit_starts_from_a_dit_or_a_controlmaps_frozen_base(runs, tmp_path, capsys):
-    from cmtool.recipe import load_recipe
+    from cmtool.train.recipe import load_recipe
     from cmtool.train.stages import DiTStage
 
     root = runs["root"]
@@ -434,7 +456,7 @@ def test_a_prune_killed_midway_leaves_no_half_deleted_checkpoint(tmp_path):
                              state={"s": torch.ones(1)})
     killed = subprocess.run([sys.executable, "-c", (
         "import os, shutil, signal, sys\n"
-        "import cmtool.checkpoint as c\n"
+        "import cmtool.model.checkpoint as c\n"
         "def rmtree(path, *a, **k):\n"
         "    os.remove(os.path.join(path, c.CONFIG))  # part of the folder is gone, then the process dies\n"
         "    os.kill(os.getpid(), signal.SIGKILL)\n"

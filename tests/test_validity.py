@@ -3,9 +3,9 @@
 import numpy as np
 import pytest
 
-from cmtool.data.lanegraph import LaneGraph
 from cmtool.data.synth import generate_city
-from cmtool.eval.validity import check
+from cmtool.maps.lanegraph import LaneGraph
+from cmtool.metrics.validity import check
 
 
 def straight(x0, y0, x1, y1, n=20):
@@ -81,7 +81,7 @@ def test_wide_curves_are_not_kinks():
 def test_validate_command(tmp_path, capsys):
     import json
 
-    from cmtool.data.lanegraph import write_jsonl
+    from cmtool.maps.lanegraph import write_jsonl
     from tests.conftest import in_process
 
     good = LaneGraph(lanes=[straight(-32, 0, 32, 0)])
@@ -100,8 +100,8 @@ def test_validate_command(tmp_path, capsys):
 def test_repair_snaps_drops_and_merges_and_reports_each_change(tmp_path, capsys):
     import json
 
-    from cmtool.data.lanegraph import read_jsonl, write_jsonl
-    from cmtool.eval.repair import repair
+    from cmtool.maps.lanegraph import read_jsonl, write_jsonl
+    from cmtool.metrics.repair import repair
     from tests.conftest import in_process
 
     lanes = [
@@ -147,7 +147,7 @@ def test_routability_equals_an_all_pairs_path_search():
     from scipy.sparse import csr_matrix
     from scipy.sparse.csgraph import shortest_path
 
-    from cmtool.eval.validity import _routability
+    from cmtool.metrics.validity import _routability
 
     def reference(n, succ):  # every pair by breadth-first search, as the check did before
         adj = csr_matrix((np.ones(len(succ)), ([i for i, _ in succ], [j for _, j in succ])), shape=(n, n))
@@ -169,8 +169,8 @@ def test_routability_equals_an_all_pairs_path_search():
 def test_duplicate_search_finds_what_comparing_every_pair_finds():
     """The KD-tree search of repair's duplicate lanes against the slow path (every pair compared), on 300 lanes of
     which many are shifted, stretched or reversed copies of others."""
-    from cmtool.eval.repair import DUPLICATE_M, duplicate_pairs
-    from cmtool.geometry import polyline_length, resample
+    from cmtool.core.geometry import polyline_length, resample
+    from cmtool.metrics.repair import DUPLICATE_M, duplicate_pairs
 
     rng = np.random.default_rng(3)
     lines = []

@@ -4,7 +4,7 @@ Commands are thin: they parse options, call the library and print. Library modul
 inside each command so ``cmtool --help`` stays fast. Every user error (a :class:`CmtoolError` or a
 bad option) ends with one ``Error: ...`` line on stderr and a non-zero exit, never a traceback.
 
-The commands live in one module per command group (data, train, sample, evaluate: metrics and eval,
+The commands live in one module per command group (data, train, sample, baseline, evaluate: metrics and eval,
 maps: validate and export, ablate, bench, release: info and pack); this module holds the root group and
 :func:`main`, the entry point.
 """
@@ -17,8 +17,8 @@ import sys
 import click
 
 from cmtool import __version__
-from cmtool.cli import ablate, bench, data, evaluate, maps, release, sample, train
-from cmtool.errors import CmtoolError
+from cmtool.cli import ablate, baseline, bench, data, evaluate, maps, release, sample, train
+from cmtool.core.errors import CmtoolError
 
 __all__ = ["cli", "main"]
 
@@ -29,8 +29,8 @@ def cli():
     """cmtool: controllable lane-level HD map generation from SD maps (ControlMap)."""
 
 
-for _command in (data.data, train.train_cmd, sample.sample, evaluate.metrics, evaluate.eval_cmd, maps.validate,
-                 maps.export, ablate.ablate, bench.bench, release.info, release.pack):
+for _command in (data.data, train.train_cmd, sample.sample, baseline.baseline, evaluate.metrics, evaluate.eval_cmd,
+                 maps.validate, maps.export, ablate.ablate, bench.bench, release.info, release.pack):
     cli.add_command(_command)
 
 
@@ -54,7 +54,7 @@ def main(argv=None) -> None:
     except OSError as e:  # a path the user gave that cannot be made, read or written (the command did not say which)
         if e.filename is None and e.errno not in (errno.ENOSPC, errno.EFBIG, errno.EDQUOT):
             raise
-        from cmtool.data.jsonio import os_reason
+        from cmtool.core.jsonio import os_reason
 
         where = f"{e.filename}: " if e.filename is not None else "cannot write: "
         click.echo(f"Error: {where}{os_reason(e)}", err=True)

@@ -8,7 +8,7 @@ import click
 
 from cmtool.cli.common import (CITY_CFG_HELP, PRECISION_OPTION, SEED, SMOOTH_OPTION, Finite, _device, _generator,
                                sampler_options)
-from cmtool.errors import CmtoolError
+from cmtool.core.errors import CmtoolError
 
 
 @click.group()
@@ -72,7 +72,7 @@ def ablate_cfg(ckpt, data_dir, split, n, steps, sampler, smooth, out, device, pr
                weights_file, no_features):
     """Sweep the guidance weight w: SD adherence, GT Recall and diversity against w."""
     from cmtool.eval.ablations import cfg_sweep
-    from cmtool.eval.features import FeatureExtractor
+    from cmtool.metrics.features import FeatureExtractor
 
     ws = _floats(weights, "--w")
     gen, scenes = _ablation_setup(ckpt, data_dir, split, n, device, smooth, precision)
@@ -143,8 +143,8 @@ def ablate_dit(ckpts, data_dir, split, n, steps, sampler, seed, smooth, out, dev
               help="RVAE checkpoint or run folder [default: the decoder shipped with cmtool].")
 @click.option("--encoder", "encoder_path", type=click.Path(path_type=Path),
               help="RVAE run whose encoder makes the latents [default: the RVAE's own]; needed for a decoder "
-                   "without one, such as the shipped decoder (its encoder does not ship; docs/retraining-shipped.md "
-                   "recreates it).")
+                   "without one, such as the shipped decoder (its encoder does not ship; `cmtool train encoder` "
+                   "trains one for it).")
 @click.option("--data", "data_dir", required=True, type=click.Path(file_okay=False, path_type=Path),
               help="Dataset cache.")
 @click.option("--split", "splits", multiple=True, help="Split to measure (repeatable) [default: every split].")
@@ -158,9 +158,9 @@ def ablate_rvae(rvae_path, encoder_path, data_dir, splits, n, tol, out, device, 
     """What the RVAE keeps: lane F1 (at --tol m and at 0.5 m), successor precision, recall and F1 (lanes
     matched within --tol m) and validity of its reconstructions, and the driving side of the ground
     truth and of the reconstructions, per split and city (the ceiling of the city swap)."""
-    from cmtool import checkpoint as ckpt
-    from cmtool.eval.reconstruction import reconstruction_report
-    from cmtool.release import BUNDLED
+    from cmtool.model import checkpoint as ckpt
+    from cmtool.model.release import BUNDLED
+    from cmtool.train.reconstruction import reconstruction_report
 
     dev = _device(device)
     decoder, path = _rvae(rvae_path or BUNDLED / "rvae", "--rvae", dev)
@@ -169,9 +169,9 @@ def ablate_rvae(rvae_path, encoder_path, data_dir, splits, n, tol, out, device, 
         encoder, enc_path = _rvae(encoder_path, "--encoder", dev)
         if encoder.trunk is None:
             raise CmtoolError(f"--encoder {enc_path}: holds no encoder (a packed decoder); give a `cmtool train "
-                              "rvae` run")
-        if (encoder.cfg.latent_channels, encoder.cfg.latent_size) != (decoder.cfg.latent_channels,
-                                                                       decoder.cfg.latent_size):
+                              "rvae` or `cmtool train encoder` run")
+        if (encoder.config.latent_channels, encoder.config.latent_size) != (decoder.config.latent_channels,
+                                                                       decoder.config.latent_size):
             raise CmtoolError(f"--encoder {enc_path}: its latents do not fit the decoder {path}")
         scales = [float(ckpt.load_config(p).get("latent_scale", "nan")) for p in (enc_path, path)]
         if abs(scales[0] - scales[1]) > 1e-6:
@@ -187,7 +187,7 @@ def ablate_rvae(rvae_path, encoder_path, data_dir, splits, n, tol, out, device, 
 
 
 def _rvae(path: Path, option: str, device):
-    from cmtool import checkpoint as ckpt
+    from cmtool.model import checkpoint as ckpt
 
     path = ckpt.resolve(path)
     model, config = ckpt.load_model(path, device)

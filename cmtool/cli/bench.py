@@ -29,7 +29,7 @@ def bench_sample_cmd(ckpt, sd_path, steps, sampler, cfg, batch, repeats, device,
     """Time sampling: per-step logging against --no-log at batch 1, and batch 1 against a large batch."""
     import torch
 
-    from cmtool.sample.bench import LOG_LIMIT, bench_sample, default_sd
+    from cmtool.eval.bench_sample import LOG_LIMIT, bench_sample, default_sd
     from cmtool.sample.inputs import image_inputs
     from cmtool.sample.run import SampleSettings
 
@@ -55,7 +55,7 @@ def bench_sample_cmd(ckpt, sd_path, steps, sampler, cfg, batch, repeats, device,
 def bench_dit_cmd(size, batch, repeats):
     """This project's DiT forward pass against diffusers' DiTTransformer2DModel of the same shape and batch, fp32
     and bf16 autocast, on the CPU (needs `pip install 'cmtool[bench]'`)."""
-    from cmtool.model.dit_bench import bench_dit
+    from cmtool.eval.bench_dit import bench_dit
 
     bench_dit(size, batch, repeats, report=click.echo)
 
@@ -71,15 +71,15 @@ def bench_dit_cmd(size, batch, repeats):
 @click.option("--device", help="torch device [default: cuda when available, else cpu].")
 @FEATURE_PRECISION_OPTION
 @WORKERS_OPTION
-def bench_metrics_cmd(eval_dir, method, tile, repeats, no_features, device, precision, workers):
+def bench_metrics_cmd(eval_dir, method, tile, repeats, no_features, device, feature_precision, workers):
     """Time each family of metrics (topology, lane distances, validity, SD adherence, driving side, legal
     one-way, features, recall) on an evaluation's maps: minimum and median over the repeats; with the features,
     also the ResNet-50 passes alone on the same rasters."""
-    from cmtool.eval.bench import bench_metrics, eval_set, report_table
-    from cmtool.eval.features import FeatureExtractor
-    from cmtool.eval.scenes import cpu_count
+    from cmtool.eval.bench_metrics import bench_metrics, eval_set, report_table
+    from cmtool.metrics.features import FeatureExtractor
+    from cmtool.metrics.scenes import cpu_count
 
     generated, reference, controls = eval_set(eval_dir, method, tile)
     extractor = None if no_features else FeatureExtractor("resnet50-seeded", None, _device(device),
-                                                          precision=precision)
+                                                          precision=feature_precision)
     click.echo(report_table(bench_metrics(generated, reference, controls, extractor, repeats, workers or cpu_count())))

@@ -8,8 +8,9 @@ from pathlib import Path
 
 import click
 
-from cmtool.errors import CmtoolError
-from cmtool.sample import DEFAULT_SAMPLER, DEFAULT_SMOOTH, DEFAULT_STEPS, SAMPLERS
+from cmtool.core.errors import CmtoolError
+from cmtool.diffusion.settings import DEFAULT_SAMPLER, DEFAULT_STEPS, SAMPLERS
+from cmtool.sample import DEFAULT_SMOOTH
 
 
 class Finite(click.FloatRange):
@@ -67,7 +68,7 @@ WORKERS_OPTION = click.option(
          "256 scenes or more [default: one per CPU core].")
 
 FEATURE_PRECISION_OPTION = click.option(
-    "--precision", default="fp32", show_default=True, type=click.Choice(["fp32", "bf16"]),
+    "--feature-precision", default="fp32", show_default=True, type=click.Choice(["fp32", "bf16"]),
     help="bf16: the ResNet-50 of the feature metrics under bf16 autocast, about 2.5x faster where the CPU computes "
          "bf16 natively (AVX512-BF16, AMX); recall values move slightly (docs/speed.md). `eval` and `ablate` keep "
          "fp32 features, so that their numbers compare across runs.")
@@ -76,14 +77,14 @@ FEATURE_PRECISION_OPTION = click.option(
 def _generator(ckpt, device, smooth: int = DEFAULT_SMOOTH, precision: str = "fp32"):
     """The generator of ``--ckpt`` (default: the shipped weights) on ``--device``, warning when bf16 would be
     emulated."""
-    from cmtool.sample.generator import Generator
+    from cmtool.sample.generator import MapGenerator
     from cmtool.train.loop import cpu_has_native_bf16
 
     dev = _device(device)
     if precision == "bf16" and dev.type == "cpu" and not cpu_has_native_bf16():
         click.echo("warning: this CPU has no native bf16 (AVX512-BF16 or AMX); bf16 is emulated and slower than "
                    "fp32", err=True)
-    return Generator.load(_checkpoint(ckpt), dev, smooth, precision)
+    return MapGenerator.load(_checkpoint(ckpt), dev, smooth, precision)
 
 
 def _origin(value: str) -> tuple[float, float]:
@@ -110,6 +111,33 @@ def _device(name: str | None):
 
 def _checkpoint(path: Path | None) -> Path:
     """``--ckpt``, or the ControlMap shipped with the package when it is not given."""
-    from cmtool.release import bundled_checkpoint
+    from cmtool.model.release import bundled_checkpoint
 
     return bundled_checkpoint() if path is None else path
+
+
+def init_options(command):
+    """--init, --strength and --encoder: SDEdit from a rule-based layout (``cmtool sample`` and ``cmtool eval``)."""
+    for option in reversed([
+        click.option("--init", "init", default="none", show_default=True,
+                     type=click.Choice(["none", "rules", "netconvert"]),
+                     help="Start each map from this rule-based layout of its SD map (`cmtool baseline`), encoded and "
+                          "noised --strength of the way, instead of from noise alone (SDEdit); needs SD maps "
+                          "(--osm, --from-hd, a dataset) and an encoder."),
+        click.option("--strength", default=0.5, show_default=True, type=Finite(min=0, max=1, min_open=True),
+                     help="With --init: how far up the noise schedule the layout is noised (1: as from noise; small: "
+                          "the layout kept nearly as it is)."),
+        click.option("--encoder", "encoder_path", type=click.Path(path_type=Path),
+                     help="With --init: an RVAE run whose encoder encodes into the checkpoint's latent space (`cmtool "
+                          "train encoder`) [default: the checkpoint's own RVAE, when it holds an encoder]."),
+    ]):
+        command = option(command)
+    return command
+
+
+def attach_init(gen, init: str, encoder_path) -> None:
+    """Check the --init options and attach the --encoder to the generator."""
+    if init == "none" and encoder_path is not None:
+        raise CmtoolError("--encoder goes with --init")
+    if encoder_path is not None:
+        gen.attach_encoder(encoder_path)

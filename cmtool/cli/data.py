@@ -7,7 +7,7 @@ from pathlib import Path
 import click
 
 from cmtool.cli.common import SEED, Finite, _origin
-from cmtool.errors import CmtoolError
+from cmtool.core.errors import CmtoolError
 
 CITY_CHOICES = ("LAV", "PIT", "SGP", "BOS")
 
@@ -55,7 +55,7 @@ IMPORT_FORMATS = ("av2", "lanelet2", "nuplan", "osm")
 def import_(fmt, file, out, city):
     """Import a real map into cmtool's HD (or, for osm, SD) map JSON."""
     if fmt == "osm":
-        from cmtool.data.osm import read_osm
+        from cmtool.formats.osm import read_osm
 
         sd = read_osm(file)
         if city:
@@ -63,7 +63,7 @@ def import_(fmt, file, out, city):
         sd.save(out)
         click.echo(f"{out}: SD map, {len(sd.roads)} roads")
         return
-    from cmtool.data.importers import import_hd_map
+    from cmtool.formats.importers import import_hd_map
 
     hd = import_hd_map(fmt, file, city=city)
     hd.save(out)
@@ -87,8 +87,8 @@ def import_(fmt, file, out, city):
 @click.option("--seed", default=0, show_default=True, type=SEED, help="Seed of the jitter.")
 def sd(hd_map, out, origin, offset, rotation, drop_minor, seed):
     """Derive the SD map (one polyline per road, as OpenStreetMap shows it) of an HD map."""
-    from cmtool.data.hdmap import HDMap
     from cmtool.data.sd_derive import SDJitter, derive_sd
+    from cmtool.maps.hdmap import HDMap
 
     if offset < 0 or rotation < 0 or not 0.0 <= drop_minor <= 1.0:
         raise CmtoolError("jitter must be non-negative and --drop-minor within [0, 1]")
@@ -100,7 +100,7 @@ def sd(hd_map, out, origin, offset, rotation, drop_minor, seed):
     jitter = SDJitter(offset, rotation, drop_minor)
     sd_map = derive_sd(HDMap.load(hd_map), jitter=jitter if jitter.enabled else None, seed=seed)
     if to_osm:
-        from cmtool.data.osm import write_osm
+        from cmtool.formats.osm import write_osm
 
         write_osm(sd_map, out, lat0, lon0)
     else:
@@ -120,7 +120,7 @@ def raster(sd_map, x, y, yaw, png):
     import numpy as np
 
     from cmtool.data.sd_raster import rasterize_sd
-    from cmtool.data.sdmap import SDMap
+    from cmtool.maps.sdmap import SDMap
     from cmtool.viz.show import write_png
 
     sd_obj = SDMap.load(sd_map)
@@ -180,7 +180,7 @@ def poses(map_file, n, seed, kind, near_junction, latlon, out):
     rows = [{"x": round(f.pose.x, 2), "y": round(f.pose.y, 2), "yaw": round(math.degrees(f.pose.yaw), 1),
              "kind": f.label} for f in frames]
     if latlon:
-        from cmtool.data.geo import LocalProjection
+        from cmtool.core.geo import LocalProjection
 
         proj = LocalProjection(sd_map.meta["lat0"], sd_map.meta["lon0"])
         latlons = proj.to_latlon(np.array([[r["x"], r["y"]] for r in rows]))
@@ -191,7 +191,7 @@ def poses(map_file, n, seed, kind, near_junction, latlon, out):
     if out is None:
         click.echo(text, nl=False)
         return
-    from cmtool.data.jsonio import write_text_atomic
+    from cmtool.core.jsonio import write_text_atomic
 
     write_text_atomic(out, text)
     click.echo(f"{out}: {len(rows)} poses")
@@ -220,7 +220,9 @@ def frames(sources, recipe, maps, n, seed, png, json_out):
         raise CmtoolError("nothing to measure: give map files and/or --recipe")
     columns = [file_column(path, n, seed) for path in sources]
     if recipe is not None:
-        columns += recipe_columns(recipe, maps, seed)
+        from cmtool.train.recipe import load_recipe
+
+        columns += recipe_columns(load_recipe(recipe).data, maps, seed, str(recipe))
     names = [c.name for c in columns]
     if len(set(names)) < len(names):
         raise CmtoolError(f"two sources share a name ({', '.join(names)}); rename a file")
@@ -235,7 +237,7 @@ def frames(sources, recipe, maps, n, seed, png, json_out):
         write_png(png, grid(tiles, columns=6))
         click.echo(f"wrote {png}")
     if json_out is not None:
-        from cmtool.data.jsonio import write_json
+        from cmtool.core.jsonio import write_json
 
         write_json(json_out, {"n": n, "maps": maps, "seed": seed, "sources": [str(s) for s in sources],
                               "recipe": str(recipe) if recipe else None, "columns": stats})
@@ -251,8 +253,8 @@ def frames(sources, recipe, maps, n, seed, png, json_out):
 def stats(maps, seeds, extent):
     """Per-city statistics of HD maps: lanes per road, block length, intersection degree, curvature,
     one-way share. Without MAPS, of procedural cities of all four styles."""
-    from cmtool.data.hdmap import HDMap
     from cmtool.data.stats import map_stats
+    from cmtool.maps.hdmap import HDMap
 
     if maps:
         rows = {}
@@ -287,8 +289,9 @@ def _stats_table(rows: dict[str, list[dict[str, float]]]) -> str:
 def build(recipe, out, workers):
     """Build (or resume building) a sharded dataset cache from a recipe."""
     from cmtool.data.cache import build_dataset
+    from cmtool.train.recipe import load_recipe
 
-    summary = build_dataset(recipe, out, workers=workers)
+    summary = build_dataset(load_recipe(recipe), out, workers=workers)
     for split, info in summary["splits"].items():
         cities = ", ".join(f"{c} {n}" for c, n in info["cities"].items())
         click.echo(f"{split}: {info['scenes']} scenes ({cities}); {_line_cap(info, summary['num_lines'])}")

@@ -7,13 +7,15 @@ from pathlib import Path
 
 import click
 
+from cmtool.core.errors import CmtoolError
 from cmtool.cli.common import (FEATURE_PRECISION_OPTION, PRECISION_OPTION, SEED, SMOOTH_OPTION, WORKERS_OPTION, Finite,
-                               _device, _generator, sampler_options)
+                               _device, _generator, attach_init, init_options, sampler_options)
 
 
 @click.command()
-@click.option("--generated", required=True, type=click.Path(dir_okay=False, path_type=Path),
-              help="Generated lane graphs (.jsonl).")
+@click.option("--generated", required=True, multiple=True, type=click.Path(dir_okay=False, path_type=Path),
+              help="Generated lane graphs (.jsonl); repeat it to score several generators side by side (e.g. "
+                   "`cmtool sample` and `cmtool baseline rules` maps of the same inputs), a column each.")
 @click.option("--reference", required=True, type=click.Path(dir_okay=False, path_type=Path),
               help="Reference (ground-truth) lane graphs (.jsonl), paired line by line.")
 @click.option("--control", type=click.Path(path_type=Path),
@@ -29,28 +31,40 @@ from cmtool.cli.common import (FEATURE_PRECISION_OPTION, PRECISION_OPTION, SEED,
 @FEATURE_PRECISION_OPTION
 @WORKERS_OPTION
 @click.option("--quiet", is_flag=True, help="No progress line.")
-def metrics(generated, reference, control, json_out, backbone, weights, no_features, device, precision, workers, quiet):
+def metrics(generated, reference, control, json_out, backbone, weights, no_features, device, feature_precision, workers,
+            quiet):
     """Score generated lane graphs against a reference set (and their SD controls): topology FDs,
     improved precision/recall, Control / GT Recall with p-values, and geometric lane metrics."""
-    from cmtool.data.jsonio import write_json
-    from cmtool.data.lanegraph import read_jsonl
-    from cmtool.eval.features import FeatureExtractor
-    from cmtool.eval.metrics import evaluate, load_controls, summary_table
-    from cmtool.eval.scenes import cpu_count
+    from cmtool.core.jsonio import write_json
+    from cmtool.maps.lanegraph import read_jsonl
+    from cmtool.metrics.features import FeatureExtractor
+    from cmtool.metrics.scenes import cpu_count
+    from cmtool.metrics.suite import evaluate, load_controls, summary_table
 
-    gen, ref = read_jsonl(generated), read_jsonl(reference)
+    names = [p.name for p in generated]
+    if len(set(names)) < len(names):
+        names = [str(p) for p in generated]
+    if len(set(names)) < len(names):
+        raise CmtoolError("--generated: a file given twice")
+    sets, ref = [read_jsonl(p) for p in generated], read_jsonl(reference)
     controls = load_controls(control) if control is not None else None
-    extractor = None if no_features else FeatureExtractor(backbone, weights, _device(device), precision=precision)
+    extractor = None if no_features else FeatureExtractor(backbone, weights, _device(device),
+                                                          precision=feature_precision)
     began = time.perf_counter()
-    result = evaluate(gen, ref, controls, extractor, features=not no_features, progress=not quiet,
-                      workers=workers or cpu_count())
-    click.echo(summary_table({generated.name: result}))
-    click.echo(f"{result['scenes']} scene pairs in {time.perf_counter() - began:.1f} s ("
-               + ", ".join(f"{k} {v:.1f} s" for k, v in result["seconds"].items()) + ", per-scene families summed "
-               "over the processes)" + ("" if no_features else f"; features: {result['backbone']['name']}"))
+    results = {name: evaluate(gen, ref, controls, extractor, features=not no_features, progress=not quiet,
+                              workers=workers or cpu_count()) for name, gen in zip(names, sets)}
+    click.echo(summary_table(results))
+    first = next(iter(results.values()))
+    click.echo(f"{first['scenes']} scene pairs{f' x {len(results)} sets' if len(results) > 1 else ''} in "
+               f"{time.perf_counter() - began:.1f} s (" + ", ".join(f"{k} {v:.1f} s" for k, v in first["seconds"].items())
+               + (" for the first set" if len(results) > 1 else "") + ", per-scene families summed over the processes)"
+               + ("" if no_features else f"; features: {first['backbone']['name']}"))
     if json_out is not None:
-        write_json(json_out, {"generated": str(generated), "reference": str(reference),
-                              "control": str(control) if control else None, **result})
+        head = {"reference": str(reference), "control": str(control) if control else None}
+        if len(results) == 1:
+            write_json(json_out, {"generated": str(generated[0]), **head, **first})
+        else:
+            write_json(json_out, {**head, "generated": {n: str(p) for n, p in zip(names, generated)}, "sets": results})
         click.echo(f"wrote {json_out}")
 
 
@@ -64,6 +78,7 @@ def metrics(generated, reference, control, json_out, backbone, weights, no_featu
               help="Scenes (the first N of the split).")
 @click.option("--cfg", default=1.0, show_default=True, type=Finite(min=0), help="ControlMap's guidance weight.")
 @sampler_options
+@init_options
 @click.option("--seed", default=0, show_default=True, type=SEED, help="Random seed (the same noise for both methods).")
 @SMOOTH_OPTION
 @click.option("--batch", default=64, show_default=True, type=click.IntRange(min=1), help="Maps per forward pass.")
@@ -80,27 +95,29 @@ def metrics(generated, reference, control, json_out, backbone, weights, no_featu
 @PRECISION_OPTION
 @WORKERS_OPTION
 @click.option("--quiet", is_flag=True, help="No progress line.")
-def eval_cmd(ckpt, data_dir, split, n, cfg, steps, sampler, seed, smooth, batch, out, backbone, weights, no_features,
-             rrd_samples, device, precision, workers, quiet):
+def eval_cmd(ckpt, data_dir, split, n, cfg, steps, sampler, init, strength, encoder_path, seed, smooth, batch, out,
+             backbone, weights, no_features, rrd_samples, device, precision, workers, quiet):
     """Evaluate a ControlMap checkpoint on a test split against its unguided DiT (paper Tables 1-2).
     Under torchrun the processes share the generation (the same maps as one process)."""
 
-    from cmtool import dist as D
+    from cmtool.core import dist as D
     from cmtool.eval.evaluation import EvalSettings, run_eval
-    from cmtool.eval.features import FeatureExtractor
-    from cmtool.eval.scenes import cpu_count
+    from cmtool.metrics.features import FeatureExtractor
+    from cmtool.metrics.scenes import cpu_count
 
     info = D.setup(str(_device(device)))
     try:
         gen = _generator(ckpt, str(info.device), smooth, precision)
+        attach_init(gen, init, encoder_path)
         gen.schedule.timesteps(steps)
         extractor = None if no_features or not info.main else FeatureExtractor(backbone, weights, gen.device)
         settings = EvalSettings(data=str(data_dir.resolve()), split=split, n=n, cfg=cfg, steps=steps,
-                                sampler=sampler, seed=seed, batch=batch, precision=precision)
+                                sampler=sampler, seed=seed, batch=batch, precision=precision, init=init,
+                                strength=strength if init != "none" else 1.0)
         run_eval(gen, settings, out, extractor, rrd_samples=rrd_samples, progress=not quiet, info=info,
                  workers=workers or cpu_count())
     finally:
         D.cleanup()
     if info.main:
         click.echo((out / "summary.md").read_text())
-        click.echo(f"wrote {out / 'metrics.json'}, {out / 'summary.md'}, {out / 'eval.rrd'}")
+        click.echo(f"wrote {out / 'metrics.json'}, {out / 'summary.md'}, {out / 'gallery.png'}, {out / 'eval.rrd'}")

@@ -7,7 +7,7 @@ from pathlib import Path
 import click
 
 from cmtool.cli.common import Finite, _origin
-from cmtool.errors import CmtoolError
+from cmtool.core.errors import CmtoolError
 
 LARGE_SCENE = 2000  # lanes; export announces itself for scenes this large
 
@@ -25,10 +25,10 @@ def validate(maps, json_out, repair, out):
     routability; a validity score in [0, 1] per scene."""
     import numpy as np
 
-    from cmtool.data.jsonio import write_json
-    from cmtool.data.lanegraph import read_jsonl, write_jsonl
-    from cmtool.eval.repair import repair as repair_graph
-    from cmtool.eval.validity import check
+    from cmtool.core.jsonio import write_json
+    from cmtool.maps.lanegraph import read_jsonl, write_jsonl
+    from cmtool.metrics.repair import repair as repair_graph
+    from cmtool.metrics.validity import check
 
     if repair != (out is not None):
         raise CmtoolError("--repair needs --out FILE.jsonl for the repaired maps" if repair
@@ -82,11 +82,11 @@ def export(fmt, map_path, origin, heading, scene, lane_width, out):
 
     import numpy as np
 
-    from cmtool.data.geojson import to_geojson
-    from cmtool.data.jsonio import write_json
-    from cmtool.data.lanegraph import read_jsonl
-    from cmtool.data.neighbours import graph_neighbours
-    from cmtool.eval.validity import check
+    from cmtool.core.jsonio import write_json
+    from cmtool.formats.geojson import to_geojson
+    from cmtool.maps.lanegraph import read_jsonl
+    from cmtool.maps.neighbours import graph_neighbours
+    from cmtool.metrics.validity import check
 
     graphs = read_jsonl(map_path)
     if scene >= len(graphs):
@@ -113,9 +113,9 @@ def export(fmt, map_path, origin, heading, scene, lane_width, out):
         click.echo(f"{map_path}: exporting {len(graph.lanes):,} lanes to {fmt} (about a second per 1,000)...", err=True)
     if fmt in ("lanelet2", "opendrive"):
         if fmt == "lanelet2":
-            from cmtool.data.lanelet2_export import write_lanelet2 as write
+            from cmtool.formats.lanelet2_export import write_lanelet2 as write
         else:
-            from cmtool.data.opendrive_export import write_opendrive as write
+            from cmtool.formats.opendrive_export import write_opendrive as write
         write(graph, out, lat0, lon0, heading, lane_width)
         left, oncoming = graph_neighbours(graph)
         click.echo(f"{out}: {len(graph.lanes)} lanes, {len(graph.successors)} successor joins, {len(left)} lane-change "

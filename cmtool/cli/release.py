@@ -15,8 +15,8 @@ def info(path, as_json):
 
     Without PATH: the models shipped with cmtool.
     """
-    from cmtool.info import describe
-    from cmtool.release import BUNDLED, bundled_checkpoint
+    from cmtool.model.release import BUNDLED, bundled_checkpoint
+    from cmtool.train.info import describe
 
     if path is None:
         click.echo(describe(bundled_checkpoint(), as_json=as_json))
@@ -36,8 +36,8 @@ def info(path, as_json):
               help="Folder to write [default: the package's own cmtool/weights].")
 def pack(ckpt, rvae, out):
     """Pack a trained ControlMap (and its RVAE's decoder) as float16 weights to ship with cmtool."""
-    from cmtool.release import BUNDLED, MANIFEST
-    from cmtool.release import pack as pack_release
+    from cmtool.model.release import BUNDLED, MANIFEST
+    from cmtool.model.release import pack as pack_release
 
     out = out or BUNDLED
     manifest = pack_release(ckpt, out, rvae=rvae)

@@ -8,8 +8,8 @@ from pathlib import Path
 import click
 
 from cmtool.cli.common import (CITY_CFG_HELP, PRECISION_OPTION, SEED, SMOOTH_OPTION, Finite, _device, _generator,
-                               sampler_options)
-from cmtool.errors import CmtoolError
+                               attach_init, init_options, sampler_options)
+from cmtool.core.errors import CmtoolError
 
 SAMPLE_HELP = """Generate lane-level HD maps from SD maps with ControlMap, recording every denoising step.
 
@@ -47,6 +47,7 @@ Large sets in several processes (CPU or GPUs), the same maps as one process:
 @click.option("--cfg", default=1.0, show_default=True, type=Finite(min=0),
               help="Guidance weight w >= 0 on the SD control (0: ignore it).")
 @click.option("--city-cfg", default=1.0, show_default=True, type=Finite(min=0), help=CITY_CFG_HELP)
+@init_options
 @SMOOTH_OPTION
 @click.option("--batch", default=16, show_default=True, type=click.IntRange(min=1), help="Maps per forward pass.")
 @click.option("--out", default=Path("samples"), show_default=True, type=click.Path(file_okay=False, path_type=Path),
@@ -64,10 +65,11 @@ Large sets in several processes (CPU or GPUs), the same maps as one process:
 @PRECISION_OPTION
 @click.option("--quiet", is_flag=True, help="No progress line.")
 def sample(ckpt, sd_paths, osm, center, heading, from_hd, pose, num, seed, steps, sampler, eta, city, cfg, city_cfg,
-           smooth, batch, out, rrd, grid, spawn, connect_url, serve, no_log, device, precision, quiet):
+           init, strength, encoder_path, smooth, batch, out, rrd, grid, spawn, connect_url, serve, no_log, device,
+           precision, quiet):
     import shlex
 
-    from cmtool import dist as D
+    from cmtool.core import dist as D
     from cmtool.sample import inputs as src
     from cmtool.sample.run import SampleSettings, plan, run_sample, summary_table
 
@@ -83,7 +85,7 @@ def sample(ckpt, sd_paths, osm, center, heading, from_hd, pose, num, seed, steps
     if spawn + bool(connect_url) + serve > 1:
         raise CmtoolError("give one of --spawn, --connect and --serve")
     settings = SampleSettings(num=num, seed=seed, steps=steps, sampler=sampler, eta=eta, cfg=cfg, city=city,
-                              city_cfg=city_cfg, batch=batch)
+                              city_cfg=city_cfg, batch=batch, init=init, strength=strength if init != "none" else 1.0)
     settings.check()
     if sd_paths:
         inputs = src.image_inputs(sd_paths)
@@ -99,6 +101,7 @@ def sample(ckpt, sd_paths, osm, center, heading, from_hd, pose, num, seed, steps
         inputs = [src.ControlInput("uncond", None, "no SD input")]
     info = D.setup(str(_device(device)))
     gen = _generator(ckpt, str(info.device), smooth, precision)
+    attach_init(gen, init, encoder_path)
     jobs = plan(gen, inputs, settings)
     for item in inputs:
         if item.note and info.main:

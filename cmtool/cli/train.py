@@ -8,7 +8,7 @@ from pathlib import Path
 import click
 
 from cmtool.cli.common import _device
-from cmtool.errors import CmtoolError
+from cmtool.core.errors import CmtoolError
 from cmtool.train import PRECISIONS
 
 
@@ -40,7 +40,7 @@ def train_cmd(stage, recipe, out, resume, data_dir, steps, precision, device, qu
     Multi-GPU / multi-node: launch with torchrun, e.g.
     torchrun --nproc_per_node 8 -m cmtool train dit --recipe recipes/paper/dit-b.toml
     """
-    from cmtool.recipe import load_recipe
+    from cmtool.train.recipe import load_recipe
 
     rec = load_recipe(recipe)
     port = None
@@ -74,7 +74,7 @@ def train_cmd(stage, recipe, out, resume, data_dir, steps, precision, device, qu
 
 
 def _train_pipeline(rec, out, resume, data_dir, steps, precision, device, quiet, serve):
-    from cmtool.train.pipeline import Pipeline, summary
+    from cmtool.pipeline import Pipeline, summary
 
     if not rec.pipeline.rvae:
         raise CmtoolError(f"{rec.path}: no [pipeline] table; `train pipeline` takes a pipeline recipe "

@@ -12,6 +12,7 @@ Layout of ``out_dir``::
     manifest.json             format, recipe echo, units, city labels, splits -> shards, counts, line cap
                               cuts and the mix of frame kinds
     <split>/u00003_00.npz     scenes of unit 3, part 0 (at most shard_size scenes)
+    <split>/u00003_sd.json    the SD map (cmtool.sdmap) its scenes' SD rasters were drawn from, as jittered
 
 Shard arrays (S scenes; L lines, K lights, P points): ``lines`` float32 (S, L, P, 2),
 ``line_mask`` bool (S, L), ``edges`` int32 (E, 2) flat with ``edge_offsets`` int64 (S + 1,),
@@ -39,12 +40,13 @@ from pathlib import Path
 
 import numpy as np
 
+from cmtool.core.errors import CmtoolError
+from cmtool.core.jsonio import atomic_open, read_json, write_json
+from cmtool.core.progress import Progress
 from cmtool.data.frames import label_order
-from cmtool.data.jsonio import atomic_open, read_json, write_json
+from cmtool.data.recipe import DataRecipe
 from cmtool.data.scene import Pose, Scene, SceneCropper
-from cmtool.errors import CmtoolError
-from cmtool.progress import Progress
-from cmtool.recipe import DataRecipe, load_recipe
+from cmtool.maps.sdmap import SDMap
 
 FORMAT = "cmtool.dataset"
 SD_SIZE = 128
@@ -69,6 +71,14 @@ class WorkUnit:
         parts = max(1, -(-self.scenes // shard_size))
         return [f"{self.split}/u{self.index:05d}_{p:02d}.npz" for p in range(parts)]
 
+    def sd_file(self) -> str:
+        return sd_file(self.split, self.index)
+
+
+def sd_file(split: str, index: int) -> str:
+    """The SD map file of unit ``index`` in ``split``."""
+    return f"{split}/u{index:05d}_sd.json"
+
 
 def plan_units(recipe) -> list[WorkUnit]:
     """The work units of a recipe, in a fixed order (train cities, test cities, real maps)."""
@@ -86,9 +96,9 @@ def plan_units(recipe) -> list[WorkUnit]:
     return units
 
 
-def unit_scenes(unit: WorkUnit, data: DataRecipe) -> list[Scene]:
+def unit_scenes(unit: WorkUnit, data: DataRecipe) -> tuple[list[Scene], SDMap]:
     """Make the map of ``unit`` and crop its scenes, framed on its derived SD map in the recipe's mix of
-    frame kinds, each paired with the SD raster of that map made to look like OpenStreetMap."""
+    frame kinds, each paired with the SD raster of that map made to look like OpenStreetMap; and that SD map."""
     from cmtool.data.sd_derive import derive_sd
     from cmtool.data.sd_raster import rasterize_sd
 
@@ -97,7 +107,7 @@ def unit_scenes(unit: WorkUnit, data: DataRecipe) -> list[Scene]:
 
         hd = generate_city(unit.city, seed=unit.seed, extent=data.extent)
     else:
-        from cmtool.data.importers import import_hd_map
+        from cmtool.formats.importers import import_hd_map
 
         hd = import_hd_map(unit.fmt, unit.path, city=unit.city)
     control, frames = framed(derive_sd(hd), data, unit.scenes, unit.seed * 10_000 + unit.index,
@@ -110,7 +120,7 @@ def unit_scenes(unit: WorkUnit, data: DataRecipe) -> list[Scene]:
         scene.sd = rasterize_sd(control, pose.x, pose.y, pose.yaw, frame_m=data.frame_m, size=SD_SIZE)
         scene.kind, scene.tags = frame.label, ",".join(frame.tags)
         scenes.append(scene)
-    return scenes
+    return scenes, control
 
 
 def framed(sd, data: DataRecipe, n: int, jitter_seed: int, rng: np.random.Generator) -> tuple:
@@ -157,28 +167,29 @@ def _write_npz(path: Path, arrays: dict) -> None:
 def _build_unit(job) -> tuple[int, int]:
     """Worker: write the missing shards of one unit; returns (unit index, scenes made)."""
     unit, data, out_dir = job
-    scenes = unit_scenes(unit, data)
+    scenes, control = unit_scenes(unit, data)
     if not scenes:
         raise CmtoolError(f"{unit.path or unit.city}: no roads to frame scenes on")
     for p, name in enumerate(unit.shard_files(data.shard_size)):
         path = out_dir / name
         if not path.exists():
             _write_npz(path, pack_scenes(scenes[p * data.shard_size:(p + 1) * data.shard_size]))
+    control.save(out_dir / unit.sd_file())
     return unit.index, len(scenes)
 
 
-def build_dataset(recipe_path, out_dir, workers: int | None = None, progress: bool = True) -> dict:
-    """Build (or finish building) the dataset of a recipe into ``out_dir``; returns a summary:
+def build_dataset(recipe, out_dir, workers: int | None = None, progress: bool = True) -> dict:
+    """Build (or finish building) the dataset of a loaded recipe (:func:`cmtool.train.recipe.load_recipe`: its
+    ``data`` section and real-map files) into ``out_dir``; returns a summary:
     ``{"splits": {split: {"scenes": n, "cities": {city: n}, "line_cap": cuts, "frames": mix}}, "num_lines",
     "units_built", "units_skipped", "scenes_built", "seconds"}`` with ``cuts`` and ``mix`` as :func:`_count`
     counts them."""
     start = time.perf_counter()
-    recipe = load_recipe(recipe_path)
     data = recipe.data
     out_dir = Path(out_dir)
     units = plan_units(recipe)
     head = {
-        "format": FORMAT, "version": 1, "recipe": _plain(recipe.to_dict()["data"]),
+        "format": FORMAT, "version": 1, "recipe": _plain(asdict(data)),
         "px_m": data.px_m, "frame_m": data.frame_m, "sd_size": SD_SIZE,
         "units": [_plain(asdict(u)) | {"shards": u.shard_files(data.shard_size)} for u in units],
     }
@@ -197,7 +208,8 @@ def build_dataset(recipe_path, out_dir, workers: int | None = None, progress: bo
         for stale in (out_dir / split).glob(".*.tmp"):
             stale.unlink()
 
-    pending = [u for u in units if not all((out_dir / f).exists() for f in u.shard_files(data.shard_size))]
+    pending = [u for u in units if not all((out_dir / f).exists() for f in [*u.shard_files(data.shard_size),
+                                                                             u.sd_file()])]
     jobs = [(u, data, out_dir) for u in pending]
     workers = min(2, os.cpu_count() or 1) if workers is None else max(1, workers)
     bar = Progress(sum(u.scenes for u in pending), label=f"build {data.name}", unit="scenes", enabled=progress)
@@ -332,6 +344,29 @@ class SceneDataset:
 
     def __iter__(self):
         return (self.scene(i) for i in range(len(self)))
+
+
+class MissingSDMaps(CmtoolError):
+    """A dataset built before its SD maps were stored beside its shards."""
+
+
+def scene_sd_maps(data_dir, split: str) -> list[SDMap]:
+    """The SD map of each scene of ``split``, in :func:`load_dataset`'s order (scenes of one unit share one)."""
+    manifest = load_manifest(data_dir)
+    if split not in manifest["splits"]:
+        raise CmtoolError(f"{data_dir}: no split {split!r} (has {', '.join(manifest['splits'])})")
+    maps: dict[str, SDMap] = {}
+    out = []
+    for shard in manifest["splits"][split]["shards"]:
+        name = sd_file(split, int(Path(shard["file"]).name[1:6]))
+        if name not in maps:
+            path = Path(data_dir) / name
+            if not path.is_file():
+                raise MissingSDMaps(f"{path}: no SD map; this dataset was built before they were stored: run "
+                                  "`cmtool data build` on it again to add them")
+            maps[name] = SDMap.load(path)
+        out += [maps[name]] * shard["scenes"]
+    return out
 
 
 def shard_paths(data_dir, split: str | None = None) -> list[Path]:

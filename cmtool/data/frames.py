@@ -8,7 +8,7 @@ kinds a map lacks leave their share to the others. The same sampler frames the t
 an HD map (on its derived SD map) and a user's OpenStreetMap extract (``cmtool data poses``), so
 both see the same kinds of frames.
 
-**Kinds** (the first that applies, with the road graph of :mod:`cmtool.data.roadgraph`):
+**Kinds** (the first that applies, with the road graph of :mod:`cmtool.maps.roadgraph`):
 ``junction`` (a junction within ``JUNCTION_M`` of the ego; its sub-kind T/Y/X/multi/fork),
 ``approach`` / ``exit`` (a junction ahead of / behind the ego, in the frame), ``end`` (a dead end in
 the frame), ``curve`` (the ego's road turns by ``CURVE_DEG`` or more within the frame), ``straight``.
@@ -25,15 +25,15 @@ from pathlib import Path
 import numpy as np
 import shapely
 
-from cmtool.data.hdmap import HDMap
-from cmtool.data.jsonio import read_json
-from cmtool.data.osm import read_osm
-from cmtool.data.roadgraph import RoadGraph, road_graph
+from cmtool.core.errors import CmtoolError
+from cmtool.core.geometry import from_frame, to_frame
+from cmtool.core.jsonio import read_json
 from cmtool.data.scene import Pose
 from cmtool.data.sd_derive import derive_sd
-from cmtool.data.sdmap import SDMap
-from cmtool.errors import CmtoolError
-from cmtool.geometry import from_frame, to_frame
+from cmtool.formats.osm import read_osm
+from cmtool.maps.hdmap import HDMap
+from cmtool.maps.roadgraph import RoadGraph, road_graph
+from cmtool.maps.sdmap import SDMap
 
 KINDS = ("junction", "approach", "exit", "end", "curve", "straight")
 TAGS = ("oneway", "divided", "multilane")

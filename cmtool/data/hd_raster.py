@@ -11,7 +11,8 @@ from __future__ import annotations
 import cv2
 import numpy as np
 
-from cmtool.geometry import CV_SHIFT, ego_to_pixel
+from cmtool.core.geometry import CV_SHIFT, ego_to_pixel
+
 
 def draw_direction_lines(canvas: np.ndarray, lines: np.ndarray, px_m: float, frame_m: float,
                          thickness: int) -> None:

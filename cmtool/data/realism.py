@@ -14,13 +14,13 @@ from pathlib import Path
 
 import numpy as np
 
+from cmtool.core.errors import CmtoolError
 from cmtool.data.cache import framed
 from cmtool.data.frames import SHARE_ROWS, STAT_ROWS, Frame, FrameSampler, frame_stats, read_sd_source
+from cmtool.data.recipe import DataRecipe
 from cmtool.data.sd_derive import derive_sd
 from cmtool.data.sd_raster import rasterize_sd
-from cmtool.data.sdmap import SDMap
-from cmtool.errors import CmtoolError
-from cmtool.recipe import load_recipe
+from cmtool.maps.sdmap import SDMap
 
 
 @dataclass
@@ -52,15 +52,14 @@ def file_column(path, n: int, seed: int = 0) -> Column:
     return Column(Path(path).name.split(".")[0], [sd], [frames])
 
 
-def recipe_columns(recipe_path, maps: int, seed: int = 0) -> list[Column]:
-    """Per city style of the recipe, ``maps`` of its procedural maps with the recipe's scenes per map,
-    framed and jittered as the dataset build does; then all of them as ``derived``."""
+def recipe_columns(data: DataRecipe, maps: int, seed: int = 0, where: str = "recipe") -> list[Column]:
+    """Per city style of a recipe's ``data`` section (read from ``where``), ``maps`` of its procedural maps with
+    the recipe's scenes per map, framed and jittered as the dataset build does; then all of them as ``derived``."""
     from cmtool.data.synth import generate_city
 
-    data = load_recipe(recipe_path).data
     cities = list(dict.fromkeys(data.train_cities + data.test_cities))
     if not cities:
-        raise CmtoolError(f"{recipe_path}: the recipe has no procedural city styles")
+        raise CmtoolError(f"{where}: the recipe has no procedural city styles")
     columns = []
     for c, city in enumerate(cities):
         col = Column(city, [], [])

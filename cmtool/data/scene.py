@@ -18,10 +18,10 @@ from dataclasses import dataclass
 import numpy as np
 import shapely
 
-from cmtool.data.hdmap import HDMap
-from cmtool.data.lanegraph import LaneGraph
-from cmtool.data.neighbours import find_neighbours
-from cmtool.geometry import from_frame, resample, to_frame
+from cmtool.core.geometry import from_frame, resample, to_frame
+from cmtool.maps.hdmap import HDMap
+from cmtool.maps.lanegraph import LaneGraph
+from cmtool.maps.neighbours import find_neighbours
 
 DRIVABLE = ("vehicle", "bus")
 _END_TOL_M = 1e-3  # a clipped piece within this of its lane's end keeps that end
@@ -60,7 +60,7 @@ class Scene:
     neighbors: np.ndarray | None = None  # (E, 2) line pairs the source records as neighbours (either order)
 
     def to_lanegraph(self) -> LaneGraph:
-        """The scene in the lane graph interchange format (cmtool.data.lanegraph), with the source's
+        """The scene in the lane graph interchange format (cmtool.maps.lanegraph), with the source's
         lane neighbours and widths when it was cropped from an HD map, else neighbours from geometry."""
         lanes = [l.astype(np.float64) for l in self.lines[self.line_mask]]
         widths = None if self.widths is None else self.widths[self.line_mask]

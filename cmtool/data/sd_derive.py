@@ -42,11 +42,11 @@ import numpy as np
 import shapely
 from scipy.ndimage import median_filter
 
-from cmtool.data.hdmap import HDMap, Lane
+from cmtool.core.geometry import arc_length, headings, insert_vertex, polyline_length, resample_step, unit
+from cmtool.core.unionfind import UnionFind
 from cmtool.data.sd_jitter import SDJitter, apply_jitter
-from cmtool.data.sdmap import Road, SDMap
-from cmtool.geometry import arc_length, headings, insert_vertex, polyline_length, resample_step, unit
-from cmtool.unionfind import UnionFind
+from cmtool.maps.hdmap import HDMap, Lane
+from cmtool.maps.sdmap import Road, SDMap
 
 ROAD_LANE_TYPES = ("vehicle", "bus")
 SAMPLE_M = 2.0  # spacing of carriageway samples

@@ -25,8 +25,8 @@ from dataclasses import dataclass, replace
 import numpy as np
 import shapely
 
-from cmtool.data.sdmap import Road, SDMap
-from cmtool.geometry import from_frame, insert_vertex
+from cmtool.core.geometry import from_frame, insert_vertex
+from cmtool.maps.sdmap import Road, SDMap
 
 MINOR_CLASSES = ("residential", "service", "unclassified")
 _STUB_M = (15.0, 40.0)  # length range of a service stub

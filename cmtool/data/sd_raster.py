@@ -25,9 +25,9 @@ from pathlib import Path
 import cv2
 import numpy as np
 
-from cmtool.data.sdmap import SDMap
-from cmtool.errors import CmtoolError
-from cmtool.geometry import CV_SHIFT, ego_to_pixel, to_frame
+from cmtool.core.errors import CmtoolError
+from cmtool.core.geometry import CV_SHIFT, ego_to_pixel, to_frame
+from cmtool.maps.sdmap import SDMap
 
 SIZE = 128
 FRAME_M = 64.0
@@ -35,6 +35,7 @@ THICKNESS_PX = 4
 ROAD_VALUE = 255
 LANE_STEP = 32  # G = LANE_STEP * min(lanes, MAX_LANES)
 MAX_LANES = 7
+IMAGE_SUFFIXES = (".png", ".jpg", ".jpeg", ".bmp", ".tif", ".tiff", ".npy")  # SD pictures read from files
 
 
 def lane_value(lanes: int | None) -> int:

@@ -9,9 +9,9 @@ from __future__ import annotations
 
 import numpy as np
 
-from cmtool.data.hdmap import HDMap
+from cmtool.core.geometry import polyline_length, resample_step, wrap_angle
 from cmtool.data.sd_derive import ROAD_LANE_TYPES, road_network, sd_from_network
-from cmtool.geometry import polyline_length, resample_step, wrap_angle
+from cmtool.maps.hdmap import HDMap
 
 CURVATURE_STEP_M = 5.0  # polylines are resampled at this spacing before summing heading changes
 

@@ -24,20 +24,19 @@ import cv2
 import numpy as np
 import rerun as rr
 import rerun.blueprint as rrb
-import torch
 
-from cmtool.data.jsonio import write_json, write_text_atomic
-from cmtool.data.lanegraph import LaneGraph
-from cmtool.eval.features import FeatureExtractor, lanes_image
-from cmtool.eval.geometric import chamfer, driving_side, oncoming_side, sd_adherence
-from cmtool.eval.metrics import drives_on, markdown_table, weighted_mean
-from cmtool.eval.retrieval import batch_recall
-from cmtool.eval.topology import topology_fd
-from cmtool.eval.validity import check
-from cmtool.progress import Progress
-from cmtool.sample import DEFAULT_SAMPLER
-from cmtool.sample.diffusion import scene_seed, step_generator
-from cmtool.sample.generator import Generator
+from cmtool.core.jsonio import write_json, write_text_atomic
+from cmtool.core.progress import Progress
+from cmtool.diffusion.settings import DEFAULT_SAMPLER, SamplerSettings
+from cmtool.maps.hdmap import drives_on
+from cmtool.maps.lanegraph import LaneGraph
+from cmtool.metrics.features import FeatureExtractor, lanes_image
+from cmtool.metrics.geometric import chamfer, driving_side, oncoming_side, sd_adherence
+from cmtool.metrics.retrieval import batch_recall
+from cmtool.metrics.suite import markdown_table, weighted_mean
+from cmtool.metrics.topology import topology_fd
+from cmtool.metrics.validity import check
+from cmtool.sample.generator import MapGenerator
 from cmtool.viz.draw import BACKGROUND, TEXT, graph_panel, grid, sd_panel, title_strip
 from cmtool.viz.recording import close_recording, log_lanes, log_sd, open_recording
 from cmtool.viz.show import write_png
@@ -45,26 +44,17 @@ from cmtool.viz.show import write_png
 PICTURE_SCENES = 4
 
 
-def generate(gen: Generator, sds: np.ndarray, labels: list[int], cfg: float, steps: int, seed: int,
+def generate(gen: MapGenerator, sds: np.ndarray, labels: list[int], cfg: float, steps: int, seed: int,
              sampler: str = DEFAULT_SAMPLER, batch: int = 64, city_cfg: float = 1.0) -> list[LaneGraph]:
-    """One map per SD raster (a DiT ignores them); the initial noise of scene i depends only on
-    (seed, i), the noise of the sampler's steps only on (seed, batch), so other weights and labels see
-    the same noise."""
-    maps = []
-    for b0 in range(0, len(sds), batch):
-        n = min(batch, len(sds) - b0)
-        noise = torch.stack([torch.randn(gen.model.latent_shape, generator=torch.Generator().manual_seed(
-            scene_seed(seed, b0 + k))) for k in range(n)])
-        sd = sds[b0:b0 + n] if gen.has_control else None
-        z = gen.sample(sd, labels[b0:b0 + n], cfg=cfg, city_cfg=city_cfg, steps=steps, sampler=sampler,
-                       noise=noise.to(gen.device), generator=step_generator(scene_seed(seed, b0), gen.device))
-        maps += [gen.lane_graph(el, gen.city_name(y),
-                                {"cfg": cfg, "seed": seed, "sampler": sampler, "smooth": gen.smooth})
-                 for el, y in zip(gen.decode(z), labels[b0:b0 + n])]
-    return maps
+    """One map per SD raster (a DiT ignores them) at guidance weight ``cfg``; a batch's noise depends only on the
+    seed and its first scene, so other weights, labels and checkpoints see the same noise."""
+    settings = SamplerSettings(cfg=cfg, steps=steps, sampler=sampler, seed=seed, batch=batch)
+    meta = {"cfg": cfg, "seed": seed, "sampler": sampler, "smooth": gen.smooth}
+    return gen.generate_all(sds if gen.has_control else None, labels, settings, [dict(meta) for _ in labels],
+                            city_cfg=city_cfg)
 
 
-def cfg_sweep(gen: Generator, scenes, weights: list[float], seeds: int, steps: int, extractor: FeatureExtractor | None,
+def cfg_sweep(gen: MapGenerator, scenes, weights: list[float], seeds: int, steps: int, extractor: FeatureExtractor | None,
               out, progress: bool = True, sampler: str = DEFAULT_SAMPLER) -> list[dict]:
     """The sweep's rows (one per w), written with its plot and recording to ``out``."""
     sds = np.stack([s.sd for s in scenes])
@@ -132,7 +122,7 @@ def _cfg_blueprint(scenes: int) -> rrb.Blueprint:
                          rrb.SelectionPanel(expanded=False), rrb.TimePanel(expanded=True, timeline="cfg"))
 
 
-def city_swap(gen: Generator, scenes, labels: list[str], steps: int, cfg: float, seed: int, out,
+def city_swap(gen: MapGenerator, scenes, labels: list[str], steps: int, cfg: float, seed: int, out,
               progress: bool = True, sampler: str = DEFAULT_SAMPLER, city_cfg: float = 1.0) -> list[dict]:
     """Driving side per city label on the same SD maps and noise (judged against the two-way SD roads
     and by the side of oncoming lanes), at city-label guidance ``city_cfg``, written to ``out``."""
@@ -164,7 +154,7 @@ def city_swap(gen: Generator, scenes, labels: list[str], steps: int, cfg: float,
     return rows
 
 
-def dit_compare(gens: dict[str, Generator], scenes, steps: int, seed: int, out, progress: bool = True,
+def dit_compare(gens: dict[str, MapGenerator], scenes, steps: int, seed: int, out, progress: bool = True,
                 sampler: str = DEFAULT_SAMPLER) -> list[dict]:
     """One row per checkpoint: maps for the scenes' city labels (the null label where a checkpoint does
     not know the city), without SD control, from the same noise, against the scenes' ground truth."""

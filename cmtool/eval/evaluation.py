@@ -1,6 +1,10 @@
-"""``cmtool eval``: generate one map per test scene twice and score both against the ground truth.
+"""``cmtool eval``: generate one map per test scene twice and score both, and the rule-based layout of the same SD
+input, against the ground truth.
 
 - **unguided** baseline: the DiT alone, no SD control and no city label (the paper's SLEDGE rows);
+- **rules** baseline: the rule-based lane layout of the scene's SD map (:mod:`cmtool.data.rules`), cropped as the
+  scene was, and **netconvert**, SUMO's layout of it (:mod:`cmtool.formats.sumo`) when SUMO is installed; both
+  left out, with a note, for datasets built before they stored their SD maps;
 - **ControlMap**: the scene's SD raster as control at guidance weight ``cfg``, with the scene's city
   label when the checkpoint knows it (else the null label).
 
@@ -8,14 +12,16 @@ Both use the same initial noise per scene (drawn per batch from the seed and the
 scene, so processes under ``torchrun`` can share the batches). Generated maps go to a cache,
 ``<out>/cache/{unguided,controlmap}.jsonl``, one batch at a time, so an interrupted run continues
 where it stopped (the cache remembers its settings and refuses to mix runs). Then ``metrics.json``, ``summary.md``
-(tables shaped like the paper's Tables 1 and 2 plus our geometric metrics) and ``eval.rrd``
-(on the ``sample`` timeline: SD | unguided | ControlMap | ground truth of the first ``rrd_samples``
-scenes with their scores, and per-scene scores of all scenes).
+(tables shaped like the paper's Tables 1 and 2 plus our geometric metrics, lanes per map and lane F1 in junction
+frames and the others), ``gallery.png`` (a few junction frames and others, every method side by side) and ``eval.rrd``
+(on the ``sample`` timeline: SD | unguided | rules | netconvert | ControlMap | ground truth of the first
+``rrd_samples`` scenes with their scores, and per-scene scores of all scenes).
 """
 
 from __future__ import annotations
 
 import json
+import sys
 from dataclasses import asdict, dataclass
 from pathlib import Path
 
@@ -23,20 +29,28 @@ import numpy as np
 import rerun as rr
 import rerun.blueprint as rrb
 
-from cmtool import checkpoint as ckpt
-from cmtool import dist as D
-from cmtool.data.cache import load_dataset
-from cmtool.data.jsonio import read_json, write_json, write_text_atomic
-from cmtool.data.lanegraph import LaneGraph, write_jsonl
-from cmtool.errors import CmtoolError
-from cmtool.eval.features import FeatureExtractor, sd_image
-from cmtool.eval.metrics import evaluate, reference_image_features, summary_table
-from cmtool.eval.validity import check
-from cmtool.progress import Progress
-from cmtool.release import BUNDLED
-from cmtool.sample import DEFAULT_SAMPLER, DEFAULT_SMOOTH
-from cmtool.sample.generator import Generator
+from cmtool.core import dist as D
+from cmtool.core.errors import CmtoolError
+from cmtool.core.jsonio import read_json, write_json, write_text_atomic
+from cmtool.core.progress import Progress
+from cmtool.data.cache import MissingSDMaps, load_dataset, load_manifest, scene_sd_maps
+from cmtool.data.scene import Scene, SceneCropper
+from cmtool.diffusion.settings import SamplerSettings
+from cmtool.formats.sumo import netconvert_path
+from cmtool.maps.hdmap import drives_on
+from cmtool.maps.lanegraph import LaneGraph, write_jsonl
+from cmtool.metrics.features import FeatureExtractor, sd_image
+from cmtool.metrics.lanes import lane_scores
+from cmtool.metrics.suite import evaluate, reference_image_features, summary_table
+from cmtool.metrics.validity import check
+from cmtool.model import checkpoint as ckpt
+from cmtool.model.release import BUNDLED
+from cmtool.sample import DEFAULT_SMOOTH
+from cmtool.sample.layouts import LAYOUTS
+from cmtool.sample.generator import MapGenerator
+from cmtool.viz.draw import graph_panel, grid, sd_panel, title_strip
 from cmtool.viz.recording import close_recording, log_lanes, log_sd, open_recording
+from cmtool.viz.show import write_png
 
 METHODS = ("unguided", "controlmap")
 # How each batch's noise is drawn (x_T from the scene seed, step noise from ``step_generator``). Caches
@@ -44,59 +58,130 @@ METHODS = ("unguided", "controlmap")
 NOISE = "x_T per batch, steps on their own stream"
 
 
-@dataclass
-class EvalSettings:
+@dataclass(kw_only=True)
+class EvalSettings(SamplerSettings):
+    """``cmtool eval``'s settings: the sampler's, the scenes, and what the maps were made with (the cache's key)."""
+
     data: str
     split: str = "test"
     n: int = 3904
-    cfg: float = 1.0
-    steps: int = 50
-    sampler: str = DEFAULT_SAMPLER
-    smooth: int = DEFAULT_SMOOTH  # Bézier control points of the decoded lanes (the generator's)
-    seed: int = 0
     batch: int = 64
+    smooth: int = DEFAULT_SMOOTH  # Bézier control points of the decoded lanes (the generator's)
     checkpoint: str = ""
     weights: str = ""  # digest of the ControlMap's and its RVAE's weights (a re-pack keeps the path)
     noise: str = NOISE
-    precision: str = "fp32"  # of the denoising model (Generator.precision)
+    precision: str = "fp32"  # of the denoising model (MapGenerator.precision)
+    init: str = "none"  # ControlMap starts from this layout of the scene's SD map (cmtool.sample.layouts), encoded
+    strength: float = 1.0  # ... noised this far up the schedule
+
+    def check(self, prefix: str = "--") -> None:
+        super().check(prefix)
+        if self.init not in ("none", *LAYOUTS):
+            raise CmtoolError(f"{prefix}init: choose none, {', '.join(LAYOUTS)}, got {self.init!r}")
+        if not 0 < self.strength <= 1:
+            raise CmtoolError(f"{prefix}strength: must be in (0, 1], got {self.strength}")
 
 
-def run_eval(gen: Generator, settings: EvalSettings, out: Path, extractor: FeatureExtractor | None,
+def run_eval(gen: MapGenerator, settings: EvalSettings, out: Path, extractor: FeatureExtractor | None,
              rrd_samples: int = 64, progress: bool = True, info: D.DistInfo = D.SINGLE,
              workers: int = 1) -> dict | None:
     """Generate (or continue generating) both sets, compute the metrics and write the reports. Under ``torchrun``
     (``info``) the processes take turns at the batches and the main process scores and writes everything; the
-    others return None. ``workers``: processes for the per-scene metrics (:func:`cmtool.eval.metrics.evaluate`)."""
+    others return None. ``workers``: processes for the per-scene metrics (:func:`cmtool.metrics.suite.evaluate`)."""
+    settings.check()
     if not gen.has_control:
         raise CmtoolError(f"{gen.path}: eval compares ControlMap with its unguided DiT; give a ControlMap checkpoint")
     data = load_dataset(settings.data, settings.split)
     n = min(settings.n, len(data))
     settings.n, settings.checkpoint, settings.smooth = n, str(gen.path), gen.smooth
-    settings.weights = ckpt.weights_digest(gen.path, ckpt.resolve(ckpt.linked(gen.path, gen.config["rvae"])))
+    settings.weights = ckpt.weights_digest(gen.path, ckpt.resolve(ckpt.linked(gen.path, gen.config["rvae"])),
+                                           *([gen.encoder_path] if settings.init != "none" and gen.encoder_path else []))
     scenes = [data.scene(i) for i in range(n)]
-    generated = _generate(gen, scenes, settings, out / "cache", progress, info)
+    starts = None
+    if settings.init != "none":
+        gen.encode([])  # an RVAE without an encoder fails here
+        starts = scene_layouts(settings.data, settings.split, scenes, settings.init)
+    generated = _generate(gen, scenes, settings, out / "cache", progress, info, starts)
     if not info.main:
         return None
+    try:
+        baselines = {m: [_as_map(s, m, k) for k, s in enumerate(scene_layouts(settings.data, settings.split, scenes,
+                                                                               m))]
+                     for m in LAYOUTS if m != "netconvert" or netconvert_path() is not None}
+        generated = {"unguided": generated["unguided"], **baselines, "controlmap": generated["controlmap"]}
+    except MissingSDMaps as e:
+        print(f"note: no rule-based columns: {e}", file=sys.stderr)
     reference = [s.to_lanegraph() for s in scenes]
     controls = np.stack([s.sd for s in scenes])
     shared = {}
     if extractor is not None:  # the ground truth's and the controls' features serve both methods
         shared = {"reference_features": reference_image_features(reference, extractor),
                   "control_features": extractor(np.stack([sd_image(sd) for sd in controls]))}
-    results = {m: evaluate(generated[m], reference, controls, extractor, features=extractor is not None,
-                           progress=progress, workers=workers, **shared) for m in METHODS}
+    results = {m: evaluate(maps, reference, controls, extractor, features=extractor is not None,
+                           progress=progress, workers=workers, **shared) for m, maps in generated.items()}
     truth = [check(g) for g in reference]
-    report = {"settings": asdict(settings), "methods": results,
+    report = {"settings": asdict(settings), "methods": results, "frames": frame_groups(scenes, reference, generated),
               "ground_truth_validity": float(np.mean([r.score for r in truth])),
               "ground_truth_routable": float(np.mean([r.routable_with_changes for r in truth]))}
     write_json(out / "metrics.json", report)
     write_text_atomic(out / "summary.md", summary_markdown(report))
     _write_recording(out / "eval.rrd", scenes, reference, generated, results, rrd_samples)
+    write_png(out / "gallery.png", gallery(scenes, reference, generated))
     return report
 
 
-def _generate(gen: Generator, scenes, settings: EvalSettings, cache: Path, progress: bool,
-              info: D.DistInfo) -> dict[str, list] | None:
+GALLERY_SCENES = 3  # junction frames and as many others in gallery.png
+
+
+def gallery(scenes, reference, generated: dict[str, list], panel: int = 200) -> np.ndarray:
+    """The first junction frames and the first others, a row each: SD | every method's map | ground truth."""
+    junction = [k for k, s in enumerate(scenes) if s.kind.startswith("junction")][:GALLERY_SCENES]
+    other = [k for k, s in enumerate(scenes) if not s.kind.startswith("junction")][:GALLERY_SCENES]
+    tiles = []
+    for k in junction + other:
+        row = [(f"{k}: SD, {scenes[k].kind or 'frame'}", sd_panel(scenes[k].sd, panel))]
+        row += [(PANELS[m], graph_panel(maps[k], panel)) for m, maps in generated.items()]
+        row.append(("ground truth", graph_panel(reference[k], panel)))
+        tiles += [np.concatenate([title_strip(title, panel), img], axis=0) for title, img in row]
+    return grid(tiles, len(generated) + 2)
+
+
+def frame_groups(scenes, reference, generated: dict[str, list]) -> dict:
+    """Lanes per map (the ground truth's too) and lane F1 at 1 m in junction frames and in the others (the frame
+    kinds of :mod:`cmtool.data.frames`), per method."""
+    junction = np.array([s.kind.startswith("junction") for s in scenes], bool)
+    out = {"scenes": {"junction": int(junction.sum()), "other": int((~junction).sum())},
+           "lanes_per_map": {"truth": float(np.mean([len(g.lanes) for g in reference]))}, "lane_f1": {}}
+    for m, maps in generated.items():
+        f1 = np.array([lane_scores(g.lanes, r.lanes)["f1"] for g, r in zip(maps, reference)])
+        out["lanes_per_map"][m] = float(np.mean([len(g.lanes) for g in maps]))
+        out["lane_f1"][m] = {k: float(f1[sel].mean()) if sel.any() else None
+                             for k, sel in (("junction", junction), ("other", ~junction))}
+    return out
+
+
+def scene_layouts(data_dir, split: str, scenes, method: str) -> list[Scene]:
+    """The ``method`` layout (rules, netconvert) of each scene's SD map (the one its SD raster was drawn from),
+    cropped as the dataset cropped the scene."""
+    recipe = load_manifest(data_dir)["recipe"]
+    croppers: dict[int, SceneCropper] = {}
+    out = []
+    for scene, sd_map in zip(scenes, scene_sd_maps(data_dir, split)):
+        if id(sd_map) not in croppers:
+            croppers[id(sd_map)] = SceneCropper(LAYOUTS[method](sd_map, drives_on(scene.city)))
+        out.append(croppers[id(sd_map)].extract(scene.pose, recipe["num_lines"], recipe["num_points"],
+                                                recipe["num_lights"], recipe["frame_m"], recipe["min_piece_m"]))
+    return out
+
+
+def _as_map(scene: Scene, method: str, k: int) -> LaneGraph:
+    graph = scene.to_lanegraph()
+    graph.meta = {"method": method, "scene": k}
+    return graph
+
+
+def _generate(gen: MapGenerator, scenes, settings: EvalSettings, cache: Path, progress: bool,
+              info: D.DistInfo, starts: list[Scene] | None) -> dict[str, list] | None:
     """Both methods' maps for ``scenes``, continuing from (and extending) the cache: on the main process; the
     others generate their turns' batches and get None."""
     start, done = None, None
@@ -111,7 +196,8 @@ def _generate(gen: Generator, scenes, settings: EvalSettings, cache: Path, progr
     with Progress(len(scenes), "eval", "scenes", enabled=progress and info.main) as bar:
         bar.update(start)
         for mine in D.rounds(list(range(start, len(scenes), settings.batch)), info):
-            made = [_batch_lines(gen, scenes[b0:b0 + settings.batch], b0, settings) for b0 in mine]
+            made = [_batch_lines(gen, scenes[b0:b0 + settings.batch], b0, settings,
+                                 None if starts is None else starts[b0:b0 + settings.batch]) for b0 in mine]
             for part in D.gather(made, info) or []:
                 for lines in part:
                     for m in METHODS:
@@ -128,7 +214,8 @@ def _open_cache(cache: Path, settings: EvalSettings) -> tuple[int, dict[str, lis
     left one method a batch ahead), after checking that the cache was made with these settings."""
     cache.mkdir(parents=True, exist_ok=True)
     meta = cache / "settings.json"
-    mine = {k: v for k, v in asdict(settings).items() if k != "n"}
+    mine = {k: v for k, v in asdict(settings).items()  # caches from before --init have no init entries
+            if k != "n" and not (k in ("init", "strength") and settings.init == "none")}
     if meta.is_file():
         theirs = read_json(meta)
         if theirs != mine:
@@ -145,22 +232,22 @@ def _open_cache(cache: Path, settings: EvalSettings) -> tuple[int, dict[str, lis
     return start, done
 
 
-def _batch_lines(gen: Generator, batch, b0: int, settings: EvalSettings) -> dict[str, list[str]]:
-    """Both methods' maps of the scenes ``batch`` (starting at scene ``b0``) as JSON lines; the batch's noise
-    depends on ``b0`` alone, so the maps do not depend on which process makes them."""
+def _batch_lines(gen: MapGenerator, batch, b0: int, settings: EvalSettings,
+                 starts: list[Scene] | None) -> dict[str, list[str]]:
+    """Both methods' maps of the scenes ``batch`` (starting at scene ``b0``; ControlMap from the layouts ``starts``
+    when given) as JSON lines; the batch's noise depends on ``b0`` alone, so the maps do not depend on which
+    process makes them."""
     lines = {}
-    for m in METHODS:
+    for m in METHODS:  # the same noise for both methods
+        init = None
         if m == "unguided":
             labels, sd = [len(gen.cities)] * len(batch), None
         else:
-            labels = [gen.known_label(s.city) for s in batch]
-            sd = np.stack([s.sd for s in batch])
-        noise, steps = gen.batch_noise(len(batch), settings.seed, b0)  # the same for both methods
-        z = gen.sample(sd, labels, cfg=settings.cfg if m == "controlmap" else 0.0, steps=settings.steps,
-                       sampler=settings.sampler, noise=noise, generator=steps)
-        graphs = [gen.lane_graph(el, gen.city_name(y), {"method": m, "scene": b0 + k, "seed": settings.seed})
-                  for k, (el, y) in enumerate(zip(gen.decode(z), labels))]
-        lines[m] = [json.dumps(g.to_json(), separators=(",", ":")) for g in graphs]
+            labels, sd = [gen.known_label(s.city) for s in batch], np.stack([s.sd for s in batch])
+            init = None if starts is None else gen.encode(starts)
+        metas = [{"method": m, "scene": b0 + k, "seed": settings.seed} for k in range(len(batch))]
+        lines[m] = [json.dumps(g.to_json(), separators=(",", ":")) for g in
+                    gen.generate(sd, labels, settings, b0, init=init, strength=settings.strength, metas=metas)]
     return lines
 
 
@@ -189,15 +276,29 @@ def summary_markdown(report: dict) -> str:
         title = path.parent.parent.name if path.parent.name == "checkpoints" else str(path)
     head = [f"# cmtool eval: {title}", "",
             f"- checkpoint `{s['checkpoint']}`", f"- data `{s['data']}`, split {s['split']}, {s['n']} scenes",
-            f"- ControlMap: guidance w = {s['cfg']}; both: {s['steps']} {s['sampler']} steps, seed {s['seed']}, "
+            f"- ControlMap: guidance w = {s['cfg']}"
+            + (f", started from the {s['init']} layout noised to strength {s['strength']:g}" if s.get("init", "none")
+               != "none" else "") + f"; both: {s['steps']} {s['sampler']} steps, seed {s['seed']}, "
             "the same initial noise per scene",
             f"- lanes: {_smoothing(s['smooth'])}",
             "- unguided: the frozen DiT without SD control or city label (the paper's SLEDGE rows)",
+            "- rules: the rule-based lane layout of the same SD map (lane counts from the tags or the road class, "
+            "one-way roads one way, junction connectors); netconvert: SUMO's, when it is installed",
             f"- features: {backbone}; recall metrics in batches of 64, top 3, p = P(chance >= observed)",
             (f"- validity score of the ground truth itself: {report['ground_truth_validity']:.3f}; its lane pairs "
              f"routable with lane changes: {report.get('ground_truth_routable', float('nan')):.3f}"), "", ""]
-    return "\n".join(head) + summary_table({("unguided" if k == "unguided" else "ControlMap"): v
-                                            for k, v in methods.items()}) + "\n"
+    frames = report.get("frames")
+    tail = []
+    if frames:
+        names = list(frames["lane_f1"])
+        cell = lambda v: "–" if v is None else f"{v:.3f}"  # noqa: E731
+        tail = ["", "", "### By frame", "",
+                "| | " + " | ".join(SHORT[m] for m in names) + " | ground truth |", "|---|" + "---|" * (len(names) + 1),
+                "| lanes per map | " + " | ".join(cell(frames["lanes_per_map"][m]) for m in names)
+                + f" | {frames['lanes_per_map']['truth']:.3f} |"]
+        tail += [f"| lane F1 @1 m, {k} frames ({frames['scenes'][k]}) ↑ | "
+                 + " | ".join(cell(frames["lane_f1"][m][k]) for m in names) + " | 1 |" for k in ("junction", "other")]
+    return "\n".join(head) + summary_table({SHORT[k]: v for k, v in methods.items()}) + "\n".join(tail) + "\n"
 
 
 def _smoothing(control_points: int) -> str:
@@ -207,24 +308,27 @@ def _smoothing(control_points: int) -> str:
 
 
 RECORDED_SCORES = {"lane_f1": "lane F1 at 1 m", "chamfer_m": "lane Chamfer, m", "validity": "validity"}
-PANELS = {"unguided": "unguided DiT", "controlmap": "ControlMap", "truth": "ground truth"}
-SHORT = {"unguided": "unguided", "controlmap": "ControlMap"}
-SERIES_COLOURS = {"unguided": [230, 140, 40], "controlmap": [60, 150, 255]}
+PANELS = {"unguided": "unguided DiT", "rules": "rules", "netconvert": "netconvert", "controlmap": "ControlMap",
+          "truth": "ground truth"}
+SHORT = {"unguided": "unguided", "rules": "rules", "netconvert": "netconvert", "controlmap": "ControlMap"}
+SERIES_COLOURS = {"unguided": [230, 140, 40], "rules": [150, 150, 150], "netconvert": [150, 220, 120],
+                  "controlmap": [60, 150, 255]}
 
 
 def _write_recording(path: Path, scenes, reference, generated, results: dict, rrd_samples: int) -> None:
-    """eval.rrd: on the ``sample`` timeline, scene k's SD | unguided | ControlMap | ground truth (the first
+    """eval.rrd: on the ``sample`` timeline, scene k's SD, each method's map and the ground truth (the first
     ``rrd_samples`` scenes) beside its scores, and each score of every scene as a plot per score."""
+    methods = list(generated)
     rec = open_recording("eval")
     rec.send_blueprint(_eval_blueprint())
     for key in RECORDED_SCORES:
-        for m in METHODS:
+        for m in methods:
             rec.log(f"metrics/{key}/{m}", rr.SeriesLines(colors=SERIES_COLOURS[m], names=PANELS[m]), static=True)
     shown = min(rrd_samples, len(scenes))
     for k, (scene, truth) in enumerate(zip(scenes, reference)):
         rec.set_time("sample", sequence=k)
-        values = {m: {key: results[m]["geometry"][key]["per_scene"][k] for key in RECORDED_SCORES} for m in METHODS}
-        for m in METHODS:
+        values = {m: {key: results[m]["geometry"][key]["per_scene"][k] for key in RECORDED_SCORES} for m in methods}
+        for m in methods:
             for key, value in values[m].items():
                 if value is not None:
                     rec.log(f"metrics/{key}/{m}", rr.Scalars(value))
@@ -235,9 +339,9 @@ def _write_recording(path: Path, scenes, reference, generated, results: dict, rr
             log_sd(rec, "scene/", scene.sd, scene.frame_m)
             log_lanes(rec, "scene/truth/", truth.lanes, truth.green_lights, truth.red_lights, truth.successors)
             table = [f"### scene {k}: {scene.city}" + (f", {scene.kind}" if scene.kind else ""), "",
-                     "| | " + " | ".join(SHORT[m] for m in METHODS) + " |", "|---|" + "---|" * len(METHODS)]
+                     "| | " + " | ".join(SHORT[m] for m in methods) + " |", "|---|" + "---|" * len(methods)]
             table += [f"| {title} | " + " | ".join("-" if values[m][key] is None else f"{values[m][key]:.3f}"
-                                                    for m in METHODS) + " |" for key, title in RECORDED_SCORES.items()]
+                                                    for m in methods) + " |" for key, title in RECORDED_SCORES.items()]
             rec.log("scene/scores", rr.TextDocument("\n".join(table), media_type="text/markdown"))
     close_recording(rec, path)
 
@@ -250,7 +354,7 @@ def _eval_blueprint() -> rrb.Blueprint:
     plots = [rrb.TimeSeriesView(origin=f"/metrics/{key}", name=title, plot_legend=rrb.PlotLegend(corner="LeftTop"))
              for key, title in RECORDED_SCORES.items()]
     top = rrb.Horizontal(*maps, rrb.TextDocumentView(origin="/scene/scores", name="scores of this scene"),
-                         column_shares=[2, 2, 2, 2, 2])
+                         column_shares=[2] * (len(PANELS) + 2))
     return rrb.Blueprint(rrb.Vertical(top, rrb.Horizontal(*plots), row_shares=[3, 2]),
                          rrb.BlueprintPanel(expanded=False), rrb.SelectionPanel(expanded=False),
                          rrb.TimePanel(expanded=True, timeline="sample"))

@@ -5,7 +5,7 @@ from __future__ import annotations
 
 from dataclasses import dataclass, replace
 
-from cmtool.errors import CmtoolError
+from cmtool.core.errors import CmtoolError
 
 
 @dataclass
@@ -75,14 +75,15 @@ class DiTConfig:
         if self.size not in SIZES:
             raise CmtoolError(f"dit.size: unknown size {self.size!r} (choose from {', '.join(SIZES)})")
         depth, hidden, heads = SIZES[self.size]
-        cfg = replace(self, depth=self.depth or depth, hidden=self.hidden or hidden, heads=self.heads or heads)
-        if min(cfg.depth, cfg.hidden, cfg.heads, cfg.latent_channels, cfg.latent_size, cfg.num_classes) <= 0:
+        config = replace(self, depth=self.depth or depth, hidden=self.hidden or hidden, heads=self.heads or heads)
+        if min(config.depth, config.hidden, config.heads, config.latent_channels, config.latent_size,
+               config.num_classes) <= 0:
             raise CmtoolError("dit: depth, hidden, heads, latent_channels, latent_size, num_classes must be > 0")
-        if cfg.hidden % cfg.heads or cfg.hidden % 4:
-            raise CmtoolError(f"dit.hidden: {cfg.hidden} must be divisible by 4 and by heads ({cfg.heads})")
-        if cfg.mlp_ratio <= 0:
-            raise CmtoolError(f"dit.mlp_ratio: must be > 0, got {cfg.mlp_ratio}")
-        return cfg
+        if config.hidden % config.heads or config.hidden % 4:
+            raise CmtoolError(f"dit.hidden: {config.hidden} must be divisible by 4 and by heads ({config.heads})")
+        if config.mlp_ratio <= 0:
+            raise CmtoolError(f"dit.mlp_ratio: must be > 0, got {config.mlp_ratio}")
+        return config
 
 
 @dataclass

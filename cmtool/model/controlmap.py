@@ -16,7 +16,7 @@ import torch
 import torch.nn.functional as F
 from torch import Tensor, nn
 
-from cmtool.errors import CmtoolError
+from cmtool.core.errors import CmtoolError
 from cmtool.model.config import ControlConfig
 from cmtool.model.dit import DiT, sincos_pos_embed_2d
 
@@ -44,12 +44,12 @@ class EncoderStage(nn.Module):
 class ControlEncoder(nn.Module):
     """SD raster ``(B, 3, px, px)`` in [0, 1] -> control tokens ``(B, (px/16)**2, out_channels)``."""
 
-    def __init__(self, cfg: ControlConfig, out_channels: int):
+    def __init__(self, config: ControlConfig, out_channels: int):
         super().__init__()
-        chans = (cfg.in_channels, *cfg.widths)
-        self.stages = nn.Sequential(*(EncoderStage(a, b, cfg.groups) for a, b in zip(chans, chans[1:])))
-        self.out = nn.Conv2d(cfg.widths[-1], out_channels, 1)
-        self.register_buffer("pos", sincos_pos_embed_2d(out_channels, cfg.image_px // 16), persistent=False)
+        chans = (config.in_channels, *config.widths)
+        self.stages = nn.Sequential(*(EncoderStage(a, b, config.groups) for a, b in zip(chans, chans[1:])))
+        self.out = nn.Conv2d(config.widths[-1], out_channels, 1)
+        self.register_buffer("pos", sincos_pos_embed_2d(out_channels, config.image_px // 16), persistent=False)
 
     def forward(self, image: Tensor) -> Tensor:
         return self.out(self.stages(image)).flatten(2).transpose(1, 2) + self.pos
@@ -58,16 +58,16 @@ class ControlEncoder(nn.Module):
 class ControlMap(nn.Module):
     """A frozen-able base DiT (``self.base``) plus the trainable SD-map control branch."""
 
-    def __init__(self, dit: DiT, cfg: ControlConfig):
+    def __init__(self, dit: DiT, config: ControlConfig):
         super().__init__()
-        _validate(cfg, dit)
-        self.cfg = cfg
+        _validate(config, dit)
+        self.config = config
         self.base = dit
-        hidden = dit.cfg.hidden
-        self.encoder = ControlEncoder(cfg, dit.cfg.latent_channels)
-        self.proj = nn.Linear(dit.cfg.latent_channels, hidden)
-        self.copies = copy.deepcopy(dit.blocks[: cfg.num_blocks]).requires_grad_(True)
-        self.zero = nn.ModuleList(nn.Linear(hidden, hidden) for _ in range(cfg.num_blocks))
+        hidden = dit.config.hidden
+        self.encoder = ControlEncoder(config, dit.config.latent_channels)
+        self.proj = nn.Linear(dit.config.latent_channels, hidden)
+        self.copies = copy.deepcopy(dit.blocks[: config.num_blocks]).requires_grad_(True)
+        self.zero = nn.ModuleList(nn.Linear(hidden, hidden) for _ in range(config.num_blocks))
         for layer in (self.proj, *self.zero):
             nn.init.zeros_(layer.weight)
             nn.init.zeros_(layer.bias)
@@ -127,17 +127,19 @@ class ControlMap(nn.Module):
         return self.base.final(h, c), residuals
 
 
-def _validate(cfg: ControlConfig, dit: DiT) -> None:
+def _validate(config: ControlConfig, dit: DiT) -> None:
     """Raise CmtoolError for a control config that does not fit ``dit``."""
-    if not 1 <= cfg.num_blocks <= dit.cfg.depth:
-        raise CmtoolError(f"control.num_blocks: must be in 1..{dit.cfg.depth} (the DiT depth), got {cfg.num_blocks}")
-    if cfg.groups <= 0 or len(cfg.widths) != 4 or any(w <= 0 or w % cfg.groups for w in cfg.widths):
-        raise CmtoolError(f"control.widths: need 4 positive multiples of groups ({cfg.groups}), got {list(cfg.widths)}")
-    if cfg.image_px != 16 * dit.cfg.latent_size:
-        raise CmtoolError(f"control.image_px: must be 16 x latent_size = {16 * dit.cfg.latent_size}, "
-                          f"got {cfg.image_px}")
-    if dit.cfg.latent_channels % 4:
+    if not 1 <= config.num_blocks <= dit.config.depth:
+        raise CmtoolError(f"control.num_blocks: must be in 1..{dit.config.depth} (the DiT depth), "
+                          f"got {config.num_blocks}")
+    if config.groups <= 0 or len(config.widths) != 4 or any(w <= 0 or w % config.groups for w in config.widths):
+        raise CmtoolError(f"control.widths: need 4 positive multiples of groups ({config.groups}), "
+                          f"got {list(config.widths)}")
+    if config.image_px != 16 * dit.config.latent_size:
+        raise CmtoolError(f"control.image_px: must be 16 x latent_size = {16 * dit.config.latent_size}, "
+                          f"got {config.image_px}")
+    if dit.config.latent_channels % 4:
         raise CmtoolError(f"dit.latent_channels: must be divisible by 4 for the control tokens, got "
-                          f"{dit.cfg.latent_channels}")
-    if cfg.in_channels <= 0:
-        raise CmtoolError(f"control.in_channels: must be > 0, got {cfg.in_channels}")
+                          f"{dit.config.latent_channels}")
+    if config.in_channels <= 0:
+        raise CmtoolError(f"control.in_channels: must be > 0, got {config.in_channels}")

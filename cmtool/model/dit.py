@@ -111,16 +111,16 @@ class FinalLayer(nn.Module):
 class DiT(nn.Module):
     """Epsilon-predicting DiT: ``forward(x, t, y)`` maps a noisy latent to its noise estimate."""
 
-    def __init__(self, cfg: DiTConfig):
+    def __init__(self, config: DiTConfig):
         super().__init__()
-        self.cfg = cfg = cfg.resolved()
-        h = cfg.hidden
-        self.patch = nn.Linear(cfg.latent_channels, h)
-        self.register_buffer("pos", sincos_pos_embed_2d(h, cfg.latent_size), persistent=False)
+        self.config = config = config.resolved()
+        h = config.hidden
+        self.patch = nn.Linear(config.latent_channels, h)
+        self.register_buffer("pos", sincos_pos_embed_2d(h, config.latent_size), persistent=False)
         self.t_mlp = nn.Sequential(nn.Linear(FREQ_DIM, h), nn.SiLU(), nn.Linear(h, h))
-        self.labels = nn.Embedding(cfg.num_classes + 1, h)
-        self.blocks = nn.ModuleList(DiTBlock(h, cfg.heads, cfg.mlp_ratio) for _ in range(cfg.depth))
-        self.final_layer = FinalLayer(h, cfg.latent_channels)
+        self.labels = nn.Embedding(config.num_classes + 1, h)
+        self.blocks = nn.ModuleList(DiTBlock(h, config.heads, config.mlp_ratio) for _ in range(config.depth))
+        self.final_layer = FinalLayer(h, config.latent_channels)
         self._init_weights()
 
     def _init_weights(self) -> None:
@@ -141,12 +141,12 @@ class DiT(nn.Module):
     @property
     def latent_shape(self) -> tuple[int, int, int]:
         """Shape ``(C, H, W)`` of one latent."""
-        return self.cfg.latent_channels, self.cfg.latent_size, self.cfg.latent_size
+        return self.config.latent_channels, self.config.latent_size, self.config.latent_size
 
     @property
     def null_label(self) -> int:
         """The label index meaning "no city"."""
-        return self.cfg.num_classes
+        return self.config.num_classes
 
     def embed_tokens(self, x: Tensor) -> Tensor:
         """Latent ``(B, C, H, W)`` -> tokens ``(B, H*W, hidden)`` with positions added."""

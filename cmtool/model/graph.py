@@ -39,10 +39,10 @@ class GraphDecoder(nn.Module):
     """Latent (B, C, S, S) -> per element type polylines (B, Q, P, 2) in metres and existence logits
     (B, Q), and ``succ_logit`` (B, L, L) over the line queries."""
 
-    def __init__(self, cfg: RVAEConfig, positions: Tensor, elements: tuple[str, ...]):
+    def __init__(self, config: RVAEConfig, positions: Tensor, elements: tuple[str, ...]):
         super().__init__()
-        d, c, p = cfg.d_model, cfg.latent_channels, cfg.num_points
-        self.cfg, self.elements, self.sizes = cfg, elements, [cfg.queries[e] for e in elements]
+        d, c, p = config.d_model, config.latent_channels, config.num_points
+        self.config, self.elements, self.sizes = config, elements, [config.queries[e] for e in elements]
         self.token_proj = nn.Linear(c, d)
         self.register_buffer("pos", positions, persistent=False)
         self.features = nn.Sequential(
@@ -53,13 +53,13 @@ class GraphDecoder(nn.Module):
         self.dn_query = nn.Parameter(torch.zeros(d))
         self.where = nn.Sequential(nn.Linear(p * 2, d), nn.ReLU(), nn.Linear(d, d))
         self.first_points = nn.Linear(d, p * 2)
-        self.read_points = nn.ModuleList(nn.Linear(p * FEATURES, d) for _ in range(cfg.decoder_layers))
+        self.read_points = nn.ModuleList(nn.Linear(p * FEATURES, d) for _ in range(config.decoder_layers))
         self.layers = nn.ModuleList(
-            nn.TransformerDecoderLayer(d, cfg.heads, cfg.ffn, cfg.dropout, batch_first=True, norm_first=True)
-            for _ in range(cfg.decoder_layers))
+            nn.TransformerDecoderLayer(d, config.heads, config.ffn, config.dropout, batch_first=True, norm_first=True)
+            for _ in range(config.decoder_layers))
         self.norm = nn.LayerNorm(d)
         self.offsets = nn.ModuleList(nn.Sequential(nn.Linear(d, d), nn.ReLU(), nn.Linear(d, p * 2))
-                                     for _ in range(cfg.decoder_layers))
+                                     for _ in range(config.decoder_layers))
         for head in self.offsets:
             nn.init.zeros_(head[-1].weight)
             nn.init.zeros_(head[-1].bias)
@@ -71,8 +71,8 @@ class GraphDecoder(nn.Module):
     def forward(self, z: Tensor, aux: bool = False, denoise: Tensor | None = None) -> dict:
         """``denoise``: noised true lines (B, N, P, 2) in metres to start denoising queries from; their
         outputs, one dict ``{"lines", "succ_logit"}`` per layer, come back under ``"denoise"``."""
-        b, p, q = z.shape[0], self.cfg.num_points, sum(self.sizes)
-        half = self.cfg.frame_m / 2.0
+        b, p, q = z.shape[0], self.config.num_points, sum(self.sizes)
+        half = self.config.frame_m / 2.0
         memory = self.token_proj(z.flatten(2).transpose(1, 2)) + self.pos
         # channels-last: on a CPU, bilinear upsampling of a (B, C, H, W)-contiguous map is about 9x slower
         feat = self.features(z.contiguous(memory_format=torch.channels_last))
@@ -106,7 +106,7 @@ class GraphDecoder(nn.Module):
     def _read(self, state: Tensor, ref: Tensor) -> dict[str, Tensor]:
         """States (B, Q, d) and reference polylines (B, Q, P, 2) -> the element dict of one layer."""
         out = {}
-        half = self.cfg.frame_m / 2.0
+        half = self.config.frame_m / 2.0
         for name, h, points in zip(self.elements, state.split(self.sizes, dim=1), ref.split(self.sizes, dim=1)):
             out[name], out[f"{name}_logit"] = points * half, self.logits[name](h).squeeze(-1)
         out["succ_logit"] = self.successor_logits(state[:, :self.sizes[0]], out[self.elements[0]])

@@ -21,8 +21,8 @@ import torch
 import torchvision
 from torch import Tensor, nn
 
-from cmtool.errors import CmtoolError
-from cmtool.geometry import bernstein_basis
+from cmtool.core.errors import CmtoolError
+from cmtool.core.geometry import bernstein_basis
 from cmtool.model.config import RVAEConfig
 from cmtool.model.graph import GraphDecoder
 
@@ -108,29 +108,30 @@ class LineHead(nn.Module):
 class RVAE(nn.Module):
     """HD raster (B, C, H, W) -> latent posterior (B, 64, 8, 8) -> scene vectors."""
 
-    def __init__(self, cfg: RVAEConfig, encoder: bool = True):
+    def __init__(self, config: RVAEConfig, encoder: bool = True):
         super().__init__()
-        self.cfg = cfg
+        self.config = config
         self.trunk = self.to_latent = None  # without an encoder (the released decoder-only weights)
         if encoder:
-            self.trunk, trunk_channels = encoder_trunk(cfg.backbone, cfg.in_channels, cfg.raster_px, cfg.latent_size,
-                                                       cfg.encoder_stages)
-            self.to_latent = nn.Conv2d(trunk_channels, 2 * cfg.latent_channels, kernel_size=3, padding=1)
-        if cfg.decoder not in DECODERS:
-            raise CmtoolError(f"rvae.decoder: must be one of {', '.join(DECODERS)}, got {cfg.decoder!r}")
-        if cfg.decoder == "graph":
-            if cfg.control_points:
+            self.trunk, trunk_channels = encoder_trunk(config.backbone, config.in_channels, config.raster_px,
+                                                       config.latent_size, config.encoder_stages)
+            self.to_latent = nn.Conv2d(trunk_channels, 2 * config.latent_channels, kernel_size=3, padding=1)
+        if config.decoder not in DECODERS:
+            raise CmtoolError(f"rvae.decoder: must be one of {', '.join(DECODERS)}, got {config.decoder!r}")
+        if config.decoder == "graph":
+            if config.control_points:
                 raise CmtoolError("rvae.control_points: the graph decoder refines free points; set it to 0")
-            self.graph = GraphDecoder(cfg, sine_position_encoding(cfg.latent_size, cfg.d_model), ELEMENTS)
+            self.graph = GraphDecoder(config, sine_position_encoding(config.latent_size, config.d_model), ELEMENTS)
             return
         self.graph = None
-        self.token_proj = nn.Linear(cfg.latent_channels, cfg.d_model)
-        self.register_buffer("pos", sine_position_encoding(cfg.latent_size, cfg.d_model), persistent=False)
-        self.query = nn.Embedding(sum(cfg.queries.values()), cfg.d_model)
-        layer = nn.TransformerDecoderLayer(cfg.d_model, cfg.heads, cfg.ffn, cfg.dropout, batch_first=True,
+        self.token_proj = nn.Linear(config.latent_channels, config.d_model)
+        self.register_buffer("pos", sine_position_encoding(config.latent_size, config.d_model), persistent=False)
+        self.query = nn.Embedding(sum(config.queries.values()), config.d_model)
+        layer = nn.TransformerDecoderLayer(config.d_model, config.heads, config.ffn, config.dropout, batch_first=True,
                                            norm_first=True)
-        self.decoder = nn.TransformerDecoder(layer, cfg.decoder_layers, norm=nn.LayerNorm(cfg.d_model))
-        self.heads = nn.ModuleDict({name: LineHead(cfg.d_model, cfg.num_points, cfg.frame_m, cfg.control_points)
+        self.decoder = nn.TransformerDecoder(layer, config.decoder_layers, norm=nn.LayerNorm(config.d_model))
+        self.heads = nn.ModuleDict({name: LineHead(config.d_model, config.num_points, config.frame_m,
+                                                   config.control_points)
                                     for name in ELEMENTS})
 
     def encode(self, raster: Tensor) -> tuple[Tensor, Tensor]:
@@ -138,9 +139,9 @@ class RVAE(nn.Module):
         if self.trunk is None:
             raise CmtoolError("this RVAE holds its decoder only (the released weights); encoding HD rasters "
                               "needs a full RVAE checkpoint from `cmtool train rvae`")
-        if tuple(raster.shape[1:]) != (self.cfg.in_channels, self.cfg.raster_px, self.cfg.raster_px):
-            raise ValueError(f"expected rasters of shape (B, {self.cfg.in_channels}, {self.cfg.raster_px}, "
-                             f"{self.cfg.raster_px}), got {tuple(raster.shape)}")
+        if tuple(raster.shape[1:]) != (self.config.in_channels, self.config.raster_px, self.config.raster_px):
+            raise ValueError(f"expected rasters of shape (B, {self.config.in_channels}, {self.config.raster_px}, "
+                             f"{self.config.raster_px}), got {tuple(raster.shape)}")
         mean, logvar = self.to_latent(self.trunk(raster)).chunk(2, dim=1)
         return mean, logvar
 
@@ -170,7 +171,7 @@ class RVAE(nn.Module):
     def _read(self, h: Tensor) -> dict[str, Tensor]:
         """Decoder states (B, Q, d_model) -> the heads' polylines and logits per element type."""
         out = {}
-        for name, part in zip(ELEMENTS, h.split(list(self.cfg.queries.values()), dim=1)):
+        for name, part in zip(ELEMENTS, h.split(list(self.config.queries.values()), dim=1)):
             out[name], out[f"{name}_logit"] = self.heads[name](part)
         return out
 

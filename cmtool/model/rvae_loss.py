@@ -67,7 +67,7 @@ def kl_divergence(mean: Tensor, logvar: Tensor) -> Tensor:
 
 
 def set_loss(decoded: dict[str, Tensor], batch: dict[str, Tensor],
-             cfg: RVAELossConfig) -> tuple[dict[str, Tensor], list[tuple[np.ndarray, np.ndarray]]]:
+             config: RVAELossConfig) -> tuple[dict[str, Tensor], list[tuple[np.ndarray, np.ndarray]]]:
     """Matched L1 and existence BCE (and direction) per element type of one set of outputs
     (``{"l1/lines", "exist/lines", ...}``), and the matched (query, target) pairs of the lines."""
     parts: dict[str, Tensor] = {}
@@ -75,15 +75,15 @@ def set_loss(decoded: dict[str, Tensor], batch: dict[str, Tensor],
     for name in ELEMENTS:
         pred, logit = decoded[name], decoded[f"{name}_logit"]
         gt, mask = batch[name].to(pred), batch[MASK_KEYS[name]].to(pred.device)
-        pairs = match(pred, logit, gt, mask, cfg)
+        pairs = match(pred, logit, gt, mask, config)
         b = torch.cat([torch.full((len(p),), i, dtype=torch.int64) for i, (p, _) in enumerate(pairs)]).to(pred.device)
         q = torch.from_numpy(np.concatenate([p for p, _ in pairs])).to(pred.device)
         g = torch.from_numpy(np.concatenate([t for _, t in pairs])).to(pred.device)
         target = torch.zeros_like(logit)
         target[b, q] = 1.0
-        parts[f"l1/{name}"] = line_l1(pred[b, q], gt[b, g], cfg.frame_m).sum() / logit.numel()
+        parts[f"l1/{name}"] = line_l1(pred[b, q], gt[b, g], config.frame_m).sum() / logit.numel()
         parts[f"exist/{name}"] = F.binary_cross_entropy_with_logits(logit, target)
-        if cfg.direction_weight > 0:
+        if config.direction_weight > 0:
             parts[f"dir/{name}"] = direction_loss(pred[b, q], gt[b, g]).sum() / logit.numel()
         if name == "lines":
             line_pairs = pairs
@@ -110,12 +110,12 @@ def successor_loss(logits: Tensor, succ: Tensor, pairs: list[tuple[np.ndarray, n
     return sum(terms) / max(count, 1) if terms else logits.sum() * 0.0
 
 
-def denoise_input(batch: dict[str, Tensor], cfg: RVAELossConfig) -> Tensor | None:
-    """The denoising queries' noised starts for ``batch`` (None when ``cfg.denoise_weight`` is 0)."""
-    return noised_lines(batch["lines"], cfg.denoise_m) if cfg.denoise_weight > 0 else None
+def denoise_input(batch: dict[str, Tensor], config: RVAELossConfig) -> Tensor | None:
+    """The denoising queries' noised starts for ``batch`` (None when ``config.denoise_weight`` is 0)."""
+    return noised_lines(batch["lines"], config.denoise_m) if config.denoise_weight > 0 else None
 
 
-def denoise_loss(outputs: list[dict[str, Tensor]], batch: dict[str, Tensor], cfg: RVAELossConfig) -> Tensor:
+def denoise_loss(outputs: list[dict[str, Tensor]], batch: dict[str, Tensor], config: RVAELossConfig) -> Tensor:
     """Weighted L1 + direction + successor loss of the denoising queries of every layer, each against the
     true line it started from (normalised per line slot, as the matched terms)."""
     gt, valid = batch["lines"], batch["line_mask"].bool()
@@ -123,11 +123,11 @@ def denoise_loss(outputs: list[dict[str, Tensor]], batch: dict[str, Tensor], cfg
     total = gt.new_zeros(())
     for out in outputs:
         pred = out["lines"].to(gt)
-        total = total + cfg.l1_weight * line_l1(pred[valid], gt[valid], cfg.frame_m).sum() / valid.numel()
-        if cfg.direction_weight > 0:
-            total = total + cfg.direction_weight * direction_loss(pred[valid], gt[valid]).sum() / valid.numel()
-        if cfg.successor_weight > 0 and pairs.any():
-            total = total + cfg.successor_weight * F.binary_cross_entropy_with_logits(
+        total = total + config.l1_weight * line_l1(pred[valid], gt[valid], config.frame_m).sum() / valid.numel()
+        if config.direction_weight > 0:
+            total = total + config.direction_weight * direction_loss(pred[valid], gt[valid]).sum() / valid.numel()
+        if config.successor_weight > 0 and pairs.any():
+            total = total + config.successor_weight * F.binary_cross_entropy_with_logits(
                 out["succ_logit"][pairs].float(), batch["succ"][pairs].float())
     return total
 
@@ -135,29 +135,29 @@ def denoise_loss(outputs: list[dict[str, Tensor]], batch: dict[str, Tensor], cfg
 _WEIGHTS = {"l1/": "l1_weight", "exist/": "existence_weight", "dir/": "direction_weight", "succ/": "successor_weight"}
 
 
-def _weighted(parts: dict[str, Tensor], cfg: RVAELossConfig) -> Tensor:
-    return sum(getattr(cfg, next(w for p, w in _WEIGHTS.items() if k.startswith(p))) * v for k, v in parts.items())
+def _weighted(parts: dict[str, Tensor], config: RVAELossConfig) -> Tensor:
+    return sum(getattr(config, next(w for p, w in _WEIGHTS.items() if k.startswith(p))) * v for k, v in parts.items())
 
 
 def rvae_loss(decoded: dict[str, Tensor], mean: Tensor, logvar: Tensor, batch: dict[str, Tensor],
-              cfg: RVAELossConfig) -> tuple[Tensor, dict[str, float]]:
+              config: RVAELossConfig) -> tuple[Tensor, dict[str, float]]:
     """Total loss and its unweighted parts ``{"l1/lines", "exist/lines", ..., "kl"}`` (and ``"aux"``, the
-    weighted loss of the earlier layers, when ``decoded`` holds them and ``cfg.aux_weight`` > 0, and
+    weighted loss of the earlier layers, when ``decoded`` holds them and ``config.aux_weight`` > 0, and
     ``"denoise"``, the weighted loss of the denoising queries, when ``decoded`` holds them) as floats.
 
     ``batch`` holds the targets: "lines" (B, L, P, 2) metres with "line_mask" (B, L) bool, and
     "green"/"green_mask", "red"/"red_mask" likewise, and "succ" (B, L, L) bool (line i flows into
     line j) for the successor loss.
     """
-    parts, pairs = set_loss(decoded, batch, cfg)
-    if cfg.successor_weight > 0 and "succ_logit" in decoded:
+    parts, pairs = set_loss(decoded, batch, config)
+    if config.successor_weight > 0 and "succ_logit" in decoded:
         parts["succ/lines"] = successor_loss(decoded["succ_logit"], batch["succ"], pairs)
     parts["kl"] = kl_divergence(mean, logvar)
-    total = _weighted({k: v for k, v in parts.items() if k != "kl"}, cfg) + cfg.kl_weight * parts["kl"]
-    if cfg.aux_weight > 0 and decoded.get("aux"):
-        parts["aux"] = cfg.aux_weight * sum(_weighted(set_loss(d, batch, cfg)[0], cfg) for d in decoded["aux"])
+    total = _weighted({k: v for k, v in parts.items() if k != "kl"}, config) + config.kl_weight * parts["kl"]
+    if config.aux_weight > 0 and decoded.get("aux"):
+        parts["aux"] = config.aux_weight * sum(_weighted(set_loss(d, batch, config)[0], config) for d in decoded["aux"])
         total = total + parts["aux"]
-    if cfg.denoise_weight > 0 and "denoise" in decoded:
-        parts["denoise"] = cfg.denoise_weight * denoise_loss(decoded["denoise"], batch, cfg)
+    if config.denoise_weight > 0 and "denoise" in decoded:
+        parts["denoise"] = config.denoise_weight * denoise_loss(decoded["denoise"], batch, config)
         total = total + parts["denoise"]
     return total, {k: float(v.detach()) for k, v in parts.items()}

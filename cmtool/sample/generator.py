@@ -1,36 +1,42 @@
 """A trained checkpoint set ready to generate maps: ControlMap (or a plain DiT) plus its RVAE.
 
-``Generator.load(ckpt)`` reads a ControlMap or DiT checkpoint (a run folder or one checkpoint
+``MapGenerator.load(ckpt)`` reads a ControlMap or DiT checkpoint (a run folder or one checkpoint
 folder), finds the RVAE it was trained on (the path its config records, absolute or relative to
-the checkpoint) and checks that the pieces fit. ``sample`` denoises latents for a batch of SD
-rasters and city labels; ``decode`` turns them into polylines (smoothed into Bézier curves unless
-``smooth`` is 0) and ``lane_graph`` into the lane graph format.
+the checkpoint) and checks that the pieces fit. ``generate`` is the one generate loop of the package
+(``cmtool sample``, ``eval``, ``ablate``, ``bench``): a batch's noise, its denoising (``sample``), the
+decoded polylines (``decode``, smoothed into Bézier curves unless ``smooth`` is 0) and their lane graphs
+(``lane_graph``).
 """
 
 from __future__ import annotations
 
+import math
 from pathlib import Path
 
 import numpy as np
 import torch
 
-from cmtool import checkpoint as ckpt
-from cmtool.data.lanegraph import LaneGraph, infer_successors, join_successors
-from cmtool.data.neighbours import find_neighbours, lane_widths
-from cmtool.errors import CmtoolError
-from cmtool.geometry import bezier_fit_matrix
+from cmtool.core.errors import CmtoolError
+from cmtool.core.geometry import bezier_fit_matrix
+from cmtool.core.tables import from_table
+from cmtool.data.hd_raster import rasterize_scene
+from cmtool.diffusion.noise import batch_noise
+from cmtool.diffusion.samplers import sample
+from cmtool.diffusion.schedule import NoiseSchedule
+from cmtool.diffusion.settings import DEFAULT_SAMPLER, SamplerSettings
+from cmtool.maps.lanegraph import LaneGraph, infer_successors, join_successors
+from cmtool.maps.neighbours import find_neighbours, lane_widths
+from cmtool.model import checkpoint as ckpt
 from cmtool.model.config import ScheduleConfig
 from cmtool.model.controlmap import ControlMap, sd_tensor
 from cmtool.model.rvae import ELEMENTS, decoded_elements
-from cmtool.recipe import from_table
-from cmtool.sample import DEFAULT_SAMPLER, DEFAULT_SMOOTH
-from cmtool.sample.diffusion import NoiseSchedule, sample, scene_seed, step_generator
+from cmtool.sample import DEFAULT_SMOOTH
 
 NONE = "none"  # the --city value for the null label
 PRECISIONS = ("fp32", "bf16")  # of the denoising model and the step previews (maps are decoded in fp32)
 
 
-class Generator:
+class MapGenerator:
     """Sampling with a loaded checkpoint: labels, control rasters in, latents and lane graphs out."""
 
     def __init__(self, model, rvae, config: dict, path: Path, device: torch.device, smooth: int = DEFAULT_SMOOTH,
@@ -39,7 +45,7 @@ class Generator:
         if precision not in PRECISIONS:
             raise CmtoolError(f"--precision: {precision!r} (choose {', '.join(PRECISIONS)})")
         self.precision = precision
-        points = rvae.cfg.num_points
+        points = rvae.config.num_points
         if smooth != 0 and not 2 <= smooth <= points:
             raise CmtoolError(f"--smooth: 0 (the decoder's raw points) or 2..{points} control points, got {smooth}")
         self.smooth = smooth
@@ -47,9 +53,10 @@ class Generator:
         self.cities: list[str] = list(config["cities"])
         self.scale = float(config["latent_scale"])
         self.schedule = NoiseSchedule(from_table(ScheduleConfig, config["schedule"], f"{path}: ", "schedule."))
+        self.encoder = self.encoder_path = None  # another RVAE's encoder into this latent space (attach_encoder)
 
     @classmethod
-    def load(cls, path, device="cpu", smooth: int = DEFAULT_SMOOTH, precision: str = "fp32") -> "Generator":
+    def load(cls, path, device="cpu", smooth: int = DEFAULT_SMOOTH, precision: str = "fp32") -> "MapGenerator":
         """The checkpoint at ``path`` and its RVAE; ``smooth``: Bézier control points of decoded polylines
         (0: raw); ``precision``: "bf16" runs the denoising model and the decoding of step previews under bf16
         autocast (maps are decoded in fp32)."""
@@ -66,7 +73,7 @@ class Generator:
         rvae, rvae_config = ckpt.load_model(rvae_path, device)
         if rvae_config["kind"] != "rvae":
             raise CmtoolError(f"{path}: its rvae {rvae_path} is a {rvae_config['kind']} checkpoint")
-        have = (rvae.cfg.latent_channels, rvae.cfg.latent_size, rvae.cfg.latent_size)
+        have = (rvae.config.latent_channels, rvae.config.latent_size, rvae.config.latent_size)
         if have != tuple(model.latent_shape):
             raise CmtoolError(f"{path}: the model's latent {tuple(model.latent_shape)} does not match its RVAE "
                               f"{rvae_path} ({have})")
@@ -100,18 +107,43 @@ class Generator:
 
     def batch_noise(self, n: int, seed: int, first: int) -> tuple[torch.Tensor, torch.Generator]:
         """The initial latents of a batch of ``n`` maps whose first is map (or scene) ``first`` of a run seeded
-        ``seed``, and the generator of the samplers' step noise: both from ``scene_seed(seed, first)`` alone, so a
-        batch's maps depend neither on the batches before it nor on the process that makes them."""
-        base = scene_seed(seed, first)
-        noise = torch.randn((n, *self.model.latent_shape), generator=torch.Generator().manual_seed(base))
-        return noise.to(self.device), step_generator(base, self.device)
+        ``seed``, and the generator of its step noise (:func:`cmtool.diffusion.noise.batch_noise`)."""
+        return batch_noise((n, *self.model.latent_shape), seed, first, self.device)
+
+    def generate(self, sd: np.ndarray | None, labels, settings: SamplerSettings, first: int = 0, *,
+                 city_cfg: float = 1.0, eta: float = 0.0, init: torch.Tensor | None = None, strength: float = 1.0,
+                 metas: list[dict] | None = None, callback=None) -> list[LaneGraph]:
+        """The lane graphs of one batch: maps ``first, first + 1, ...`` of a run sampled as ``settings`` say, for SD
+        rasters ``sd`` (B, 128, 128, 3) uint8 (None: the DiT alone) and label indices ``labels`` (B,); ``init``,
+        ``strength``: start from these latents (:meth:`encode`); ``metas``: each map's meta entries;
+        ``callback``: called with every step's :class:`~cmtool.diffusion.samplers.StepInfo`. The noise depends on
+        ``settings.seed`` and ``first`` alone."""
+        noise, steps = self.batch_noise(len(labels), settings.seed, first)
+        z = self.sample(sd, labels, cfg=settings.cfg, city_cfg=city_cfg, steps=settings.steps,
+                        sampler=settings.sampler, eta=eta, noise=noise, generator=steps, init=init,
+                        strength=strength, callback=callback)
+        metas = metas or [{} for _ in labels]
+        return [self.lane_graph(el, self.city_name(y), meta) for el, y, meta in zip(self.decode(z), labels, metas)]
+
+    def generate_all(self, sds: np.ndarray | None, labels, settings: SamplerSettings, metas: list[dict] | None = None,
+                     city_cfg: float = 1.0, init: torch.Tensor | None = None, strength: float = 1.0) -> list[LaneGraph]:
+        """:meth:`generate` over all maps, ``settings.batch`` at a time, in one process."""
+        maps = []
+        for b0 in range(0, len(labels), settings.batch):
+            part = slice(b0, b0 + settings.batch)
+            maps += self.generate(None if sds is None else sds[part], labels[part], settings, b0, city_cfg=city_cfg,
+                                  init=None if init is None else init[part], strength=strength,
+                                  metas=None if metas is None else metas[part])
+        return maps
 
     def sample(self, sd: np.ndarray | None, labels, *, cfg: float, steps: int, sampler: str = DEFAULT_SAMPLER,
                city_cfg: float = 1.0, eta: float = 0.0, generator: torch.Generator | None = None,
-               noise: torch.Tensor | None = None, callback=None) -> torch.Tensor:
+               noise: torch.Tensor | None = None, init: torch.Tensor | None = None, strength: float = 1.0,
+               callback=None) -> torch.Tensor:
         """Clean latents (B, C, H, W) in the DiT's scaled space for SD rasters ``sd`` (B, 128, 128, 3)
         uint8 (None: no control) and label indices ``labels`` (B,); ``noise``: the initial latent;
-        ``city_cfg``: guidance on the city label (1: none)."""
+        ``city_cfg``: guidance on the city label (1: none); ``init``, ``strength``: start from these scaled
+        latents, noised ``strength`` of the way (:func:`cmtool.diffusion.samplers.sample`)."""
         y = torch.as_tensor(np.asarray(labels, np.int64), device=self.device)
         control = None
         if sd is not None:
@@ -121,7 +153,37 @@ class Generator:
             control = torch.stack([sd_tensor(s) for s in sd]).to(self.device)
         with torch.autocast(self.device.type, dtype=torch.bfloat16, enabled=self.precision == "bf16"):
             return sample(self.model, self.schedule, y, control=control, cfg=cfg, city_cfg=city_cfg, steps=steps,
-                          sampler=sampler, eta=eta, generator=generator, noise=noise, callback=callback)
+                          sampler=sampler, eta=eta, generator=generator, noise=noise, init=init, strength=strength,
+                          callback=callback)
+
+    def attach_encoder(self, path) -> None:
+        """Encode with the encoder of the RVAE checkpoint at ``path``, which must have been trained into this
+        checkpoint's latent space (its decoder's, e.g. by ``cmtool train encoder``: the same latent scale)."""
+        path = ckpt.resolve(path)
+        rvae, config = ckpt.load_model(path, self.device)
+        if config["kind"] != "rvae" or rvae.trunk is None:
+            raise CmtoolError(f"--encoder {path}: not an RVAE with an encoder (a `cmtool train encoder` or `train "
+                              "rvae` run)")
+        if abs(float(config.get("latent_scale", math.nan)) - self.scale) > 1e-6:
+            raise CmtoolError(f"--encoder {path}: its latent scale {config.get('latent_scale')} is not the "
+                              f"checkpoint's {self.scale}: it encodes into another latent space")
+        self.encoder, self.encoder_path = rvae, path
+
+    @torch.no_grad()
+    def encode(self, scenes) -> torch.Tensor:
+        """Scaled latents (N, C, H, W) of scenes (:class:`~cmtool.data.scene.Scene`): their HD rasters through the
+        encoder's posterior mean, in the DiT's scaled space."""
+        encoder = self.encoder if self.encoder is not None else self.rvae
+        if encoder.trunk is None:
+            raise CmtoolError(f"{self.path}: its RVAE holds no encoder (the shipped weights hold the decoder only); "
+                              "give --encoder RUN (`cmtool train encoder` trains one for it)")
+        if not scenes:
+            return torch.zeros((0, *self.model.latent_shape), device=self.device)
+        px = self.rvae.config.frame_m / self.rvae.config.raster_px
+        rasters = np.stack([rasterize_scene(s.lines, s.line_mask, s.green, s.green_mask, s.red, s.red_mask, px_m=px,
+                                            frame_m=self.rvae.config.frame_m) for s in scenes])
+        mean, _ = encoder.encode(torch.from_numpy(rasters).to(self.device))
+        return mean.float() * self.scale
 
     @torch.no_grad()
     def decode(self, latents: torch.Tensor, threshold: float = 0.5,
@@ -154,4 +216,4 @@ class Generator:
                          widths=lane_widths(lanes, left).round(2).tolist(),
                          green_lights=[np.asarray(l, np.float64) for l in elements["green"]],
                          red_lights=[np.asarray(l, np.float64) for l in elements["red"]],
-                         city=city, frame_m=float(self.rvae.cfg.frame_m), meta=meta)
+                         city=city, frame_m=float(self.rvae.config.frame_m), meta=meta)

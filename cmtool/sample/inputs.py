@@ -13,12 +13,11 @@ from pathlib import Path
 
 import numpy as np
 
-from cmtool.data.jsonio import json_lines
-from cmtool.data.lanegraph import LaneGraph
-from cmtool.data.sd_raster import FRAME_M, rasterize_sd, read_sd_image
-from cmtool.errors import CmtoolError
-
-IMAGE_SUFFIXES = (".png", ".jpg", ".jpeg", ".bmp", ".tif", ".tiff", ".npy")
+from cmtool.core.errors import CmtoolError
+from cmtool.core.jsonio import json_lines
+from cmtool.data.sd_raster import FRAME_M, IMAGE_SUFFIXES, rasterize_sd, read_sd_image
+from cmtool.maps.lanegraph import LaneGraph
+from cmtool.maps.sdmap import SDMap
 
 
 @dataclass
@@ -31,7 +30,9 @@ class ControlInput:
     truth: LaneGraph | None = None
     city: str | None = None  # the city of the source map, when it has one
     note: str | None = None  # what was converted on reading, for the user
-    geo: dict | None = None  # {"lat", "lon", "heading"} of the frame (see cmtool.data.lanegraph), when known
+    geo: dict | None = None  # {"lat", "lon", "heading"} of the frame (see cmtool.maps.lanegraph), when known
+    sd_map: SDMap | None = None  # the SD map the raster was drawn from, when there is one
+    pose: tuple[float, float, float] | None = None  # the frame in ``sd_map``: x, y (m), yaw (radians)
 
 
 def image_inputs(paths) -> list[ControlInput]:
@@ -57,8 +58,8 @@ def image_inputs(paths) -> list[ControlInput]:
 def osm_inputs(path, centers: list[tuple[float, float, float]]) -> list[ControlInput]:
     """SD rasters of an OpenStreetMap file around ``(lat, lon, heading)`` points; heading in
     compass degrees (0 = north is up in the raster, 90 = east is up)."""
-    from cmtool.data.geo import LocalProjection
-    from cmtool.data.osm import read_osm
+    from cmtool.core.geo import LocalProjection
+    from cmtool.formats.osm import read_osm
 
     sd_map = read_osm(path)
     if not sd_map.roads:
@@ -75,18 +76,19 @@ def osm_inputs(path, centers: list[tuple[float, float, float]]) -> list[ControlI
                               f"(nearest road {_nearest_road(sd_map, x, y):.0f} m away)")
         name = f"{Path(path).name.split('.')[0]}_{k}" if len(centers) > 1 else Path(path).name.split(".")[0]
         inputs.append(ControlInput(name, sd, f"osm:{Path(path).name}@{lat:.6f},{lon:.6f},heading {heading:g}",
-                                   geo=_geo(lat, lon, heading)))
+                                   geo=_geo(lat, lon, heading), sd_map=sd_map,
+                                   pose=(float(x), float(y), math.radians(90.0 - heading))))
     return inputs
 
 
 def hd_inputs(path, poses: list[tuple[float, float, float]] | None, seed: int = 0) -> list[ControlInput]:
     """SD rasters derived from an HD map JSON at ego poses ``(x, y, yaw degrees)``, each with the
     ground-truth lane graph of the same frame; ``poses`` None picks one drivable pose at random."""
+    from cmtool.core.geo import LocalProjection
     from cmtool.data.frames import FrameSampler
-    from cmtool.data.geo import LocalProjection
-    from cmtool.data.hdmap import HDMap
     from cmtool.data.scene import Pose, SceneCropper
     from cmtool.data.sd_derive import derive_sd
+    from cmtool.maps.hdmap import HDMap
 
     hd = HDMap.load(path)
     if not hd.lanes:
@@ -111,7 +113,7 @@ def hd_inputs(path, poses: list[tuple[float, float, float]] | None, seed: int = 
             lat, lon = LocalProjection(hd.meta["lat0"], hd.meta["lon0"]).to_latlon([x, y])
             geo = truth.meta["geo"] = _geo(lat, lon, 90.0 - yaw)
         inputs.append(ControlInput(name, sd, f"hd:{Path(path).name}@{x:.2f},{y:.2f},{yaw:.1f}deg",
-                                   truth=truth, city=hd.city, geo=geo))
+                                   truth=truth, city=hd.city, geo=geo, sd_map=sd_map, pose=(pose.x, pose.y, pose.yaw)))
     return inputs
 
 
@@ -153,7 +155,7 @@ def _number(value, where: str) -> float:
 
 
 def _nearest_road(sd_map, x: float, y: float) -> float:
-    from cmtool.eval.lanes import distance_to_polylines
+    from cmtool.metrics.lanes import distance_to_polylines
 
     return float(distance_to_polylines(np.array([[x, y]]), [r.polyline for r in sd_map.roads])[0])
 

@@ -23,19 +23,20 @@ from urllib.parse import urlsplit
 import numpy as np
 import rerun as rr
 
-from cmtool import dist as D
-from cmtool.data.jsonio import OutputSet, json_text
-from cmtool.data.lanegraph import LaneGraph
-from cmtool.errors import CmtoolError
-from cmtool.eval.geometric import legal_oneway
-from cmtool.eval.metrics import weighted_mean
-from cmtool.eval.validity import check
-from cmtool.geometry import polyline_length
-from cmtool.progress import Progress
-from cmtool.sample import DEFAULT_SAMPLER, SAMPLERS
-from cmtool.sample.diffusion import SamplingError
-from cmtool.sample.generator import Generator
+from cmtool.core import dist as D
+from cmtool.core.errors import CmtoolError
+from cmtool.core.geometry import polyline_length
+from cmtool.core.jsonio import OutputSet, json_text
+from cmtool.core.progress import Progress
+from cmtool.diffusion.settings import SamplerSettings, SamplingError
+from cmtool.data.scene import Scene
+from cmtool.maps.lanegraph import LaneGraph
+from cmtool.metrics.geometric import legal_oneway, sd_adherence
+from cmtool.metrics.suite import weighted_mean
+from cmtool.metrics.validity import check
+from cmtool.sample.generator import MapGenerator
 from cmtool.sample.inputs import ControlInput
+from cmtool.sample.layouts import LAYOUTS, layout_scenes
 from cmtool.viz.draw import graph_panel, legend, sd_panel, title_strip
 from cmtool.viz.recording import APP_IDS, close_recording, log_lanes, log_sd, open_recording, served
 from cmtool.viz.show import write_png
@@ -43,32 +44,32 @@ from cmtool.viz.trajectory import TrajectoryLogger, sampling_blueprint
 
 SERVING: list[rr.RecordingStream] = []  # recordings served with --serve, kept alive until the process ends
 AUTO = "auto"  # --city default: the source map's city when the checkpoint knows it, else none
+NO_INIT = "none"  # --init default: sampling starts from noise alone
 PANEL = 256
 VIEWER_PORT = 9876  # Rerun's default gRPC port
 
 
-@dataclass
-class SampleSettings:
+@dataclass(kw_only=True)
+class SampleSettings(SamplerSettings):
+    """``cmtool sample``'s settings: the sampler's, and how many maps per input, the city label and its guidance."""
+
     num: int = 1
-    seed: int = 0
-    steps: int = 50
-    sampler: str = DEFAULT_SAMPLER
     eta: float = 0.0
-    cfg: float = 1.0
     city: str = AUTO  # a label of the checkpoint, "none", or "auto"
     city_cfg: float = 1.0  # guidance on the city label (1: the label as trained)
-    batch: int = 16
+    init: str = NO_INIT  # start from this rule-based layout of the input (cmtool.sample.layouts), encoded
+    strength: float = 1.0  # with init: how far up the noise schedule the layout is noised before denoising
 
-    def check(self) -> None:
-        if not (math.isfinite(self.cfg) and self.cfg >= 0):
-            raise SamplingError(f"--cfg: guidance weight must be a finite number >= 0, got {self.cfg}")
+    def check(self, prefix: str = "--") -> None:
+        super().check(prefix)
+        if self.init not in (NO_INIT, *LAYOUTS):
+            raise SamplingError(f"{prefix}init: choose {NO_INIT}, {', '.join(LAYOUTS)}, got {self.init!r}")
+        if not (math.isfinite(self.strength) and 0 < self.strength <= 1):
+            raise SamplingError(f"{prefix}strength: must be in (0, 1], got {self.strength}")
         if not (math.isfinite(self.city_cfg) and self.city_cfg >= 0):
-            raise SamplingError(f"--city-cfg: guidance weight must be a finite number >= 0, got {self.city_cfg}")
-        if self.sampler not in SAMPLERS:
-            raise SamplingError(f"--sampler: choose {', '.join(SAMPLERS)}, got {self.sampler!r}")
-        for name in ("num", "steps", "batch"):
-            if getattr(self, name) < 1:
-                raise SamplingError(f"--{name}: must be at least 1, got {getattr(self, name)}")
+            raise SamplingError(f"{prefix}city-cfg: guidance weight must be a finite number >= 0, got {self.city_cfg}")
+        if self.num < 1:
+            raise SamplingError(f"{prefix}num: must be at least 1, got {self.num}")
 
 
 @dataclass
@@ -80,6 +81,7 @@ class Job:
     label: int
     index: int  # the map's number for this input (0 .. num-1)
     prefix: str = ""
+    init: Scene | None = None  # the layout the map starts from (--init)
 
 
 @dataclass
@@ -89,25 +91,29 @@ class SampledMap:
     seconds: float  # this map's share of its batch's generation time
 
 
-def plan(gen: Generator, inputs: list[ControlInput], settings: SampleSettings) -> list[Job]:
+def plan(gen: MapGenerator, inputs: list[ControlInput], settings: SampleSettings) -> list[Job]:
     """The maps to make (validates the options against the checkpoint before anything runs)."""
     settings.check()
     gen.schedule.timesteps(settings.steps)  # a step count the schedule cannot do fails here
     if any(item.sd is not None for item in inputs) and not gen.has_control:
         raise CmtoolError(f"{gen.path}: a DiT checkpoint has no control branch; give a ControlMap checkpoint "
                           "or no SD input")
+    starts = [None] * len(inputs)
+    if settings.init != NO_INIT:
+        gen.encode([])  # an RVAE without an encoder fails here, before any layout is made
+        starts = layout_scenes(inputs, settings.init)
     jobs = []
-    for item in inputs:
+    for item, start in zip(inputs, starts):
         label = gen.known_label(item.city) if settings.city.lower() == AUTO else gen.label(settings.city)
         for k in range(settings.num):
-            jobs.append(Job(item.name if settings.num == 1 else f"{item.name}_s{k}", item, label, k))
+            jobs.append(Job(item.name if settings.num == 1 else f"{item.name}_s{k}", item, label, k, init=start))
     if len(jobs) > 1:
         for i, job in enumerate(jobs):
             job.prefix = f"sample_{i}/"
     return jobs
 
 
-def run_sample(gen: Generator, jobs: list[Job], settings: SampleSettings, out: Path, rrd: Path | None = None,
+def run_sample(gen: MapGenerator, jobs: list[Job], settings: SampleSettings, out: Path, rrd: Path | None = None,
                viewer: str | None = None, command: str = "", progress: bool = True,
                grid: Path | None = None, info: D.DistInfo = D.SINGLE) -> list[SampledMap] | None:
     """Generate every job's map, write its files to ``out`` and (unless ``rrd`` and ``viewer`` are
@@ -128,11 +134,9 @@ def run_sample(gen: Generator, jobs: list[Job], settings: SampleSettings, out: P
             rec = sampling_recording(rrd, viewer)
             log_run_header(rec, gen, jobs, settings, command)
         maps = generate_maps(gen, jobs, settings, rec, progress, info)
-        bodies = [_write_map(out, m, settings, outputs) for m in maps]
-        if grid is not None:
-            gap = np.full((4, bodies[0].shape[1], 3), 12, np.uint8)
-            stacked = np.concatenate([x for body in bodies for x in (body, gap)][:-1], axis=0)
-            write_png(grid, np.concatenate([stacked, legend(stacked.shape[1])], axis=0), outputs)
+        strength = f", city cfg {settings.city_cfg:g}" if settings.city_cfg != 1 else ""
+        write_maps(out, maps, lambda g: f"generated: {g.city or 'no city'}, w = {settings.cfg:g}{strength}", outputs,
+                   grid)
         if rec is not None:
             if viewer is None:
                 close_recording(rec, rrd, outputs)
@@ -158,7 +162,7 @@ def run_sample(gen: Generator, jobs: list[Job], settings: SampleSettings, out: P
         raise
 
 
-def generate_maps(gen: Generator, jobs: list[Job], settings: SampleSettings, rec, progress: bool,
+def generate_maps(gen: MapGenerator, jobs: list[Job], settings: SampleSettings, rec, progress: bool,
                   info: D.DistInfo = D.SINGLE) -> list[SampledMap] | None:
     """Sample, decode and (when ``rec`` is a recording) log every step of the jobs' maps, in batches. Under
     ``torchrun`` (``info``) the processes take turns at the batches and the main process gets all maps (the others
@@ -175,7 +179,7 @@ def generate_maps(gen: Generator, jobs: list[Job], settings: SampleSettings, rec
     return maps if info.main else None
 
 
-def _batch_maps(gen: Generator, batch: list[Job], start: int, settings: SampleSettings,
+def _batch_maps(gen: MapGenerator, batch: list[Job], start: int, settings: SampleSettings,
                 rec) -> list[tuple[LaneGraph, float]]:
     """The lane graphs of the jobs ``batch`` (jobs ``start``, ``start + 1``, ...) with each map's share of the
     time; the batch's noise depends on the seed and ``start`` alone, as in ``cmtool eval``."""
@@ -185,17 +189,12 @@ def _batch_maps(gen: Generator, batch: list[Job], start: int, settings: SampleSe
     sds = [j.source.sd for j in batch]
     sd = None if all(s is None for s in sds) else np.stack(sds)
     began = time.perf_counter()
-    noise, steps = gen.batch_noise(len(batch), settings.seed, start)
-    z = gen.sample(sd, [j.label for j in batch], cfg=settings.cfg, city_cfg=settings.city_cfg, steps=settings.steps,
-                   sampler=settings.sampler, eta=settings.eta, noise=noise, generator=steps, callback=logger)
-    decoded = gen.decode(z)
-    graphs = [gen.lane_graph(el, gen.city_name(j.label), _meta(gen, j, settings)) for j, el in zip(batch, decoded)]
+    init = gen.encode([j.init for j in batch]) if settings.init != NO_INIT else None
+    graphs = gen.generate(sd, [j.label for j in batch], settings, start, city_cfg=settings.city_cfg, eta=settings.eta,
+                          init=init, strength=settings.strength, metas=[_meta(gen, j, settings) for j in batch],
+                          callback=logger)
     for job, graph in zip(batch, graphs):
-        graph.meta["validity"] = round(check(graph).score, 6)
-        if job.source.sd is not None:  # lane length along one-way SD roads running the legal way
-            share, judged = legal_oneway(graph.lanes, job.source.sd)
-            graph.meta["legal_oneway"] = None if math.isnan(share) else round(share, 6)
-            graph.meta["oneway_judged_m"] = round(judged, 1)
+        score_map(graph, job.source.sd)
     if logger is not None:
         logger.flush()
         for job, graph in zip(batch, graphs):
@@ -205,11 +204,24 @@ def _batch_maps(gen: Generator, batch: list[Job], start: int, settings: SampleSe
     return [(graph, seconds) for graph in graphs]
 
 
-def _meta(gen: Generator, job: Job, settings: SampleSettings) -> dict:
+def score_map(graph: LaneGraph, sd: np.ndarray | None) -> None:
+    """Record in the map's meta its validity score and, against an SD raster ``sd``, the share of its lane length
+    along one-way SD roads that runs the legal way and the share of the SD road with a lane within 3 m."""
+    graph.meta["validity"] = round(check(graph).score, 6)
+    if sd is not None:
+        share, judged = legal_oneway(graph.lanes, sd)
+        graph.meta["legal_oneway"] = None if math.isnan(share) else round(share, 6)
+        graph.meta["oneway_judged_m"] = round(judged, 1)
+        covered = sd_adherence(graph.lanes, sd)["sd_coverage"]
+        graph.meta["sd_coverage"] = None if math.isnan(covered) else round(covered, 6)
+
+
+def _meta(gen: MapGenerator, job: Job, settings: SampleSettings) -> dict:
     geo = {} if job.source.geo is None else {"geo": job.source.geo}
     return {"source": job.source.source, "checkpoint": str(gen.path), "seed": settings.seed, "index": job.index,
             "cfg": settings.cfg, "city_cfg": settings.city_cfg, "steps": settings.steps, "sampler": settings.sampler,
-            "eta": settings.eta, "smooth": gen.smooth, "precision": gen.precision, **geo}
+            "eta": settings.eta, "smooth": gen.smooth, "precision": gen.precision, **geo,
+            **({"init": settings.init, "strength": settings.strength} if settings.init != NO_INIT else {})}
 
 
 def _partial(rrd: Path) -> Path:
@@ -259,7 +271,7 @@ def _viewer_sink(rec: rr.RecordingStream, viewer: str) -> rr.GrpcSink | rr.GrpcS
             time.sleep(0.2)
 
 
-def log_run_header(rec, gen: Generator, jobs: list[Job], settings: SampleSettings, command: str) -> None:
+def log_run_header(rec, gen: MapGenerator, jobs: list[Job], settings: SampleSettings, command: str) -> None:
     names = [f"{j.name} ({gen.city_name(j.label) or 'no city'})" for j in jobs]
     rec.send_blueprint(sampling_blueprint([j.prefix for j in jobs], names, gen.control_blocks,
                                           any(j.source.truth is not None for j in jobs)))
@@ -280,19 +292,27 @@ def log_run_header(rec, gen: Generator, jobs: list[Job], settings: SampleSetting
                       static=True)
 
 
-def _write_map(out: Path, m: SampledMap, settings: SampleSettings, outputs: OutputSet) -> np.ndarray:
+def write_maps(out: Path, maps: list[SampledMap], title, outputs: OutputSet, grid: Path | None = None) -> None:
+    """Stage every map's files (:func:`_write_map`; ``title(graph)`` heads its panel) and, when ``grid`` is given,
+    all their pictures stacked into one PNG."""
+    bodies = [_write_map(out, m, title(m.graph), outputs) for m in maps]
+    if grid is not None:
+        gap = np.full((4, bodies[0].shape[1], 3), 12, np.uint8)
+        stacked = np.concatenate([x for body in bodies for x in (body, gap)][:-1], axis=0)
+        write_png(grid, np.concatenate([stacked, legend(stacked.shape[1])], axis=0), outputs)
+
+
+def _write_map(out: Path, m: SampledMap, title: str, outputs: OutputSet) -> np.ndarray:
     """Stage a map's lane graph JSON, ground truth JSON (when known) and picture in ``outputs``.
     Returns the picture without its legend."""
     outputs.write_text(out / f"{m.job.name}.json", json_text(m.graph.to_json()))
     truth = m.job.source.truth
     if truth is not None:
         outputs.write_text(out / f"{m.job.name}.gt.json", json_text(truth.to_json()))
-    city = m.graph.city or "no city"
     panels = []
     if m.job.source.sd is not None:
         panels.append((f"SD input: {m.job.source.name}", sd_panel(m.job.source.sd, PANEL)))
-    strength = f", city cfg {settings.city_cfg:g}" if settings.city_cfg != 1 else ""
-    panels.append((f"generated: {city}, w = {settings.cfg:g}{strength}", graph_panel(m.graph, PANEL)))
+    panels.append((title, graph_panel(m.graph, PANEL)))
     if truth is not None:
         panels.append(("ground truth", graph_panel(truth, PANEL)))
     tiles = [np.concatenate([title_strip(t, PANEL), img], axis=0) for t, img in panels]
@@ -304,22 +324,24 @@ def _write_map(out: Path, m: SampledMap, settings: SampleSettings, outputs: Outp
 
 def summary_table(maps: list[SampledMap]) -> str:
     """Per map: lanes, successor links, mean lane length, lights, validity score, share of lane length on
-    one-way SD roads running the legal way ("-" without one), seconds; then the means over the maps."""
+    one-way SD roads running the legal way and share of the SD road with a lane within 3 m ("-" without them),
+    seconds; then the means over the maps."""
     head = (f"{'map':<24} {'city':<5} {'lanes':>5} {'successors':>10} {'mean lane m':>11} {'lights':>6} "
-            f"{'validity':>8} {'one-way ok':>10} {'time s':>7}")
+            f"{'validity':>8} {'one-way ok':>10} {'SD covered':>10} {'time s':>7}")
     rows = [head]
+    dash = lambda v: "-" if v is None else f"{v:.3f}"  # noqa: E731
     for m in maps:
         g = m.graph
         mean = np.mean([polyline_length(l) for l in g.lanes]) if g.lanes else 0.0
-        legal = g.meta.get("legal_oneway")
         rows.append(f"{m.job.name[:24]:<24} {g.city or 'none':<5} {len(g.lanes):>5} {len(g.successors):>10} "
                     f"{mean:>11.1f} {len(g.green_lights) + len(g.red_lights):>6} {g.meta['validity']:>8.3f} "
-                    f"{'-' if legal is None else f'{legal:.3f}':>10} {m.seconds:>7.2f}")
+                    f"{dash(g.meta.get('legal_oneway')):>10} {dash(g.meta.get('sd_coverage')):>10} {m.seconds:>7.2f}")
     if len(maps) > 1:
         shares = [m.graph.meta.get("legal_oneway") for m in maps]
         legal = weighted_mean([math.nan if v is None else v for v in shares],
                               [m.graph.meta.get("oneway_judged_m", 0.0) for m in maps])
+        covered = [m.graph.meta["sd_coverage"] for m in maps if m.graph.meta.get("sd_coverage") is not None]
         rows.append(f"{len(maps)} maps: mean validity {np.mean([m.graph.meta['validity'] for m in maps]):.3f}, "
-                    "lane length on one-way SD roads running the legal way "
-                    f"{'-' if legal is None else f'{legal:.3f}'}")
+                    f"lane length on one-way SD roads running the legal way {dash(legal)}, SD road with a lane "
+                    f"within 3 m {dash(float(np.mean(covered)) if covered else None)}")
     return "\n".join(rows)

@@ -11,14 +11,13 @@ import numpy as np
 import torch
 from torch.utils.data import Dataset, DistributedSampler, Sampler
 
+from cmtool.core.errors import CmtoolError
 from cmtool.data.cache import SceneDataset
 from cmtool.data.hd_raster import rasterize_scene
 from cmtool.data.sd_raster import mirror_sd
-from cmtool.errors import CmtoolError
 from cmtool.model.controlmap import sd_tensor
 from cmtool.model.rvae import ELEMENTS
 from cmtool.model.rvae_loss import MASK_KEYS
-
 
 MIRROR = np.array([1.0, -1.0], np.float32)  # y -> -y: the scene mirrored left-right
 

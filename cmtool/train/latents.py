@@ -17,10 +17,10 @@ import numpy as np
 import torch
 from torch.utils.data import DataLoader
 
+from cmtool.core.errors import CmtoolError
+from cmtool.core.jsonio import atomic_open
+from cmtool.core.progress import Progress
 from cmtool.data.cache import load_dataset, load_manifest
-from cmtool.data.jsonio import atomic_open
-from cmtool.errors import CmtoolError
-from cmtool.progress import Progress
 from cmtool.train.data import SceneRasters
 
 

@@ -23,13 +23,13 @@ from torch.nn.parallel import DistributedDataParallel
 from torch.optim.swa_utils import AveragedModel, get_ema_multi_avg_fn
 from torch.utils.data import DataLoader, Dataset
 
-from cmtool import checkpoint as ckpt
-from cmtool import dist as D
-from cmtool.data.jsonio import read_json
-from cmtool.errors import CmtoolError
-from cmtool.progress import Progress
-from cmtool.recipe import Recipe, TrainRecipe
+from cmtool.core import dist as D
+from cmtool.core.errors import CmtoolError
+from cmtool.core.jsonio import read_json
+from cmtool.core.progress import Progress
+from cmtool.model import checkpoint as ckpt
 from cmtool.train.data import StepBatches
+from cmtool.train.recipe import Recipe, TrainRecipe
 from cmtool.viz.recording import ReplayRecording, served, training_blueprint
 
 

@@ -11,19 +11,20 @@ import numpy as np
 import torch
 import torch.nn.functional as F
 
-from cmtool import checkpoint as ckpt
+from cmtool.core.errors import CmtoolError
 from cmtool.data.cache import load_dataset, load_manifest
-from cmtool.errors import CmtoolError
-from cmtool.eval.metrics import drives_on
-from cmtool.eval.reconstruction import reconstruction_scores
+from cmtool.diffusion.samplers import sample
+from cmtool.diffusion.schedule import NoiseSchedule
+from cmtool.maps.hdmap import drives_on
+from cmtool.model import checkpoint as ckpt
 from cmtool.model.controlmap import ControlMap, sd_tensor
 from cmtool.model.dit import DiT, DiTConfig
 from cmtool.model.rvae import ENCODER_PREFIXES, RVAE, decoded_elements, same_encoder
 from cmtool.model.rvae_loss import denoise_input, rvae_loss
-from cmtool.sample.diffusion import NoiseSchedule, sample
 from cmtool.train.data import CachedPosteriors, Latents, SceneRasters, shift_sideways
 from cmtool.train.latents import latent_dir, mirrored_latents, read_latents, write_latents
 from cmtool.train.loop import Stage
+from cmtool.train.reconstruction import reconstruction_scores
 from cmtool.viz.recording import log_lanes, log_sd
 
 PREVIEWS = 4  # scenes shown in the training recording's previews
@@ -36,8 +37,8 @@ def _path(value: str, key: str, where) -> Path:
     return Path(value)
 
 
-def _brief(cfg: dict) -> str:
-    return f"depth {cfg['depth']}, hidden {cfg['hidden']}, heads {cfg['heads']}"
+def _brief(config: dict) -> str:
+    return f"depth {config['depth']}, hidden {config['hidden']}, heads {config['heads']}"
 
 
 def _train_scenes(data_dir, latents, cache):
@@ -88,8 +89,9 @@ class RVAEStage(Stage):
         return SceneRasters(load_dataset(self.data_dir, "train"))
 
     def loss(self, model, batch):
-        cfg = self.recipe.rvae_loss
-        decoded, mean, logvar = model(batch["raster"], aux=cfg.aux_weight > 0, denoise=denoise_input(batch, cfg))
+        weights = self.recipe.rvae_loss
+        decoded, mean, logvar = model(batch["raster"], aux=weights.aux_weight > 0,
+                                      denoise=denoise_input(batch, weights))
         return rvae_loss(decoded, mean, logvar, batch, self.recipe.rvae_loss)
 
     def config(self):
@@ -158,9 +160,9 @@ class DecoderStage(RVAEStage):
         return CachedPosteriors(lat.mean, lat.logvar, scenes)
 
     def loss(self, model, batch):
-        cfg = self.recipe.rvae_loss
-        decoded, mean, logvar = model(None, posterior=(batch["mean"], batch["logvar"]), aux=cfg.aux_weight > 0,
-                                      denoise=denoise_input(batch, cfg))
+        weights = self.recipe.rvae_loss
+        decoded, mean, logvar = model(None, posterior=(batch["mean"], batch["logvar"]), aux=weights.aux_weight > 0,
+                                      denoise=denoise_input(batch, weights))
         return rvae_loss(decoded, mean, logvar, batch, self.recipe.rvae_loss)
 
     def config(self):
@@ -293,7 +295,7 @@ class _DiffusionStage(Stage):
         if self.shift_px:
             extra["control"] = shift_sideways(extra["control"], self.shift_px)
         z = (mean + torch.exp(0.5 * logvar) * torch.randn_like(mean)) * self.scale
-        t = torch.randint(0, self.schedule.cfg.train_steps, (len(z),), device=z.device)
+        t = torch.randint(0, self.schedule.config.train_steps, (len(z),), device=z.device)
         noise = torch.randn_like(z)
         drop = (torch.rand(len(y), device=y.device) < self.recipe.train.label_dropout) & ~keep_label
         y = torch.where(drop, torch.full_like(y, len(self.cities)), y)
@@ -467,4 +469,5 @@ class ControlNetStage(_DiffusionStage):
         return [(f"scene {k}: SD and generated", f"sample_{k}", ["**"]) for k in range(PREVIEWS)]
 
 
-STAGES = {"rvae": RVAEStage, "decoder": DecoderStage, "encoder": EncoderStage, "dit": DiTStage, "controlnet": ControlNetStage}
+STAGES = {"rvae": RVAEStage, "decoder": DecoderStage, "encoder": EncoderStage, "dit": DiTStage,
+          "controlnet": ControlNetStage}

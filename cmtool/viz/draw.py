@@ -11,8 +11,8 @@ from __future__ import annotations
 import cv2
 import numpy as np
 
+from cmtool.core.geometry import CV_SHIFT, ego_to_pixel
 from cmtool.data.sd_raster import decode_sd
-from cmtool.geometry import CV_SHIFT, ego_to_pixel
 
 BACKGROUND = (24, 24, 28)
 GREEN = (40, 200, 80)
@@ -42,7 +42,7 @@ def lanes_panel(scene, size: int = 256) -> np.ndarray:
 
 
 def graph_panel(graph, size: int = 256) -> np.ndarray:
-    """The lanes of a :class:`~cmtool.data.lanegraph.LaneGraph` (see :func:`lanes_image`)."""
+    """The lanes of a :class:`~cmtool.maps.lanegraph.LaneGraph` (see :func:`lanes_image`)."""
     return lanes_image(graph.lanes, graph.green_lights, graph.red_lights, graph.successors, graph.frame_m, size)
 
 

@@ -16,8 +16,8 @@ import numpy as np
 import rerun as rr
 import rerun.blueprint as rrb
 
-from cmtool.data.jsonio import OutputSet, atomic_open
-from cmtool.errors import CmtoolError
+from cmtool.core.errors import CmtoolError
+from cmtool.core.jsonio import OutputSet, atomic_open
 from cmtool.viz.draw import GREEN, RED, heading_colours, sd_panel
 
 # ego (x forward, y left) -> screen (u right, v down): u = -y, v = -x

@@ -19,7 +19,7 @@ from pathlib import Path
 
 import cv2
 
-from cmtool.errors import CmtoolError
+from cmtool.core.errors import CmtoolError
 
 SIZE = (1600, 1000)
 

@@ -8,9 +8,9 @@ import cv2
 import numpy as np
 import rerun as rr
 
+from cmtool.core.errors import CmtoolError
+from cmtool.core.jsonio import OutputSet, atomic_open
 from cmtool.data.cache import load_dataset
-from cmtool.data.jsonio import OutputSet, atomic_open
-from cmtool.errors import CmtoolError
 from cmtool.viz.draw import grid, lanes_panel, legend, sd_panel, title_strip
 from cmtool.viz.recording import close_recording, log_scene, open_recording, scenes_blueprint
 

@@ -30,7 +30,7 @@ import rerun.blueprint as rrb
 from rerun._baseclasses import ComponentColumn, ComponentColumnList
 from rerun.encodings import TensorDimensionIndexSelection, TensorDimensionSelection
 
-from cmtool.sample.diffusion import StepInfo
+from cmtool.diffusion.samplers import StepInfo
 from cmtool.viz.draw import GREEN, RED
 from cmtool.viz.recording import LANE_RADIUS_M, LIGHT_RADIUS_M, in_memory, lane_colours, log_ego_frame
 

@@ -1,6 +1,6 @@
 """Procedural cities: the default HD map source.
 
-``generate_city("PIT", seed=3)`` builds a city-scale :class:`~cmtool.data.hdmap.HDMap` in the style of
+``generate_city("PIT", seed=3)`` builds a city-scale :class:`~cmtool.maps.hdmap.HDMap` in the style of
 one of the four nuPlan cities (see :mod:`.styles`): first a planar road network (:mod:`.network`),
 then lanes, intersection connectors, traffic lights and crosswalks (:mod:`.lanes`).
 """
@@ -11,11 +11,11 @@ import math
 
 import numpy as np
 
-from cmtool.data.hdmap import HDMap
+from cmtool.core.errors import CmtoolError
 from cmtool.data.synth.lanes import build_lanes
 from cmtool.data.synth.network import build_network
 from cmtool.data.synth.styles import STYLES, Style
-from cmtool.errors import CmtoolError
+from cmtool.maps.hdmap import HDMap, drives_on
 
 CITIES = ("LAV", "PIT", "SGP", "BOS")
 
@@ -36,7 +36,7 @@ def generate_city(city: str, seed: int = 0, extent: float = 800.0) -> HDMap:
     style = STYLES[city]
     rng = np.random.default_rng([int(seed), CITIES.index(city)])
     net = build_network(style, rng, float(extent))
-    hd = HDMap(city=city, drives_on=style.drives_on, source=f"procedural:{city}:seed={seed}",
+    hd = HDMap(city=city, drives_on=drives_on(city), source=f"procedural:{city}:seed={seed}",
                meta={"style": style.to_meta(), "seed": int(seed), "extent": float(extent)})
     build_lanes(net, hd, rng)
     return hd

@@ -4,7 +4,7 @@ from __future__ import annotations
 
 import numpy as np
 
-from cmtool.geometry import arc_length, unit
+from cmtool.core.geometry import arc_length, unit
 
 
 def cut(line: np.ndarray, s0: float, s1: float, eps: float = 0.1) -> np.ndarray:

@@ -6,10 +6,10 @@ import itertools
 
 import numpy as np
 
-from cmtool.data.hdmap import Crosswalk, HDMap, Lane, StopLine
+from cmtool.core.geometry import offset, wrap_angle
 from cmtool.data.synth.curves import cut, end_tangents, hermite, point_and_tangent
 from cmtool.data.synth.network import CROSSWALK, MAX_TURN, Network, Road
-from cmtool.geometry import offset, wrap_angle
+from cmtool.maps.hdmap import Crosswalk, HDMap, Lane, StopLine
 
 THROUGH = np.radians(45.0)  # an exit within this angle of the approach heading is straight on
 

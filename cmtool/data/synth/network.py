@@ -15,9 +15,9 @@ import shapely
 from scipy.sparse import coo_matrix
 from scipy.sparse.csgraph import connected_components
 
+from cmtool.core.geometry import arc_length, resample_step, unit
 from cmtool.data.synth.curves import bend, cut, point_and_tangent, round_corner
 from cmtool.data.synth.styles import Style
-from cmtool.geometry import arc_length, resample_step, unit
 
 MIN_ANGLE = np.radians(30.0)  # arms meeting at a node closer than this are not allowed
 HAIRPIN = np.radians(60.0)  # degree-2 nodes whose arms meet closer than this are removed

@@ -1,0 +1,119 @@
+"""``cmtool baseline``: rule-based maps of the same SD inputs, to hold the learned maps against."""
+
+from __future__ import annotations
+
+from pathlib import Path
+
+import click
+
+from cmtool.cli.common import SEED, Finite
+from cmtool.core.errors import CmtoolError
+
+INPUTS_HELP = """
+\b
+SD input (one kind):
+  --osm FILE --center LAT,LON [--heading DEG]
+  --from-hd MAP.json [--pose X,Y,YAW]   (the SD map derived from it; the ground truth is written beside)
+--center and --pose also take a .jsonl file of points. Frames are written as `cmtool sample` writes its maps
+(lane graph JSON, ground truth, picture), and all of them in OUT/METHOD.jsonl (and OUT/truth.jsonl) for
+`cmtool metrics`. --whole writes the layout of the whole SD map as one HD map JSON, with or without frames.
+"""
+RULES_HELP = """The rule-based lane layout of an SD map, written here: lanes from the lane-count tags or the road class,
+one-way roads one way, divided roads as their two carriageways, connectors through junctions.
+""" + INPUTS_HELP
+NETCONVERT_HELP = """SUMO's netconvert (the converter CARLA's Osm2Odr runs) on the same SD map, with SUMO's recommended
+OpenStreetMap options and no U-turns; needs SUMO (pip install eclipse-sumo).
+""" + INPUTS_HELP
+
+
+@click.group()
+def baseline():
+    """Rule-based maps of the same SD inputs, to hold the learned maps against."""
+
+
+def _inputs(command):
+    for option in reversed([
+        click.option("--osm", type=click.Path(path_type=Path), help="OpenStreetMap .osm/.osm.pbf file."),
+        click.option("--center", help="With --osm: LAT,LON of the frame centre, or a .jsonl of {lat, lon, heading}."),
+        click.option("--heading", default=0.0, show_default=True, type=Finite(),
+                     help="With --osm: compass heading that points up, degrees."),
+        click.option("--from-hd", "from_hd", type=click.Path(path_type=Path),
+                     help="HD map JSON (procedural or imported)."),
+        click.option("--pose", help="With --from-hd: X,Y,YAW (m, m, degrees) or a .jsonl of {x, y, yaw} [default: a "
+                                    "random drivable pose]."),
+        click.option("--seed", default=0, show_default=True, type=SEED, help="Seed of the random pose."),
+        click.option("--side", default="auto", show_default=True, type=click.Choice(["auto", "right", "left"]),
+                     help="Driving side; auto: the HD map's city's, else right."),
+        click.option("--out", default=Path("baseline"), show_default=True,
+                     type=click.Path(file_okay=False, path_type=Path), help="Folder for the lane graphs and pictures."),
+        click.option("--grid", type=click.Path(dir_okay=False, path_type=Path),
+                     help="Also write all maps' pictures stacked into this PNG."),
+        click.option("--whole", type=click.Path(dir_okay=False, path_type=Path),
+                     help="Write the layout of the whole SD map as an HD map JSON here."),
+    ]):
+        command = option(command)
+    return command
+
+
+@baseline.command(help=RULES_HELP)
+@_inputs
+def rules(**options):
+    _run("rules", **options)
+
+
+@baseline.command(help=NETCONVERT_HELP)
+@_inputs
+def netconvert(**options):
+    _run("netconvert", **options)
+
+
+def _run(method, osm, center, heading, from_hd, pose, seed, side, out, grid, whole):
+    from cmtool.maps.hdmap import drives_on
+    from cmtool.sample import inputs as src
+    from cmtool.sample.baseline import baseline_maps, write_baseline_maps
+    from cmtool.sample.layouts import LAYOUTS
+    from cmtool.sample.run import summary_table
+
+    if (osm is None) == (from_hd is None):
+        raise CmtoolError("give one SD input: --osm or --from-hd")
+    if center is not None and osm is None:
+        raise CmtoolError("--center goes with --osm")
+    if pose is not None and from_hd is None:
+        raise CmtoolError("--pose goes with --from-hd")
+    side = None if side == "auto" else side
+    if osm is not None:
+        if center is None and whole is None:
+            raise CmtoolError("--osm needs --center LAT,LON (or a .jsonl of centres), or --whole")
+        inputs = [] if center is None else src.osm_inputs(osm, src.parse_points(
+            center, ("lat", "lon", "heading"), {"heading": heading}, "--center"))
+    else:
+        poses = src.parse_points(pose, ("x", "y", "yaw"), {}, "--pose") if pose is not None else None
+        inputs = [] if whole is not None and pose is None else src.hd_inputs(from_hd, poses, seed)
+    if whole is not None:
+        sd_map, city = _sd_map(osm, from_hd) if not inputs else (inputs[0].sd_map, inputs[0].city)
+        hd = LAYOUTS[method](sd_map, side or drives_on(city))
+        hd.save(whole)
+        click.echo(f"wrote the {method} layout of {len(sd_map.roads)} SD roads: {len(hd.lanes)} lanes -> {whole}")
+    if inputs:
+        maps = baseline_maps(inputs, method, side)
+        write_baseline_maps(maps, method, out, grid)
+        click.echo(summary_table(maps))
+        click.echo(f"wrote {len(maps)} {method} lane graph{'s' if len(maps) > 1 else ''} and pictures to {out}")
+
+
+def _sd_map(osm, from_hd):
+    """The SD map of an input file, and its city."""
+    if osm is not None:
+        from cmtool.formats.osm import read_osm
+
+        sd_map = read_osm(osm)
+        if not sd_map.roads:
+            raise CmtoolError(f"{osm}: no drivable roads in the OpenStreetMap file")
+        return sd_map, None
+    from cmtool.data.sd_derive import derive_sd
+    from cmtool.maps.hdmap import HDMap
+
+    hd = HDMap.load(from_hd)
+    if not hd.lanes:
+        raise CmtoolError(f"{from_hd}: the HD map has no lanes")
+    return derive_sd(hd), hd.city

@@ -1,0 +1,237 @@
+"""File reading/writing with user-facing errors and atomic writes (shared by all file formats)."""
+
+from __future__ import annotations
+
+import errno
+import json
+import os
+import tempfile
+from contextlib import contextmanager
+from pathlib import Path
+
+from cmtool.core.errors import CmtoolError
+
+
+def read_text(path: str | os.PathLike) -> str:
+    """A UTF-8 text file's contents; a missing, unreadable or non-UTF-8 file becomes a :class:`CmtoolError`."""
+    path = Path(path)
+    if not path.is_file():
+        raise CmtoolError(f"{path}: no such file")
+    try:
+        return path.read_text(encoding="utf-8")
+    except UnicodeDecodeError as e:
+        raise CmtoolError(f"{path}: not a UTF-8 text file (byte {e.start} is {e.object[e.start]:#04x})") from None
+    except OSError as e:
+        raise CmtoolError(f"{path}: cannot read it: {os_reason(e)}") from None
+
+
+def read_json(path: str | os.PathLike):
+    """Load a JSON file; a missing file, non-UTF-8 text or malformed JSON becomes a :class:`CmtoolError`."""
+    text = read_text(path)
+    try:
+        return json.loads(text)
+    except json.JSONDecodeError as e:
+        raise CmtoolError(f"{path}: malformed JSON at line {e.lineno}, column {e.colno}: {e.msg}") from None
+
+
+class MalformedLine(CmtoolError):
+    """A line of a JSON Lines file that is not JSON (``lineno`` counts from 1)."""
+
+    def __init__(self, message: str, lineno: int):
+        super().__init__(message)
+        self.lineno = lineno
+
+
+def json_lines(path: str | os.PathLike) -> list[tuple[int, object]]:
+    """(line number, value) of each non-empty line of a UTF-8 JSON Lines file; a malformed line is a
+    :class:`MalformedLine` naming the file and the line."""
+    out = []
+    for lineno, line in enumerate(read_text(path).splitlines(), start=1):
+        if line.strip():
+            try:
+                out.append((lineno, json.loads(line)))
+            except json.JSONDecodeError as e:
+                raise MalformedLine(f"{path}: line {lineno}: malformed JSON at column {e.colno}: {e.msg}",
+                                    lineno) from None
+    return out
+
+
+def os_reason(e: OSError) -> str:
+    """Why an operating-system call failed, in words that name what the user can fix."""
+    if e.errno in (errno.ENOTDIR, errno.EEXIST) and e.filename:
+        for parent in Path(e.filename).parents if e.errno == errno.ENOTDIR else [Path(e.filename)]:
+            if parent.is_file():
+                return f"{parent} is a file, not a folder"
+    if e.errno == errno.EFBIG:
+        return "file too large (the file size limit, or a full disk)"
+    return e.strerror.lower() if e.strerror else str(e)
+
+
+@contextmanager
+def atomic_open(path: str | os.PathLike, mode: str = "w"):
+    """Open a temporary file beside ``path`` for writing; when the block succeeds it is renamed over
+    ``path``, when it fails it is removed. So a crash never leaves a half-written file behind. An OS error
+    (a file in the way, no permission, a full disk) becomes a :class:`CmtoolError` naming ``path``."""
+    path = Path(path)
+    tmp = None
+    try:
+        path.parent.mkdir(parents=True, exist_ok=True)
+        fd, tmp = tempfile.mkstemp(dir=path.parent, prefix=f".{path.name}.", suffix=".tmp")
+        with os.fdopen(fd, mode, encoding=None if "b" in mode else "utf-8") as f:
+            yield f
+        os.chmod(tmp, file_mode())  # mkstemp makes 0600 files; give the usual permissions
+        os.replace(tmp, path)
+    except OSError as e:
+        _remove(tmp)
+        raise CmtoolError(f"cannot write {path}: {os_reason(e)}") from None
+    except BaseException:
+        _remove(tmp)
+        raise
+
+
+class OutputSet:
+    """Files a command writes as one set: each goes to a temporary file beside its destination, :meth:`commit`
+    renames them all into place when the command has succeeded, and :meth:`discard` (it failed) removes the
+    temporaries, so the files of an earlier run stay as they were."""
+
+    def __init__(self):
+        self.staged: list[tuple[str, Path]] = []
+
+    def write_bytes(self, path: str | os.PathLike, data: bytes) -> None:
+        path = Path(path)
+        tmp = None
+        try:
+            path.parent.mkdir(parents=True, exist_ok=True)
+            fd, tmp = tempfile.mkstemp(dir=path.parent, prefix=f".{path.name}.", suffix=".tmp")
+            self.staged.append((tmp, path))
+            with os.fdopen(fd, "wb") as f:
+                f.write(data)
+            os.chmod(tmp, file_mode())
+        except OSError as e:
+            raise CmtoolError(f"cannot write {path}: {os_reason(e)}") from None
+
+    def write_text(self, path: str | os.PathLike, text: str) -> None:
+        self.write_bytes(path, text.encode("utf-8"))
+
+    def commit(self) -> None:
+        """Rename every staged file into place."""
+        for tmp, path in self.staged:
+            try:
+                os.replace(tmp, path)
+            except OSError as e:
+                raise CmtoolError(f"cannot write {path}: {os_reason(e)}") from None
+        self.staged = []
+
+    def discard(self) -> None:
+        for tmp, _ in self.staged:
+            _remove(tmp)
+        self.staged = []
+
+
+def _remove(tmp: str | None) -> None:
+    if tmp is not None and os.path.exists(tmp):
+        os.unlink(tmp)
+
+
+def file_mode() -> int:
+    """The permissions a new file gets from ``open`` under the process's umask (0644 under the usual 022)."""
+    mask = os.umask(0)
+    os.umask(mask)
+    return 0o666 & ~mask
+
+
+def write_text_atomic(path: str | os.PathLike, text: str) -> None:
+    with atomic_open(path) as f:
+        f.write(text)
+
+
+def json_text(obj) -> str:
+    """``obj`` as one line of compact JSON."""
+    return json.dumps(obj, separators=(",", ":")) + "\n"
+
+
+def write_json(path: str | os.PathLike, obj) -> None:
+    write_text_atomic(path, json_text(obj))
+
+
+class Fields:
+    """Typed access to a JSON object that names the offending field in its errors.
+
+    ``where`` names the file (and line), ``path`` the object inside it; errors read
+    ``"map.json: lanes[3].width: expected a number, got 'wide'"``.
+    """
+
+    def __init__(self, obj, where: str, path: str = ""):
+        if not isinstance(obj, dict):
+            raise CmtoolError(f"{where}: {path or 'top level'}: expected a JSON object, got {type(obj).__name__}")
+        self.obj, self.where, self.path = obj, where, path
+
+    def at(self, key: str) -> str:
+        """The path of ``key`` inside this object, e.g. ``lanes[3].width``."""
+        return f"{self.path}.{key}" if self.path else key
+
+    def fail(self, key: str, msg: str):
+        raise CmtoolError(f"{self.where}: {self.at(key)}: {msg}")
+
+    def get(self, key: str, types, default=..., allow_none: bool = False):
+        if key not in self.obj:
+            if default is ...:
+                self.fail(key, "missing")
+            return default
+        value = self.obj[key]
+        if value is None and allow_none:
+            return None
+        if isinstance(value, bool) and bool not in (types if isinstance(types, tuple) else (types,)):
+            self.fail(key, f"expected {_type_name(types)}, got {value!r}")
+        if not isinstance(value, types):
+            self.fail(key, f"expected {_type_name(types)}, got {_short(value)}")
+        if isinstance(value, float) and not (value == value and abs(value) != float("inf")):
+            self.fail(key, "NaN or infinite number")
+        if isinstance(value, int) and abs(value) > 2**63:
+            self.fail(key, f"number too large ({len(str(abs(value)))} digits)")
+        return value
+
+    def header(self, fmt: str | None, kind: str, version: int = 1) -> None:
+        """Check a file's ``format`` tag (when ``fmt`` is given) and its ``version``."""
+        if fmt is not None and self.get("format", str) != fmt:
+            self.fail("format", f"expected {fmt!r} (is this {kind}?)")
+        if self.get("version", int) != version:
+            self.fail("version", f"unsupported version (this cmtool reads version {version})")
+
+    def number(self, key: str, default=...) -> float:
+        return float(self.get(key, (int, float), default))
+
+    def points(self, key: str, min_points: int = 2):
+        """A list of [x, y] pairs as a float64 (N, 2) array."""
+        from cmtool.core.geometry import as_polyline
+
+        value = self.get(key, list)
+        try:
+            return as_polyline(value, min_points=min_points)
+        except (ValueError, TypeError) as e:
+            self.fail(key, str(e))
+
+    def lines(self, key: str, default=...) -> list:
+        """A list of polylines, each a float64 (N, 2) array with N >= 2."""
+        from cmtool.core.geometry import as_polyline
+
+        out = []
+        for k, pts in enumerate(self.get(key, list, default)):
+            try:
+                out.append(as_polyline(pts))
+            except (ValueError, TypeError) as e:
+                self.fail(f"{key}[{k}]", str(e))
+        return out
+
+
+def _type_name(types) -> str:
+    names = {int: "an integer", float: "a number", str: "a string", list: "a list", dict: "an object", bool: "true/false"}
+    types = types if isinstance(types, tuple) else (types,)
+    if set(types) == {int, float}:
+        return "a number"
+    return " or ".join(names.get(t, t.__name__) for t in types)
+
+
+def _short(value) -> str:
+    text = json.dumps(value) if not isinstance(value, str) else repr(value)
+    return text if len(text) <= 40 else text[:37] + "..."

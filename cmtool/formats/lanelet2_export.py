@@ -1,0 +1,178 @@
+"""Lane graphs as Lanelet2 maps (OSM XML, WGS84), loadable by Lanelet2 and by our own importer.
+
+Every lane becomes a lanelet (``type=lanelet``, ``subtype=road``, ``one_way=yes``) whose left and
+right bounds are ways half its width either side of the centerline (widths from the lane graph, else
+from the spacing of neighbours, else ``lane_width``). Lane ends and starts joined by successor edges
+(forks and merges included) get one shared left and one shared right bound node, which is how
+Lanelet2 routing finds successors. Neighbours (the lane graph's ``left_neighbors`` and ``oncoming``,
+found from the geometry when it has none) that start and end abreast share one bound way: dashed
+between lane-change neighbours, so Lanelet2 routes lane changes; solid as the centre line of
+oncoming lanes (their left bounds in right-hand traffic, their right bounds in left-hand traffic).
+Each traffic-light line that controls a lane (:func:`~cmtool.maps.lanegraph.controlled_lanes`)
+becomes a ``regulatory_element`` (``subtype=traffic_light``) with a light way and a stop line across
+that lane's start, referenced by its lanelet. The scene frame's origin is placed at ``(lat0, lon0)``
+with its forward axis pointing to the compass ``heading``.
+"""
+
+from __future__ import annotations
+
+import os
+from xml.sax.saxutils import quoteattr
+
+import numpy as np
+
+from cmtool.core.geo import scene_to_latlon
+from cmtool.core.geometry import offset, resample, unit
+from cmtool.core.jsonio import write_text_atomic
+from cmtool.core.unionfind import UnionFind
+from cmtool.maps.lanegraph import controlled_lanes
+from cmtool.maps.neighbours import (
+    LANE_WIDTH_M,
+    abreast,
+    graph_neighbours,
+    lane_widths,
+    side_of,
+)
+
+LEFT, RIGHT = 0, 1
+START, END = 0, 1
+
+
+class _Ways:
+    """Nodes (deduplicated to the millimetre) and ways, numbered from 1."""
+
+    def __init__(self):
+        self.node_ids: dict[tuple[int, int], int] = {}
+        self.nodes: list[np.ndarray] = []
+        self.ways: list[tuple[list[int], dict]] = []
+
+    @staticmethod
+    def _key(p: np.ndarray) -> tuple[int, int]:
+        return round(float(p[0]) * 1000), round(float(p[1]) * 1000)
+
+    def node(self, p: np.ndarray) -> int:
+        key = self._key(p)
+        if key not in self.node_ids:
+            self.node_ids[key] = len(self.nodes) + 1
+            self.nodes.append(np.asarray(p, np.float64))
+        return self.node_ids[key]
+
+    def way(self, points: np.ndarray, **tags) -> int:
+        refs = []
+        for p in points:
+            n = self.node(p)
+            if not refs or refs[-1] != n:
+                refs.append(n)
+        self.ways.append((refs, tags))
+        return len(self.ways)
+
+
+def to_lanelet2(graph, lat0: float, lon0: float, heading: float = 0.0, lane_width: float = LANE_WIDTH_M) -> str:
+    """The OSM XML text of ``graph`` (a LaneGraph) as a Lanelet2 map."""
+    lanes = [np.asarray(l, np.float64) for l in graph.lanes]
+    left, oncoming = graph_neighbours(graph)
+    widths = lane_widths(lanes, left, graph.widths, lane_width)
+    bounds = {(i, side): offset(l, (0.5 if side == LEFT else -0.5) * w)
+              for i, (l, w) in enumerate(zip(lanes, widths)) for side in (LEFT, RIGHT)}
+    corners = _Corners(len(lanes))
+    for i, j in graph.successors:
+        corners.join([((i, LEFT, END), (j, LEFT, START)), ((i, RIGHT, END), (j, RIGHT, START))])
+    shared = {}  # bound -> (the bound it shares a way with, whether that one runs against it)
+    beside = [((i, LEFT), (j, RIGHT), True) for i, j in left]  # lane-change neighbours: i's left bound is j's right
+    for i, j in oncoming:  # the centre line: the bound on the side where the other lane lies, for both
+        side = LEFT if side_of(lanes, i, j) > 0 else RIGHT
+        beside.append(((i, side), (j, side), False))
+    for mine, other, same in beside:
+        if mine in shared or other in shared or not abreast(lanes[mine[0]], lanes[other[0]], same):
+            continue
+        ends = ((START, START), (END, END)) if same else ((START, END), (END, START))
+        if corners.join([((*mine, a), (*other, b)) for a, b in ends]):
+            shared[mine], shared[other] = (other, not same), (mine, not same)
+    ways, way_of = _Ways(), {}
+    for key, line in bounds.items():
+        if key in way_of:
+            continue
+        partner = shared.get(key)
+        if partner is not None:
+            twin = resample(bounds[partner[0]], len(line))
+            line = 0.5 * (line + (twin[::-1] if partner[1] else twin))
+        line = _pin_ends(line, corners.position(bounds, (*key, START)), corners.position(bounds, (*key, END)))
+        way_of[key] = ways.way(line, type="line_thin", subtype="dashed" if partner and not partner[1] else "solid")
+        if partner is not None:
+            way_of[partner[0]] = way_of[key]
+    relations = []
+    for i in range(len(lanes)):
+        relations.append(([("way", way_of[(i, LEFT)], "left"), ("way", way_of[(i, RIGHT)], "right")],
+                          {"type": "lanelet", "subtype": "road", "location": "urban", "one_way": "yes",
+                           "cmtool:lane": str(i)}))
+    for state, line, k in controlled_lanes(graph):
+        across = np.array([-1.0, 1.0]) * unit(lanes[k][1] - lanes[k][0])[::-1]
+        stop = np.array([line[0] + across * widths[k] / 2.0, line[0] - across * widths[k] / 2.0])
+        stop_way = ways.way(stop, type="stop_line")
+        light_way = ways.way(line[:2], type="traffic_light", subtype="red_yellow_green")
+        relations.append(([("way", light_way, "refers"), ("way", stop_way, "ref_line")],
+                          {"type": "regulatory_element", "subtype": "traffic_light", "cmtool:state": state}))
+        relations[k][0].append(("relation", len(relations), "regulatory_element"))
+    return _xml(ways, relations, lat0, lon0, heading)
+
+
+def write_lanelet2(graph, path: str | os.PathLike, lat0: float, lon0: float, heading: float = 0.0,
+                   lane_width: float = LANE_WIDTH_M) -> None:
+    write_text_atomic(path, to_lanelet2(graph, lat0, lon0, heading, lane_width))
+
+
+class _Corners:
+    """The four corners of every lane's bounds, ``(lane, side, end)``, joined into shared nodes: lane
+    ends with their successors' starts, neighbours' shared bound ends. A join that would make one
+    lane's left and right corner at the same end one node (a lanelet of no width) is refused."""
+
+    def __init__(self, n: int):
+        keys = [(i, side, end) for i in range(n) for side in (LEFT, RIGHT) for end in (START, END)]
+        self.sets = UnionFind(keys)
+        self.members = {k: {k} for k in keys}
+
+    def join(self, pairs) -> bool:
+        """Join each pair of corners, all or none; whether they were joined."""
+        trial = UnionFind(self.sets.find(k) for pair in pairs for k in pair)
+        for a, b in pairs:
+            trial.union(self.sets.find(a), self.sets.find(b))
+        for group in trial.groups():
+            merged = set().union(*(self.members[r] for r in group))
+            if any((i, 1 - side, end) in merged for i, side, end in merged):
+                return False
+        for a, b in pairs:
+            ra, rb = self.sets.find(a), self.sets.find(b)
+            if ra != rb:
+                self.sets.union(ra, rb)
+                self.members[ra] |= self.members.pop(rb)
+        return True
+
+    def position(self, bounds, key) -> np.ndarray:
+        """Where a corner's node lies: the mean of the bound ends joined to it."""
+        members = self.members[self.sets.find(key)]
+        return np.mean([bounds[(i, side)][0 if end == START else -1] for i, side, end in members], axis=0)
+
+
+def _pin_ends(line: np.ndarray, start: np.ndarray, end: np.ndarray) -> np.ndarray:
+    """``line`` with its ends moved to ``start`` and ``end``, each move fading linearly along it."""
+    t = np.linspace(0.0, 1.0, len(line))[:, None]
+    return line + (1.0 - t) * (start - line[0]) + t * (end - line[-1])
+
+
+def _xml(ways: _Ways, relations, lat0: float, lon0: float, heading: float) -> str:
+    latlon = scene_to_latlon(np.array(ways.nodes).reshape(-1, 2), lat0, lon0, heading)
+    out = ['<?xml version="1.0" encoding="UTF-8"?>', '<osm version="0.6" generator="cmtool">']
+    out += [f'  <node id="{i}" lat="{lat:.10f}" lon="{lon:.10f}" version="1"/>'
+            for i, (lat, lon) in enumerate(latlon, start=1)]
+    for k, (refs, tags) in enumerate(ways.ways, start=1):
+        out.append(f'  <way id="{k}" version="1">')
+        out += [f'    <nd ref="{r}"/>' for r in refs]
+        out += [f"    <tag k={quoteattr(t)} v={quoteattr(v)}/>" for t, v in tags.items()]
+        out.append("  </way>")
+    for k, (members, tags) in enumerate(relations, start=1):
+        out.append(f'  <relation id="{k}" version="1">')
+        out += [f'    <member type="{kind}" ref="{ref}" role="{role}"/>' for kind, ref, role in members]
+        out += [f"    <tag k={quoteattr(t)} v={quoteattr(v)}/>" for t, v in tags.items()]
+        out.append("  </relation>")
+    out.append("</osm>")
+    return "\n".join(out) + "\n"

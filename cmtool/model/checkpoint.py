@@ -1,0 +1,305 @@
+"""Checkpoints: safetensors weights + a JSON config, one directory per saved step.
+
+A *checkpoint directory* holds::
+
+    config.json              format, kind (rvae | dit | controlmap), model config, city labels,
+                             latent scale, recipe, step, training record
+    model.safetensors        the weights to use (EMA weights during training), or, split into
+                             files of a size limit, model-0000k-of-0000n.safetensors listed in
+                             model.safetensors.index.json (Hugging Face's layout)
+    train_state.safetensors  raw weights + optimiser state, for ``--resume`` (training only)
+    train_state.json         optimiser hyper-parameters and the step counter (training only)
+
+A *run directory* (what ``cmtool train --out`` writes) keeps its checkpoints under
+``checkpoints/step_<step>/``. Each is written into a temporary directory and renamed into place,
+so a crash (even ``kill -9``) leaves either the complete new checkpoint or none; :func:`resolve`
+maps a run directory to its newest complete checkpoint. Nothing is unpickled when loading.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import hashlib
+import json
+import math
+import os
+import shutil
+from pathlib import Path
+
+import torch
+from safetensors import SafetensorError
+from safetensors.torch import load_file, save_file
+
+from cmtool.core.errors import CmtoolError
+from cmtool.core.jsonio import file_mode, read_json
+
+FORMAT = "cmtool.checkpoint"
+CONFIG, WEIGHTS, INDEX = "config.json", "model.safetensors", "model.safetensors.index.json"
+STATE, STATE_META = "train_state.safetensors", "train_state.json"
+KINDS = ("rvae", "dit", "controlmap")
+DIT_RECORD = ("step", "steps", "training", "recipe_path", "init_from")  # how a DiT was trained (packs keep it)
+
+
+def _fsync_dir(path: Path) -> None:
+    fd = os.open(path, os.O_RDONLY)
+    try:
+        os.fsync(fd)
+    finally:
+        os.close(fd)
+
+
+def _write_tensors(path: Path, tensors: dict[str, torch.Tensor]) -> None:
+    save_file({k: v.detach().contiguous().cpu() for k, v in tensors.items()}, str(path))
+    os.chmod(path, file_mode())  # safetensors writes 0600 files; weights to ship and share get the usual ones
+    with open(path, "rb") as f:
+        os.fsync(f.fileno())
+
+
+def _write_json(path: Path, obj) -> None:
+    with open(path, "w", encoding="utf-8") as f:
+        json.dump(obj, f, indent=1, default=_plain)
+        f.write("\n")
+        f.flush()
+        os.fsync(f.fileno())
+
+
+def _plain(obj):
+    if dataclasses.is_dataclass(obj):
+        return dataclasses.asdict(obj)
+    if isinstance(obj, Path):
+        return str(obj)
+    raise TypeError(f"not JSON serialisable: {type(obj).__name__}")
+
+
+def as_stored(config: dict) -> dict:
+    """``config`` as a checkpoint's config.json holds it (tuples become lists, paths strings)."""
+    return json.loads(json.dumps(config, default=_plain))
+
+
+def _write_shards(folder: Path, tensors: dict[str, torch.Tensor], max_bytes: int) -> None:
+    """The weights in files of at most ``max_bytes`` each (tensors in name order) and their index."""
+    groups: list[dict[str, torch.Tensor]] = [{}]
+    size = 0
+    for name in sorted(tensors):
+        t = tensors[name]
+        nbytes = t.nbytes
+        if nbytes + 4096 > max_bytes:  # room for the file's header
+            raise CmtoolError(f"weight {name} alone ({nbytes / 2**20:.1f} MiB) exceeds the file limit of "
+                              f"{max_bytes / 2**20:.1f} MiB")
+        if groups[-1] and size + nbytes + 256 * (len(groups[-1]) + 1) > max_bytes:
+            groups.append({})
+            size = 0
+        groups[-1][name] = t
+        size += nbytes
+    weight_map = {}
+    for k, group in enumerate(groups, 1):
+        name = f"model-{k:05d}-of-{len(groups):05d}.safetensors"
+        _write_tensors(folder / name, group)
+        weight_map.update({t: name for t in group})
+    _write_json(folder / INDEX, {"metadata": {"total_size": sum(t.nbytes for t in tensors.values())},
+                                 "weight_map": weight_map})
+
+
+def save_checkpoint(target: Path, config: dict, weights: dict[str, torch.Tensor],
+                    state: dict[str, torch.Tensor] | None = None, state_meta: dict | None = None,
+                    max_file_bytes: int | None = None) -> Path:
+    """Write a checkpoint directory at ``target`` atomically (replacing an existing one); with
+    ``max_file_bytes``, weights larger than that are split into files of at most that size."""
+    target = Path(target)
+    target.parent.mkdir(parents=True, exist_ok=True)
+    tmp = target.with_name(f".{target.name}.tmp-{os.getpid()}")
+    shutil.rmtree(tmp, ignore_errors=True)
+    tmp.mkdir()
+    if max_file_bytes and sum(t.nbytes for t in weights.values()) + 4096 > max_file_bytes:
+        _write_shards(tmp, weights, max_file_bytes)
+    else:
+        _write_tensors(tmp / WEIGHTS, weights)
+    if state is not None:
+        _write_tensors(tmp / STATE, state)
+        _write_json(tmp / STATE_META, state_meta or {})
+    _write_json(tmp / CONFIG, {"format": FORMAT, "version": 1, **config})
+    _fsync_dir(tmp)
+    if target.exists():
+        old = target.with_name(f".{target.name}.old-{os.getpid()}")
+        os.rename(target, old)
+        os.rename(tmp, target)
+        shutil.rmtree(old)
+    else:
+        os.rename(tmp, target)
+    _fsync_dir(target.parent)
+    return target
+
+
+def step_dir(run_dir: Path, step: int) -> Path:
+    return Path(run_dir) / "checkpoints" / f"step_{step:08d}"
+
+
+def run_checkpoints(run_dir: Path) -> list[Path]:
+    """Complete checkpoints of a run directory, oldest first."""
+    root = Path(run_dir) / "checkpoints"
+    if not root.is_dir():
+        return []
+    return sorted(p for p in root.glob("step_*") if (p / CONFIG).is_file() and weight_files(p))
+
+
+def prune(run_dir: Path, keep: int) -> None:
+    """Delete all but the newest ``keep`` checkpoints, and what an interrupted save or prune left behind. A folder
+    is renamed to a temporary name before it is deleted, so a kill midway leaves a temporary folder (removed by
+    the next prune), never a half-deleted ``step_*`` folder that looks like a checkpoint."""
+    root = Path(run_dir) / "checkpoints"
+    complete = run_checkpoints(run_dir)
+    for p in complete[:-keep] + [p for p in root.glob("step_*") if p not in complete]:
+        trash = p.with_name(f".{p.name}.old-{os.getpid()}")
+        os.rename(p, trash)
+        shutil.rmtree(trash)
+    for p in root.glob(".step_*.*-*"):
+        shutil.rmtree(p, ignore_errors=True)
+
+
+def resolve(path) -> Path:
+    """A checkpoint directory, or a run directory -> its newest complete checkpoint."""
+    path = Path(path)
+    if (path / CONFIG).is_file() and weight_files(path):
+        return path
+    found = run_checkpoints(path)
+    if found:
+        return found[-1]
+    if not path.exists():
+        raise CmtoolError(f"{path}: no such checkpoint")
+    raise CmtoolError(f"{path}: not a checkpoint (no {CONFIG} + {WEIGHTS} or {INDEX}, no checkpoints/step_*)")
+
+
+def file_sha256(path: Path) -> str:
+    h = hashlib.sha256()
+    with open(path, "rb") as f:
+        for block in iter(lambda: f.read(1 << 20), b""):
+            h.update(block)
+    return h.hexdigest()
+
+
+def weight_files(checkpoint: Path) -> list[Path]:
+    """The weight files of a checkpoint folder: ``model.safetensors``, or the files its index lists
+    (empty when it has neither, or when a listed file is missing)."""
+    checkpoint = Path(checkpoint)
+    if (checkpoint / WEIGHTS).is_file():
+        return [checkpoint / WEIGHTS]
+    if not (checkpoint / INDEX).is_file():
+        return []
+    try:
+        names = sorted(set(read_json(checkpoint / INDEX)["weight_map"].values()))
+    except (CmtoolError, KeyError, TypeError, AttributeError):
+        raise CmtoolError(f"{checkpoint / INDEX}: not a weight index (expected a weight_map of files)") from None
+    files = [checkpoint / n for n in names]
+    return files if all(f.is_file() for f in files) else []
+
+
+def weights_digest(*checkpoints: Path) -> str:
+    """A short SHA-256 over the weights of checkpoint folders: tells their contents apart where
+    their paths are the same (e.g. the shipped weights after a re-pack)."""
+    return hashlib.sha256("".join(file_sha256(f) for c in checkpoints for f in weight_files(c)).encode()
+                          ).hexdigest()[:16]
+
+
+def linked(checkpoint: Path, target: str) -> Path:
+    """A path a checkpoint config names (its RVAE, its DiT): absolute, or relative to the checkpoint."""
+    path = Path(target)
+    return path if path.is_absolute() else Path(checkpoint) / path
+
+
+def load_config(path) -> dict:
+    """The config of a checkpoint (or of a run directory's newest checkpoint)."""
+    path = resolve(path) / CONFIG
+    config = read_json(path)
+    if not isinstance(config, dict) or config.get("format") != FORMAT:
+        raise CmtoolError(f"{path}: not a cmtool checkpoint config")
+    if config.get("kind") not in KINDS:
+        raise CmtoolError(f"{path}: unknown checkpoint kind {config.get('kind')!r} (known: {', '.join(KINDS)})")
+    for key, (ok, what) in _FIELDS.items():
+        if key in config and not ok(config[key]):
+            raise CmtoolError(f"{path}: {key}: expected {what}, got {json.dumps(config[key])[:40]}")
+    for key in ("model", "control") if config["kind"] == "controlmap" else ("model",):
+        if key not in config:
+            raise CmtoolError(f"{path}: {key}: missing")
+    with torch.device("meta"):  # types and ranges of the model config, and its size, before anything is allocated
+        params = sum(p.numel() for p in build_model(config, str(path)).parameters())
+    if params > MAX_PARAMS:
+        raise CmtoolError(f"{path}: model: {params / 1e9:.1f} billion parameters, more than cmtool loads "
+                          f"({MAX_PARAMS / 1e9:.0f} billion)")
+    return config
+
+
+def _number(v, low: float = 0.0) -> bool:
+    return isinstance(v, (int, float)) and not isinstance(v, bool) and math.isfinite(v) and v > low
+
+
+MAX_PARAMS = 3_000_000_000  # 12 GB in float32: ControlMap on DiT-XL is under a third of it
+_FIELDS = {  # top-level config fields the commands read: (valid?, what they must be)
+    "cities": (lambda v: isinstance(v, list) and all(isinstance(c, str) for c in v), "a list of city labels"),
+    "latent_scale": (lambda v: v is None or _number(v), "a finite number > 0"),
+    "rvae": (lambda v: v is None or isinstance(v, str), "a path"),
+    "dit": (lambda v: v is None or isinstance(v, str), "a path"),
+    "model": (lambda v: isinstance(v, dict), "an object"),
+    "control": (lambda v: isinstance(v, dict), "an object"),
+    "schedule": (lambda v: isinstance(v, dict), "an object"),
+    "step": (lambda v: isinstance(v, int) and not isinstance(v, bool) and v >= 0, "a step count"),
+    "steps": (lambda v: isinstance(v, int) and not isinstance(v, bool) and v >= 0, "a step count"),
+}
+
+
+def load_tensors(path: Path) -> dict[str, torch.Tensor]:
+    try:
+        return load_file(str(path))
+    except (SafetensorError, OSError, ValueError) as e:
+        raise CmtoolError(f"{path}: unreadable weights ({e})") from None
+
+
+def read_weights(checkpoint: Path) -> dict[str, torch.Tensor]:
+    """All weights of a checkpoint folder, from one file or from the files of its index."""
+    files = weight_files(checkpoint)
+    if not files:
+        raise CmtoolError(f"{checkpoint}: no weights ({WEIGHTS}, or {INDEX} and every file it lists)")
+    tensors = {}
+    for f in files:
+        tensors.update(load_tensors(f))
+    return tensors
+
+
+def load_weights(module: torch.nn.Module, checkpoint: Path) -> None:
+    """Load a checkpoint folder's weights into ``module``; a key or shape mismatch is a one-line error."""
+    tensors = read_weights(checkpoint)
+    own = module.state_dict()
+    missing, unexpected = sorted(set(own) - set(tensors)), sorted(set(tensors) - set(own))
+    if missing or unexpected:
+        what = f"missing {missing[:3]}" if missing else f"unexpected {unexpected[:3]}"
+        raise CmtoolError(f"{checkpoint}: weights do not match the model in its config ({what})")
+    for k, v in tensors.items():
+        if v.shape != own[k].shape:
+            raise CmtoolError(f"{checkpoint}: weight {k} has shape {tuple(v.shape)}, the model expects "
+                              f"{tuple(own[k].shape)}")
+    module.load_state_dict({k: v.to(own[k].dtype) for k, v in tensors.items()})
+
+
+def build_model(config: dict, where: str = "checkpoint") -> torch.nn.Module:
+    """An untrained model of the kind and configuration a checkpoint config describes."""
+    from cmtool.core.tables import from_table
+    from cmtool.model.controlmap import ControlConfig, ControlMap
+    from cmtool.model.dit import DiT, DiTConfig
+    from cmtool.model.rvae import RVAE, RVAEConfig
+
+    kind = config["kind"]
+    if kind == "rvae":
+        return RVAE(from_table(RVAEConfig, config["model"], f"{where}: ", "model."),
+                    encoder=config.get("weights") != "decoder")
+    dit = DiT(from_table(DiTConfig, config["model"], f"{where}: ", "model."))
+    if kind == "dit":
+        return dit
+    return ControlMap(dit, from_table(ControlConfig, config["control"], f"{where}: ", "control."))
+
+
+def load_model(path, device="cpu") -> tuple[torch.nn.Module, dict]:
+    """The model of a checkpoint (or a run's newest one) with its weights, in eval mode."""
+    path = resolve(path)
+    config = load_config(path)
+    model = build_model(config, str(path / CONFIG))
+    load_weights(model, path)
+    return model.to(device).eval(), config

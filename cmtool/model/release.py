@@ -1,0 +1,109 @@
+"""The model set that ships inside the package, so that ``cmtool sample`` works without training.
+
+``cmtool pack --ckpt RUN`` turns a trained ControlMap (whose config names its RVAE and DiT) into
+``cmtool/weights/``::
+
+    controlmap/   config.json + model.safetensors   frozen DiT + control branch, float16
+    rvae/         config.json + model.safetensors   the RVAE's decoder only (latent -> lanes), float16
+    MANIFEST.json                                   SHA-256 and size of every file, where they came from
+
+Weights over 16 MiB are split into files of at most that size (``model-00001-of-00002.safetensors``
+... with ``model.safetensors.index.json``), so every file fits the limits of file hosts and copies.
+
+Each config keeps its stage's recipe and training record (the DiT's is kept in the ControlMap
+config as ``dit_training``), so ``cmtool info`` shows how the shipped models were made.
+:func:`verify` checks the files against the manifest.
+"""
+
+from __future__ import annotations
+
+import json
+from pathlib import Path
+
+from cmtool.core.errors import CmtoolError
+from cmtool.core.jsonio import read_json, write_text_atomic
+from cmtool.model import checkpoint as ckpt
+from cmtool.model.rvae import ENCODER_PREFIXES, same_encoder
+
+BUNDLED = Path(__file__).parents[1] / "weights"
+MANIFEST = "MANIFEST.json"
+MAX_FILE_BYTES = 16 * 2**20
+
+
+def bundled_checkpoint() -> Path:
+    """The shipped ControlMap checkpoint (its config points at the shipped RVAE decoder)."""
+    path = BUNDLED / "controlmap"
+    if not (path / ckpt.CONFIG).is_file():
+        raise CmtoolError(f"no bundled weights in {BUNDLED} (a source checkout without them?); "
+                          "pass --ckpt, or make them with `cmtool pack`")
+    return path
+
+
+def pack(controlmap, out: Path, rvae=None) -> dict:
+    """Write the float16 release set of the ControlMap checkpoint ``controlmap`` into ``out``;
+    returns the manifest. ``rvae``: an RVAE to ship instead of the ControlMap's own, which must
+    share its encoder (a decoder fine-tune of it) so that it reads the same latent space."""
+    src = ckpt.resolve(controlmap)
+    config = ckpt.load_config(src)
+    if config["kind"] != "controlmap":
+        raise CmtoolError(f"{src}: a {config['kind']} checkpoint; pack takes a ControlMap")
+    rvae_src = ckpt.resolve(ckpt.linked(src, config["rvae"]))
+    if rvae is not None:
+        rvae_src = _same_latent_space(rvae_src, ckpt.resolve(rvae))
+    rvae_config = ckpt.load_config(rvae_src)
+    dit_training = None
+    if config.get("dit"):
+        try:
+            dit_training = {k: v for k, v in ckpt.load_config(ckpt.linked(src, config["dit"])).items()
+                            if k in ckpt.DIT_RECORD}
+        except CmtoolError:
+            pass  # the DiT run is gone; its weights are inside the ControlMap anyway
+
+    out = Path(out)
+    half = {k: v.half() if v.is_floating_point() else v for k, v in ckpt.read_weights(src).items()}
+    cm_config = {k: v for k, v in config.items() if k not in ("format", "version")}
+    cm_config.update(rvae="../rvae", packed_from=config.get("packed_from", str(src)),
+                     dit_training=config.get("dit_training", dit_training))
+    ckpt.save_checkpoint(out / "controlmap", cm_config, half, max_file_bytes=MAX_FILE_BYTES)
+
+    decoder = {k: v.half() for k, v in ckpt.read_weights(rvae_src).items()
+               if not k.startswith(ENCODER_PREFIXES)}
+    rvae_out = {k: v for k, v in rvae_config.items() if k not in ("format", "version")}
+    rvae_out.update(weights="decoder", packed_from=rvae_config.get("packed_from", str(rvae_src)))
+    ckpt.save_checkpoint(out / "rvae", rvae_out, decoder, max_file_bytes=MAX_FILE_BYTES)
+
+    files = sorted(p for p in out.rglob("*") if p.is_file() and p.name != MANIFEST)
+    manifest = {"files": {p.relative_to(out).as_posix(): {"sha256": ckpt.file_sha256(p), "bytes": p.stat().st_size}
+                          for p in files},
+                "controlmap": str(src), "rvae": str(rvae_src)}
+    manifest["total_bytes"] = sum(f["bytes"] for f in manifest["files"].values())
+    write_text_atomic(out / MANIFEST, json.dumps(manifest, indent=1) + "\n")
+    return manifest
+
+
+def _same_latent_space(trained_on: Path, other: Path) -> Path:
+    """``other`` if its encoder and latent scale equal those of ``trained_on``, else an error. A packed
+    decoder (``other`` holding no encoder, e.g. the shipped one) is judged by its latent scale alone."""
+    a, b = ckpt.load_config(trained_on), ckpt.load_config(other)
+    if b["kind"] != "rvae":
+        raise CmtoolError(f"{other}: a {b['kind']} checkpoint; --rvae takes an RVAE")
+    same = b.get("weights") == "decoder" or \
+        same_encoder(*(ckpt.read_weights(p) for p in (trained_on, other)))
+    if not same or a.get("latent_scale") != b.get("latent_scale"):
+        raise CmtoolError(f"{other}: its encoder or latent scale differs from {trained_on}, the RVAE the ControlMap "
+                          "was trained on; only a `cmtool train decoder` run on that RVAE reads the same latents")
+    return other
+
+
+def verify(root: Path = BUNDLED) -> list[str]:
+    """Mismatches between the files under ``root`` and its manifest (empty when all match)."""
+    manifest = read_json(Path(root) / MANIFEST)
+    problems = []
+    for name, want in manifest["files"].items():
+        path = Path(root) / name
+        if not path.is_file():
+            problems.append(f"{name}: missing")
+        elif ckpt.file_sha256(path) != want["sha256"]:
+            problems.append(f"{name}: checksum differs from {MANIFEST}")
+    return problems
+
