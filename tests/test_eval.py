@@ -21,7 +21,8 @@ def test_eval_writes_reports_and_resumes(sampling_ckpt, tiny_data, tmp_path, cap
     assert code == 0, err
     report = json.loads((out / "metrics.json").read_text())
     baselines = ["rules"] + (["netconvert"] if netconvert_path() else [])
-    assert list(report["methods"]) == ["unguided", *baselines, "controlmap"] and report["settings"]["n"] == 4
+    assert list(report["methods"]) == ["unguided", *baselines, "controlmap", "guaranteed"]
+    assert report["settings"]["n"] == 4
     for m in report["methods"].values():
         assert m["scenes"] == 4 and 0.0 <= m["geometry"]["lane_f1"]["mean"] <= 1.0
         assert set(m["topology_fd"]) == {"connectivity", "density", "reach", "convenience"}
@@ -31,7 +32,10 @@ def test_eval_writes_reports_and_resumes(sampling_ckpt, tiny_data, tmp_path, cap
         assert geo["legal_oneway"]["mean"] != geo["legal_oneway"]["mean"] or 0.0 <= geo["legal_oneway"]["mean"] <= 1.0
     assert 0.0 < report["ground_truth_validity"] <= 1.0
     summary = (out / "summary.md").read_text()
-    assert f"| metric | unguided | {' | '.join(baselines)} | ControlMap |" in summary and "split test, 4 scenes" in summary
+    assert f"| metric | unguided | {' | '.join(baselines)} | ControlMap | + guarantee |" in summary
+    assert "split test, 4 scenes" in summary
+    legal = [report["methods"][m]["geometry"]["legal_oneway"]["mean"] for m in ("controlmap", "guaranteed")]
+    assert not all(v == v for v in legal) or legal[1] >= legal[0]  # the guarantee turns wrong-way lanes round
     frames = report["frames"]
     assert sum(frames["scenes"].values()) == 4 and set(frames["lane_f1"]) == set(report["methods"])
     assert frames["lanes_per_map"]["rules"] > 0 and "| lane F1 @1 m, junction frames" in summary

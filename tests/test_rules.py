@@ -197,3 +197,43 @@ def test_sample_starts_from_the_rule_layout(sampling_ckpt, tmp_path, capsys):
     code, _, err = in_process(capsys, "sample", "--sd", REPO / "sample_data" / "sd_sgp.png", "--init", "rules",
                               "--ckpt", sampling_ckpt["controlmap"], "--no-log", "--out", tmp_path / "z")
     assert code == 1 and "needs an SD map, not a picture" in err
+
+
+def test_the_guarantee_turns_wrong_way_lanes_and_fills_roads_without_lanes():
+    from cmtool.data.scene import Pose, SceneCropper
+    from cmtool.data.sd_raster import rasterize_sd
+    from cmtool.maps.lanegraph import LaneGraph
+    from cmtool.metrics.geometric import legal_oneway, sd_adherence
+    from cmtool.sample.guarantee import guarantee
+    from cmtool.sample.layouts import without_connectors
+
+    sd_map = SDMap(roads=[road("one", [[-40, 0], [40, 0]], oneway=1, lanes=1),
+                          road("two", [[10, -40], [10, 40]], lanes=2)])
+    sd = rasterize_sd(sd_map, 0.0, 0.0, 0.0)
+    wrong = np.stack([np.linspace(30, -30, 20), np.zeros(20)], axis=1)  # against the one-way road
+    graph = LaneGraph(lanes=[wrong], successors=[], frame_m=64.0, meta={"source": "test"})
+    rules = SceneCropper(without_connectors(rule_layout(sd_map))).extract(Pose(0.0, 0.0, 0.0)).to_lanegraph()
+    assert legal_oneway(graph.lanes, sd)[0] == 0.0 and sd_adherence(graph.lanes, sd)["sd_coverage"] < 0.6
+    final = guarantee(graph, sd, rules)
+    assert final.meta["guarantee"]["turned"] == 1 and final.meta["guarantee"]["added"] >= 2
+    assert legal_oneway(final.lanes, sd)[0] == 1.0 and sd_adherence(final.lanes, sd)["sd_coverage"] > 0.95
+    assert np.array_equal(final.lanes[0], wrong[::-1]) and final.meta["source"] == "test"
+    assert guarantee(final, sd, rules) is final  # nothing left to change
+    assert guarantee(graph, sd, None).meta["guarantee"] == {"turned": 1, "added": 0}  # a picture input: no rules
+
+
+def test_sample_reports_the_models_own_maps_beside_the_guaranteed_ones(sampling_ckpt, tmp_path, capsys):
+    from cmtool.data.synth import generate_city
+
+    city = tmp_path / "sgp.json"
+    generate_city("SGP", seed=3, extent=400.0).save(city)
+    args = ("sample", "--ckpt", sampling_ckpt["controlmap"], "--from-hd", city, "--steps", 3, "--no-log", "--quiet")
+    code, out, err = in_process(capsys, *args, "--out", tmp_path / "final")
+    assert code == 0, err
+    (name,) = [p for p in (tmp_path / "final").glob("*.json") if not p.name.endswith(".gt.json")]
+    meta = json.loads(name.read_text())["meta"]
+    assert set(meta["guarantee"]) == {"turned", "added"} and 0 <= meta["raw"]["validity"] <= 1
+    code, out, err = in_process(capsys, *args, "--raw", "--out", tmp_path / "raw")
+    assert code == 0, err
+    meta = json.loads((tmp_path / "raw" / name.name).read_text())["meta"]
+    assert "guarantee" not in meta and "raw" not in meta

@@ -58,10 +58,11 @@ def graph_core(path) -> dict:
 
 @pytest.fixture(scope="module")
 def sampled(sampling_ckpt, tmp_path_factory):
-    """One real CLI run (a subprocess, as a user runs it): two maps of the example SD raster, full logging."""
+    """One real CLI run (a subprocess, as a user runs it): two maps of the example SD raster, full logging, the
+    model's maps as it drew them (--raw: the guarantee is tested in test_rules.py)."""
     out = tmp_path_factory.mktemp("sampled")
     r = run_cli_once("sample", "--ckpt", sampling_ckpt["controlmap"], "--sd", SD_PNG, "--num", 2, "--steps", STEPS,
-                "--cfg", 0.7, "--city", "SGP", "--out", out, "--quiet")
+                "--cfg", 0.7, "--city", "SGP", "--out", out, "--quiet", "--raw")
     assert r.returncode == 0, r.stderr
     return {"out": out, "stdout": r.stdout, "rows": read_rrd(out / "sample.rrd")}
 
@@ -131,7 +132,7 @@ def test_outputs_are_valid_lane_graphs_and_pictures(sampled):
 
 def test_same_seed_same_json_and_cfg_zero_is_the_unguided_model(sampling_ckpt, tmp_path, capsys):
     cm, dit = sampling_ckpt["controlmap"], sampling_ckpt["dit"]
-    common = ("--steps", STEPS, "--city", "PIT", "--no-log", "--quiet")
+    common = ("--steps", STEPS, "--city", "PIT", "--no-log", "--quiet", "--raw")
     for name in ("a", "b"):
         assert in_process(capsys, "sample", "--ckpt", cm, "--sd", SD_PNG, "--cfg", 1.0, "--out", tmp_path / name,
                       *common)[0] == 0

@@ -60,12 +60,15 @@ Large sets in several processes (CPU or GPUs), the same maps as one process:
 @click.option("--connect", "connect_url", help="Also stream live to a running viewer at this gRPC URL.")
 @click.option("--serve", is_flag=True, help="Also serve the recording and Rerun's web viewer from this machine "
                                             "(ports 9876 and 9090), until Ctrl-C: for a browser elsewhere.")
+@click.option("--raw", is_flag=True, help="Keep the model's maps as it drew them: no guarantee (by default no lane "
+                                          "leaves against a one-way SD road, and SD roads without a lane get the "
+                                          "rules' lanes; docs/sampling.md).")
 @click.option("--no-log", is_flag=True, help="No recording (fastest).")
 @click.option("--device", help="torch device [default: cuda when available, else cpu].")
 @PRECISION_OPTION
 @click.option("--quiet", is_flag=True, help="No progress line.")
 def sample(ckpt, sd_paths, osm, center, heading, from_hd, pose, num, seed, steps, sampler, eta, city, cfg, city_cfg,
-           init, strength, encoder_path, smooth, batch, out, rrd, grid, spawn, connect_url, serve, no_log, device,
+           init, strength, encoder_path, smooth, batch, out, rrd, grid, spawn, connect_url, serve, raw, no_log, device,
            precision, quiet):
     import shlex
 
@@ -85,7 +88,8 @@ def sample(ckpt, sd_paths, osm, center, heading, from_hd, pose, num, seed, steps
     if spawn + bool(connect_url) + serve > 1:
         raise CmtoolError("give one of --spawn, --connect and --serve")
     settings = SampleSettings(num=num, seed=seed, steps=steps, sampler=sampler, eta=eta, cfg=cfg, city=city,
-                              city_cfg=city_cfg, batch=batch, init=init, strength=strength if init != "none" else 1.0)
+                              city_cfg=city_cfg, batch=batch, init=init, strength=strength if init != "none" else 1.0,
+                              guarantee=not raw)
     settings.check()
     if sd_paths:
         inputs = src.image_inputs(sd_paths)

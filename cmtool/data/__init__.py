@@ -1,2 +1,2 @@
-"""Map data: HD/SD map types, sources (procedural cities, real-map importers), scenes, rasters
-and the dataset cache."""
+"""Map data for training and evaluation: procedural cities, SD derivation and jitter, rule-based layouts, frames,
+scenes, rasters, data recipes and the dataset cache."""

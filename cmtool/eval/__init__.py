@@ -1,1 +1,1 @@
-"""Evaluation metrics: generated maps against ground truth and SD control."""
+"""Experiments that generate maps and score them: ``cmtool eval``, the ablations and the benches."""

@@ -46,7 +46,8 @@ from cmtool.metrics.validity import check
 from cmtool.model import checkpoint as ckpt
 from cmtool.model.release import BUNDLED
 from cmtool.sample import DEFAULT_SMOOTH
-from cmtool.sample.layouts import LAYOUTS
+from cmtool.sample.guarantee import guarantee
+from cmtool.sample.layouts import LAYOUTS, without_connectors
 from cmtool.sample.generator import MapGenerator
 from cmtool.viz.draw import graph_panel, grid, sd_panel, title_strip
 from cmtool.viz.recording import close_recording, log_lanes, log_sd, open_recording
@@ -108,7 +109,10 @@ def run_eval(gen: MapGenerator, settings: EvalSettings, out: Path, extractor: Fe
         baselines = {m: [_as_map(s, m, k) for k, s in enumerate(scene_layouts(settings.data, settings.split, scenes,
                                                                                m))]
                      for m in LAYOUTS if m != "netconvert" or netconvert_path() is not None}
-        generated = {"unguided": generated["unguided"], **baselines, "controlmap": generated["controlmap"]}
+        roads = scene_layouts(settings.data, settings.split, scenes, "rules", roads_only=True)
+        final = [guarantee(g, s.sd, r.to_lanegraph()) for g, s, r in zip(generated["controlmap"], scenes, roads)]
+        generated = {"unguided": generated["unguided"], **baselines, "controlmap": generated["controlmap"],
+                     "guaranteed": final}
     except MissingSDMaps as e:
         print(f"note: no rule-based columns: {e}", file=sys.stderr)
     reference = [s.to_lanegraph() for s in scenes]
@@ -160,15 +164,16 @@ def frame_groups(scenes, reference, generated: dict[str, list]) -> dict:
     return out
 
 
-def scene_layouts(data_dir, split: str, scenes, method: str) -> list[Scene]:
+def scene_layouts(data_dir, split: str, scenes, method: str, roads_only: bool = False) -> list[Scene]:
     """The ``method`` layout (rules, netconvert) of each scene's SD map (the one its SD raster was drawn from),
-    cropped as the dataset cropped the scene."""
+    cropped as the dataset cropped the scene; ``roads_only``: without its junction connectors."""
     recipe = load_manifest(data_dir)["recipe"]
     croppers: dict[int, SceneCropper] = {}
     out = []
     for scene, sd_map in zip(scenes, scene_sd_maps(data_dir, split)):
         if id(sd_map) not in croppers:
-            croppers[id(sd_map)] = SceneCropper(LAYOUTS[method](sd_map, drives_on(scene.city)))
+            hd = LAYOUTS[method](sd_map, drives_on(scene.city))
+            croppers[id(sd_map)] = SceneCropper(without_connectors(hd) if roads_only else hd)
         out.append(croppers[id(sd_map)].extract(scene.pose, recipe["num_lines"], recipe["num_points"],
                                                 recipe["num_lights"], recipe["frame_m"], recipe["min_piece_m"]))
     return out
@@ -309,10 +314,11 @@ def _smoothing(control_points: int) -> str:
 
 RECORDED_SCORES = {"lane_f1": "lane F1 at 1 m", "chamfer_m": "lane Chamfer, m", "validity": "validity"}
 PANELS = {"unguided": "unguided DiT", "rules": "rules", "netconvert": "netconvert", "controlmap": "ControlMap",
-          "truth": "ground truth"}
-SHORT = {"unguided": "unguided", "rules": "rules", "netconvert": "netconvert", "controlmap": "ControlMap"}
+          "guaranteed": "ControlMap + guarantee", "truth": "ground truth"}
+SHORT = {"unguided": "unguided", "rules": "rules", "netconvert": "netconvert", "controlmap": "ControlMap",
+         "guaranteed": "+ guarantee"}
 SERIES_COLOURS = {"unguided": [230, 140, 40], "rules": [150, 150, 150], "netconvert": [150, 220, 120],
-                  "controlmap": [60, 150, 255]}
+                  "controlmap": [60, 150, 255], "guaranteed": [200, 90, 230]}
 
 
 def _write_recording(path: Path, scenes, reference, generated, results: dict, rrd_samples: int) -> None:

@@ -1,3 +1,4 @@
-"""Training: one loop (loop.py) for the three stages (stages.py), their data, the latent cache, DDP setup."""
+"""Training: recipes, one loop (loop.py) for every stage (stages.py), their data, the latent cache, reconstruction
+scores, DDP setup."""
 
 PRECISIONS = ("auto", "bf16", "fp32")  # train.precision: auto is bf16 autocast on CUDA, fp32 on CPU

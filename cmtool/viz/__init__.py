@@ -1,1 +1,1 @@
-"""Pictures and Rerun recordings of maps, scenes and (later) models."""
+"""Pictures and Rerun recordings of maps, scenes, denoising and training; their layouts; headless screenshots."""

@@ -1,0 +1,67 @@
+"""The last guarantee: a map that leaves ``cmtool sample`` runs no lane against a one-way SD road and leaves no SD
+road without a lane, whatever the model drew.
+
+- **One-way roads.** A lane whose length along one-way SD roads runs mostly against them (judged as
+  :func:`cmtool.metrics.geometric.legal_oneway` judges a map) is turned round; its successor links are dropped
+  and found again by endpoint proximity.
+- **Roads without a lane.** The rule layout of the same frame without its junction connectors
+  (:mod:`cmtool.sample.layouts`, where the input has an SD map) lends every lane of it that lies mostly farther
+  than ``COVER_M`` from the map's lanes, with the successor links among them and to the map's lanes at shared
+  ends.
+
+The map's meta keeps the model's own scores (``raw``: validity, legal one-way share, SD road covered) beside
+the final ones and what was changed (``guarantee``: lanes turned, lanes added), so the repair never hides what the
+model did.
+"""
+
+from __future__ import annotations
+
+import math
+
+import numpy as np
+
+from cmtool.core.geometry import resample_step
+from cmtool.maps.lanegraph import LaneGraph, infer_successors
+from cmtool.maps.neighbours import find_neighbours, lane_widths
+from cmtool.metrics.geometric import legal_oneway
+from cmtool.metrics.lanes import distance_to_polylines
+
+COVER_M = 3.0  # a rule lane farther than this from the map's lanes along most of its length is added
+
+
+def guarantee(graph: LaneGraph, sd: np.ndarray | None, rules: LaneGraph | None = None) -> LaneGraph:
+    """``graph`` with lanes against one-way SD roads (on the SD raster ``sd``) turned round and the lanes of the
+    rule layout ``rules`` of the same frame added where the map has none (module doc)."""
+    lanes = [np.asarray(l, np.float64) for l in graph.lanes]
+    successors = list(graph.successors)
+    turned = []
+    if sd is not None:
+        for k, lane in enumerate(lanes):
+            share, judged = legal_oneway([lane], sd, frame_m=graph.frame_m)
+            if judged > 0 and share < 0.5:
+                lanes[k] = lane[::-1].copy()
+                turned.append(k)
+    added = []
+    if rules is not None and rules.lanes:
+        near = [distance_to_polylines(resample_step(np.asarray(l, np.float64), 1.0), lanes) for l in rules.lanes]
+        added = [k for k, d in enumerate(near) if np.mean(d > COVER_M) > 0.5]
+    if not turned and not added:
+        return graph
+    first = len(lanes)
+    lanes += [np.asarray(rules.lanes[k], np.float64) for k in added]
+    index = {k: first + n for n, k in enumerate(added)}
+    changed = set(turned) | set(index.values())
+    successors = [(i, j) for i, j in successors if i not in changed and j not in changed]
+    successors += [(index[i], index[j]) for i, j in (rules.successors if added else []) if i in index and j in index]
+    successors += [(i, j) for i, j in infer_successors(lanes) if (i in changed or j in changed)]
+    left, oncoming = find_neighbours(lanes)
+    meta = dict(graph.meta) | {"guarantee": {"turned": len(turned), "added": len(added)}}
+    return LaneGraph(lanes=lanes, successors=sorted(set(successors)), left_neighbors=left, oncoming=oncoming,
+                     widths=lane_widths(lanes, left).round(2).tolist(), green_lights=graph.green_lights,
+                     red_lights=graph.red_lights, city=graph.city, frame_m=graph.frame_m, meta=meta)
+
+
+def raw_scores(graph: LaneGraph) -> dict:
+    """The scores :func:`cmtool.sample.run.score_map` recorded, to keep as the model's own."""
+    return {k: graph.meta[k] for k in ("validity", "legal_oneway", "sd_coverage")
+            if graph.meta.get(k) is not None and math.isfinite(graph.meta[k])}
