@@ -154,6 +154,17 @@ def write_json(path: str | os.PathLike, obj) -> None:
     write_text_atomic(path, json_text(obj))
 
 
+class JsonFile:
+    """``save`` and ``load`` for a type with ``to_json()`` and ``from_json(obj, where=...)`` (one object a file)."""
+
+    def save(self, path) -> None:
+        write_json(path, self.to_json())
+
+    @classmethod
+    def load(cls, path):
+        return cls.from_json(read_json(path), where=str(path))
+
+
 class Fields:
     """Typed access to a JSON object that names the offending field in its errors.
 

@@ -29,7 +29,7 @@ from dataclasses import dataclass, field
 import numpy as np
 
 from cmtool.core.errors import CmtoolError
-from cmtool.core.jsonio import Fields, read_json, write_json
+from cmtool.core.jsonio import Fields, JsonFile
 
 LANE_TYPES = ("vehicle", "bus", "bike")
 LIGHT_STATES = ("green", "red", "unknown")
@@ -77,7 +77,7 @@ class Crosswalk:
 
 
 @dataclass
-class HDMap:
+class HDMap(JsonFile):
     city: str
     lanes: dict[str, Lane] = field(default_factory=dict)
     stop_lines: list[StopLine] = field(default_factory=list)
@@ -209,13 +209,6 @@ class HDMap:
             more = f" (and {len(errors) - 1} more)" if len(errors) > 1 else ""
             raise CmtoolError(f"{where}: {errors[0]}{more}")
         return hd
-
-    def save(self, path) -> None:
-        write_json(path, self.to_json())
-
-    @classmethod
-    def load(cls, path) -> "HDMap":
-        return cls.from_json(read_json(path), where=str(path))
 
 
 def _ids(f: Fields, key: str) -> list[str]:

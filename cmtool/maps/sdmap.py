@@ -23,7 +23,7 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
-from cmtool.core.jsonio import Fields, read_json, write_json
+from cmtool.core.jsonio import Fields, JsonFile
 
 ROAD_CLASSES = ("motorway", "trunk", "primary", "secondary", "tertiary", "unclassified", "residential", "service")
 FORMAT = "cmtool.sdmap"
@@ -45,7 +45,7 @@ class Road:
 
 
 @dataclass
-class SDMap:
+class SDMap(JsonFile):
     city: str | None = None
     roads: list[Road] = field(default_factory=list)
     source: str = ""
@@ -103,10 +103,3 @@ class SDMap:
             seen.add(road.id)
             sd.roads.append(road)
         return sd
-
-    def save(self, path) -> None:
-        write_json(path, self.to_json())
-
-    @classmethod
-    def load(cls, path) -> "SDMap":
-        return cls.from_json(read_json(path), where=str(path))
