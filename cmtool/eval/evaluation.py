@@ -359,8 +359,8 @@ def _eval_blueprint() -> rrb.Blueprint:
                                visual_bounds=bounds) for m, title in PANELS.items()]
     plots = [rrb.TimeSeriesView(origin=f"/metrics/{key}", name=title, plot_legend=rrb.PlotLegend(corner="LeftTop"))
              for key, title in RECORDED_SCORES.items()]
-    top = rrb.Horizontal(*maps, rrb.TextDocumentView(origin="/scene/scores", name="scores of this scene"),
-                         column_shares=[2] * (len(PANELS) + 2))
+    top = rrb.Grid(*maps, rrb.TextDocumentView(origin="/scene/scores", name="scores of this scene"),
+                   grid_columns=(len(maps) + 2) // 2)  # two rows: SD and the baselines, then the model and the truth
     return rrb.Blueprint(rrb.Vertical(top, rrb.Horizontal(*plots), row_shares=[3, 2]),
                          rrb.BlueprintPanel(expanded=False), rrb.SelectionPanel(expanded=False),
                          rrb.TimePanel(expanded=True, timeline="sample"))
