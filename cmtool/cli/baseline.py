@@ -90,7 +90,13 @@ def _run(method, osm, center, heading, from_hd, pose, seed, side, out, grid, who
         poses = src.parse_points(pose, ("x", "y", "yaw"), {}, "--pose") if pose is not None else None
         inputs = [] if whole is not None and pose is None else src.hd_inputs(from_hd, poses, seed)
     if whole is not None:
-        sd_map, city = _sd_map(osm, from_hd) if not inputs else (inputs[0].sd_map, inputs[0].city)
+        if inputs:
+            sd_map, city = inputs[0].sd_map, inputs[0].city
+        elif osm is not None:
+            sd_map, city = src.osm_sd_map(osm), None
+        else:
+            source, sd_map = src.hd_sd_map(from_hd)
+            city = source.city
         hd = LAYOUTS[method](sd_map, side or drives_on(city))
         hd.save(whole)
         click.echo(f"wrote the {method} layout of {len(sd_map.roads)} SD roads: {len(hd.lanes)} lanes -> {whole}")
@@ -99,21 +105,3 @@ def _run(method, osm, center, heading, from_hd, pose, seed, side, out, grid, who
         write_baseline_maps(maps, method, out, grid)
         click.echo(summary_table(maps))
         click.echo(f"wrote {len(maps)} {method} lane graph{'s' if len(maps) > 1 else ''} and pictures to {out}")
-
-
-def _sd_map(osm, from_hd):
-    """The SD map of an input file, and its city."""
-    if osm is not None:
-        from cmtool.formats.osm import read_osm
-
-        sd_map = read_osm(osm)
-        if not sd_map.roads:
-            raise CmtoolError(f"{osm}: no drivable roads in the OpenStreetMap file")
-        return sd_map, None
-    from cmtool.data.sd_derive import derive_sd
-    from cmtool.maps.hdmap import HDMap
-
-    hd = HDMap.load(from_hd)
-    if not hd.lanes:
-        raise CmtoolError(f"{from_hd}: the HD map has no lanes")
-    return derive_sd(hd), hd.city

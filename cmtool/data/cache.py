@@ -355,10 +355,11 @@ def scene_sd_maps(data_dir, split: str) -> list[SDMap]:
     manifest = load_manifest(data_dir)
     if split not in manifest["splits"]:
         raise CmtoolError(f"{data_dir}: no split {split!r} (has {', '.join(manifest['splits'])})")
+    unit_of = {name: u["index"] for u in manifest["units"] for name in u["shards"]}
     maps: dict[str, SDMap] = {}
     out = []
     for shard in manifest["splits"][split]["shards"]:
-        name = sd_file(split, int(Path(shard["file"]).name[1:6]))
+        name = sd_file(split, unit_of[shard["file"]])
         if name not in maps:
             path = Path(data_dir) / name
             if not path.is_file():

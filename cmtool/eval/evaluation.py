@@ -34,7 +34,7 @@ from cmtool.core.errors import CmtoolError
 from cmtool.core.jsonio import read_json, write_json, write_text_atomic
 from cmtool.core.progress import Progress
 from cmtool.data.cache import MissingSDMaps, load_dataset, load_manifest, scene_sd_maps
-from cmtool.data.scene import Scene, SceneCropper
+from cmtool.data.scene import Scene
 from cmtool.diffusion.settings import SamplerSettings
 from cmtool.formats.sumo import netconvert_path
 from cmtool.maps.hdmap import drives_on
@@ -47,7 +47,7 @@ from cmtool.model import checkpoint as ckpt
 from cmtool.model.release import BUNDLED
 from cmtool.sample import DEFAULT_SMOOTH
 from cmtool.sample.guarantee import guarantee
-from cmtool.sample.layouts import LAYOUTS, without_connectors
+from cmtool.sample.layouts import LAYOUTS, NO_INIT, check_init, cropped_layouts
 from cmtool.sample.generator import MapGenerator
 from cmtool.viz.draw import graph_panel, grid, sd_panel, title_strip
 from cmtool.viz.recording import close_recording, log_lanes, log_sd, open_recording
@@ -72,15 +72,12 @@ class EvalSettings(SamplerSettings):
     weights: str = ""  # digest of the ControlMap's and its RVAE's weights (a re-pack keeps the path)
     noise: str = NOISE
     precision: str = "fp32"  # of the denoising model (MapGenerator.precision)
-    init: str = "none"  # ControlMap starts from this layout of the scene's SD map (cmtool.sample.layouts), encoded
+    init: str = NO_INIT  # ControlMap starts from this layout of the scene's SD map (cmtool.sample.layouts), encoded
     strength: float = 1.0  # ... noised this far up the schedule
 
     def check(self, prefix: str = "--") -> None:
         super().check(prefix)
-        if self.init not in ("none", *LAYOUTS):
-            raise CmtoolError(f"{prefix}init: choose none, {', '.join(LAYOUTS)}, got {self.init!r}")
-        if not 0 < self.strength <= 1:
-            raise CmtoolError(f"{prefix}strength: must be in (0, 1], got {self.strength}")
+        check_init(self.init, self.strength, prefix)
 
 
 def run_eval(gen: MapGenerator, settings: EvalSettings, out: Path, extractor: FeatureExtractor | None,
@@ -96,18 +93,18 @@ def run_eval(gen: MapGenerator, settings: EvalSettings, out: Path, extractor: Fe
     n = min(settings.n, len(data))
     settings.n, settings.checkpoint, settings.smooth = n, str(gen.path), gen.smooth
     settings.weights = ckpt.weights_digest(gen.path, ckpt.resolve(ckpt.linked(gen.path, gen.config["rvae"])),
-                                           *([gen.encoder_path] if settings.init != "none" and gen.encoder_path else []))
+                                           *([gen.encoder_path] if settings.init != NO_INIT and gen.encoder_path else []))
     scenes = [data.scene(i) for i in range(n)]
     starts = None
-    if settings.init != "none":
+    if settings.init != NO_INIT:
         gen.encode([])  # an RVAE without an encoder fails here
         starts = scene_layouts(settings.data, settings.split, scenes, settings.init)
     generated = _generate(gen, scenes, settings, out / "cache", progress, info, starts)
     if not info.main:
         return None
     try:
-        baselines = {m: [_as_map(s, m, k) for k, s in enumerate(scene_layouts(settings.data, settings.split, scenes,
-                                                                               m))]
+        baselines = {m: [_as_map(s, m, k) for k, s in enumerate(
+                         starts if m == settings.init else scene_layouts(settings.data, settings.split, scenes, m))]
                      for m in LAYOUTS if m != "netconvert" or netconvert_path() is not None}
         roads = scene_layouts(settings.data, settings.split, scenes, "rules", roads_only=True)
         final = [guarantee(g, s.sd, r.to_lanegraph()) for g, s, r in zip(generated["controlmap"], scenes, roads)]
@@ -168,15 +165,9 @@ def scene_layouts(data_dir, split: str, scenes, method: str, roads_only: bool = 
     """The ``method`` layout (rules, netconvert) of each scene's SD map (the one its SD raster was drawn from),
     cropped as the dataset cropped the scene; ``roads_only``: without its junction connectors."""
     recipe = load_manifest(data_dir)["recipe"]
-    croppers: dict[int, SceneCropper] = {}
-    out = []
-    for scene, sd_map in zip(scenes, scene_sd_maps(data_dir, split)):
-        if id(sd_map) not in croppers:
-            hd = LAYOUTS[method](sd_map, drives_on(scene.city))
-            croppers[id(sd_map)] = SceneCropper(without_connectors(hd) if roads_only else hd)
-        out.append(croppers[id(sd_map)].extract(scene.pose, recipe["num_lines"], recipe["num_points"],
-                                                recipe["num_lights"], recipe["frame_m"], recipe["min_piece_m"]))
-    return out
+    crop = {k: recipe[k] for k in ("num_lines", "num_points", "num_lights", "frame_m", "min_piece_m")}
+    frames = [(sd_map, s.pose, drives_on(s.city)) for s, sd_map in zip(scenes, scene_sd_maps(data_dir, split))]
+    return cropped_layouts(frames, method, roads_only, **crop)
 
 
 def _as_map(scene: Scene, method: str, k: int) -> LaneGraph:
@@ -220,7 +211,7 @@ def _open_cache(cache: Path, settings: EvalSettings) -> tuple[int, dict[str, lis
     cache.mkdir(parents=True, exist_ok=True)
     meta = cache / "settings.json"
     mine = {k: v for k, v in asdict(settings).items()  # caches from before --init have no init entries
-            if k != "n" and not (k in ("init", "strength") and settings.init == "none")}
+            if k != "n" and not (k in ("init", "strength") and settings.init == NO_INIT)}
     if meta.is_file():
         theirs = read_json(meta)
         if theirs != mine:
@@ -282,8 +273,8 @@ def summary_markdown(report: dict) -> str:
     head = [f"# cmtool eval: {title}", "",
             f"- checkpoint `{s['checkpoint']}`", f"- data `{s['data']}`, split {s['split']}, {s['n']} scenes",
             f"- ControlMap: guidance w = {s['cfg']}"
-            + (f", started from the {s['init']} layout noised to strength {s['strength']:g}" if s.get("init", "none")
-               != "none" else "") + f"; both: {s['steps']} {s['sampler']} steps, seed {s['seed']}, "
+            + (f", started from the {s['init']} layout noised to strength {s['strength']:g}" if s.get("init", NO_INIT)
+               != NO_INIT else "") + f"; both: {s['steps']} {s['sampler']} steps, seed {s['seed']}, "
             "the same initial noise per scene",
             f"- lanes: {_smoothing(s['smooth'])}",
             "- unguided: the frozen DiT without SD control or city label (the paper's SLEDGE rows)",

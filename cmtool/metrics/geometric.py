@@ -148,11 +148,37 @@ def legal_oneway(lanes: Sequence[np.ndarray], sd: np.ndarray, reach: float = 4.0
     along that road (within 45 degrees of its axis, so lanes crossing it at a junction are not
     judged); it is legal when it heads within 90 degrees of the road's travel heading.
     """
-    road = sd[..., 0] > 0
-    pieces = _resampled(lanes, step)
-    if not (road & (sd[..., 2] > 0)).any() or not pieces:
+    judged = _oneway_points(lanes, sd, reach, frame_m, step)
+    if judged is None or not len(judged[1]):
         return math.nan, 0.0
-    points, dirs = _headings(pieces)
+    return float(np.mean(judged[1])), float(len(judged[1]) * step)
+
+
+def legal_oneway_by_lane(lanes: Sequence[np.ndarray], sd: np.ndarray, reach: float = 4.0, frame_m: float = 64.0,
+                         step: float = STEP_M) -> tuple[np.ndarray, np.ndarray]:
+    """:func:`legal_oneway` of each lane on its own, (shares, judged metres) (L,) each (NaN and 0 where nothing of
+    the lane is judged), from one search over the road pixels."""
+    shares, metres = np.full(len(lanes), math.nan), np.zeros(len(lanes))
+    judged = _oneway_points(lanes, sd, reach, frame_m, step)
+    if judged is not None and len(judged[1]):
+        lane, legal = judged
+        counts = np.bincount(lane, minlength=len(lanes))
+        seen = counts > 0
+        shares[seen] = np.bincount(lane, weights=legal, minlength=len(lanes))[seen] / counts[seen]
+        metres = counts * step
+    return shares, metres
+
+
+def _oneway_points(lanes, sd: np.ndarray, reach: float, frame_m: float,
+                   step: float) -> tuple[np.ndarray, np.ndarray] | None:
+    """The judged points of :func:`legal_oneway`: each one's lane index and whether it runs the legal way (None
+    without one-way road pixels or lanes)."""
+    road = sd[..., 0] > 0
+    pieces = [(k, p) for k, p in enumerate(resample_step(as_polyline(l), step) for l in lanes) if len(p) >= 2]
+    if not (road & (sd[..., 2] > 0)).any() or not pieces:
+        return None
+    points, dirs = _headings([p for _, p in pieces])
+    lane = np.repeat([k for k, _ in pieces], [len(p) for _, p in pieces])
     rows, cols = np.nonzero(road)
     _, nearest = cKDTree(pixel_centres(road, frame_m)).query(points, distance_upper_bound=reach)
     found = nearest < len(rows)
@@ -161,9 +187,7 @@ def legal_oneway(lanes: Sequence[np.ndarray], sd: np.ndarray, reach: float = 4.0
     theta = decode_direction(value)
     cos = dirs[:, 0] * np.cos(theta) + dirs[:, 1] * np.sin(theta)
     judged = (value > 0) & (np.abs(cos) >= math.cos(math.radians(45.0)))
-    if not judged.any():
-        return math.nan, 0.0
-    return float(np.mean(cos[judged] > 0)), float(judged.sum() * step)
+    return lane[judged], cos[judged] > 0
 
 
 def _resampled(lanes: Sequence[np.ndarray], step: float) -> list[np.ndarray]:

@@ -23,7 +23,7 @@ import numpy as np
 from cmtool.core.geometry import resample_step
 from cmtool.maps.lanegraph import LaneGraph, infer_successors
 from cmtool.maps.neighbours import find_neighbours, lane_widths
-from cmtool.metrics.geometric import legal_oneway
+from cmtool.metrics.geometric import legal_oneway_by_lane
 from cmtool.metrics.lanes import distance_to_polylines
 
 COVER_M = 3.0  # a rule lane farther than this from the map's lanes along most of its length is added
@@ -34,13 +34,12 @@ def guarantee(graph: LaneGraph, sd: np.ndarray | None, rules: LaneGraph | None =
     rule layout ``rules`` of the same frame added where the map has none (module doc)."""
     lanes = [np.asarray(l, np.float64) for l in graph.lanes]
     successors = list(graph.successors)
-    turned = []
+    turned: list[int] = []
     if sd is not None:
-        for k, lane in enumerate(lanes):
-            share, judged = legal_oneway([lane], sd, frame_m=graph.frame_m)
-            if judged > 0 and share < 0.5:
-                lanes[k] = lane[::-1].copy()
-                turned.append(k)
+        shares, judged = legal_oneway_by_lane(lanes, sd, frame_m=graph.frame_m)
+        turned = [k for k in range(len(lanes)) if judged[k] > 0 and shares[k] < 0.5]
+        for k in turned:
+            lanes[k] = lanes[k][::-1].copy()
     added = []
     if rules is not None and rules.lanes:
         near = [distance_to_polylines(resample_step(np.asarray(l, np.float64), 1.0), lanes) for l in rules.lanes]

@@ -59,11 +59,8 @@ def osm_inputs(path, centers: list[tuple[float, float, float]]) -> list[ControlI
     """SD rasters of an OpenStreetMap file around ``(lat, lon, heading)`` points; heading in
     compass degrees (0 = north is up in the raster, 90 = east is up)."""
     from cmtool.core.geo import LocalProjection
-    from cmtool.formats.osm import read_osm
 
-    sd_map = read_osm(path)
-    if not sd_map.roads:
-        raise CmtoolError(f"{path}: no drivable roads in the OpenStreetMap file")
+    sd_map = osm_sd_map(path)
     proj = LocalProjection(sd_map.meta["lat0"], sd_map.meta["lon0"])
     inputs = []
     for k, (lat, lon, heading) in enumerate(centers):
@@ -81,19 +78,35 @@ def osm_inputs(path, centers: list[tuple[float, float, float]]) -> list[ControlI
     return inputs
 
 
-def hd_inputs(path, poses: list[tuple[float, float, float]] | None, seed: int = 0) -> list[ControlInput]:
-    """SD rasters derived from an HD map JSON at ego poses ``(x, y, yaw degrees)``, each with the
-    ground-truth lane graph of the same frame; ``poses`` None picks one drivable pose at random."""
-    from cmtool.core.geo import LocalProjection
-    from cmtool.data.frames import FrameSampler
-    from cmtool.data.scene import Pose, SceneCropper
+def osm_sd_map(path) -> SDMap:
+    """The SD map of an OpenStreetMap file, which must hold a drivable road."""
+    from cmtool.formats.osm import read_osm
+
+    sd_map = read_osm(path)
+    if not sd_map.roads:
+        raise CmtoolError(f"{path}: no drivable roads in the OpenStreetMap file")
+    return sd_map
+
+
+def hd_sd_map(path):
+    """An HD map JSON, which must hold lanes, and the SD map derived from it."""
     from cmtool.data.sd_derive import derive_sd
     from cmtool.maps.hdmap import HDMap
 
     hd = HDMap.load(path)
     if not hd.lanes:
         raise CmtoolError(f"{path}: the HD map has no lanes")
-    sd_map = derive_sd(hd)
+    return hd, derive_sd(hd)
+
+
+def hd_inputs(path, poses: list[tuple[float, float, float]] | None, seed: int = 0) -> list[ControlInput]:
+    """SD rasters derived from an HD map JSON at ego poses ``(x, y, yaw degrees)``, each with the
+    ground-truth lane graph of the same frame; ``poses`` None picks one drivable pose at random."""
+    from cmtool.core.geo import LocalProjection
+    from cmtool.data.frames import FrameSampler
+    from cmtool.data.scene import Pose, SceneCropper
+
+    hd, sd_map = hd_sd_map(path)
     if poses is None:
         picked = FrameSampler(sd_map).sample(1, np.random.default_rng(seed))
         poses = [(f.pose.x, f.pose.y, math.degrees(f.pose.yaw)) for f in picked]

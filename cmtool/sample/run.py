@@ -37,7 +37,7 @@ from cmtool.metrics.validity import check
 from cmtool.sample.generator import MapGenerator
 from cmtool.sample.guarantee import guarantee, raw_scores
 from cmtool.sample.inputs import ControlInput
-from cmtool.sample.layouts import LAYOUTS, layout_scenes
+from cmtool.sample.layouts import NO_INIT, check_init, layout_scenes
 from cmtool.viz.draw import graph_panel, legend, sd_panel, title_strip
 from cmtool.viz.recording import APP_IDS, close_recording, log_lanes, log_sd, open_recording, served
 from cmtool.viz.show import write_png
@@ -45,7 +45,6 @@ from cmtool.viz.trajectory import TrajectoryLogger, sampling_blueprint
 
 SERVING: list[rr.RecordingStream] = []  # recordings served with --serve, kept alive until the process ends
 AUTO = "auto"  # --city default: the source map's city when the checkpoint knows it, else none
-NO_INIT = "none"  # --init default: sampling starts from noise alone
 PANEL = 256
 VIEWER_PORT = 9876  # Rerun's default gRPC port
 
@@ -64,10 +63,7 @@ class SampleSettings(SamplerSettings):
 
     def check(self, prefix: str = "--") -> None:
         super().check(prefix)
-        if self.init not in (NO_INIT, *LAYOUTS):
-            raise SamplingError(f"{prefix}init: choose {NO_INIT}, {', '.join(LAYOUTS)}, got {self.init!r}")
-        if not (math.isfinite(self.strength) and 0 < self.strength <= 1):
-            raise SamplingError(f"{prefix}strength: must be in (0, 1], got {self.strength}")
+        check_init(self.init, self.strength, prefix)
         if not (math.isfinite(self.city_cfg) and self.city_cfg >= 0):
             raise SamplingError(f"{prefix}city-cfg: guidance weight must be a finite number >= 0, got {self.city_cfg}")
         if self.num < 1:
