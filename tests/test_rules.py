@@ -65,6 +65,24 @@ def test_one_way_roads_run_their_way_and_a_divided_road_is_two():
                if l.centerline[0][1] < 10)  # centred on a one-way road
 
 
+def test_the_layout_channels_draw_each_lane_with_its_heading():
+    from cmtool.data.layouts import LAYOUT_CHANNELS, control_raster, cropped_layouts, layout_raster
+    from cmtool.data.scene import Pose
+
+    sd = SDMap(roads=[road("a", [[-100, 0], [100, 0]], oneway=-1, lanes=2)])  # two lanes running towards -x
+    (scene,) = cropped_layouts([(sd, Pose(0.0, 0.0, 0.0), "right")], "rules")
+    raster = layout_raster(scene)
+    assert raster.shape == (128, 128, LAYOUT_CHANNELS) and raster.dtype == np.uint8
+    drawn = raster.any(-1)
+    rows, cols = np.nonzero(drawn)
+    assert set(rows) == set(range(128))  # the lanes cross the whole frame, front to back (x is up)
+    assert np.all(np.abs(cols - 63.5) < 4.0 / 0.5)  # within 4 m of the road, which runs through the centre
+    assert np.all(raster[drawn] == [0, 128])  # heading pi: cos -1 -> 0, sin 0 -> 128 (of 255)
+    assert len(np.unique(cols)) >= 4  # two lanes side by side, 2 px (1 m) each
+    image = control_raster(np.full((128, 128, 3), 7, np.uint8), None)  # no layout (an SD picture): zeros
+    assert image.shape == (128, 128, 5) and not image[..., 3:].any() and (image[..., :3] == 7).all()
+
+
 def test_a_crossing_gets_connectors_and_no_u_turns():
     sd = SDMap(roads=[road("ew", [[-100, 0], [0, 0], [100, 0]], lanes=2),
                       road("ns", [[0, -100], [0, 0], [0, 100]], lanes=4, road_class="secondary")])
@@ -190,8 +208,10 @@ def test_sample_starts_from_the_rule_layout(sampling_ckpt, tmp_path, capsys):
     (name,) = [p for p in (tmp_path / "sde").glob("*.json") if not p.name.endswith(".gt.json")]
     meta = json.loads(name.read_text())["meta"]
     assert meta["init"] == "rules" and meta["strength"] == 0.3
-    code, _, err = in_process(capsys, *args, "--init", "rules", "--out", tmp_path / "x")  # the shipped decoder alone
-    assert code == 1 and "holds no encoder" in err and "cmtool train encoder" in err
+    code, _, err = in_process(capsys, *args, "--init", "rules", "--out", tmp_path / "x")  # the shipped weights encode
+    assert code == 0, err
+    (name,) = [p for p in (tmp_path / "x").glob("*.json") if not p.name.endswith(".gt.json")]
+    assert json.loads(name.read_text())["meta"]["init"] == "rules"
     code, _, err = in_process(capsys, *args, "--encoder", sampling_ckpt["rvae"], "--out", tmp_path / "y")
     assert code == 1 and "--encoder goes with --init" in err
     code, _, err = in_process(capsys, "sample", "--sd", REPO / "sample_data" / "sd_sgp.png", "--init", "rules",
@@ -205,7 +225,7 @@ def test_the_guarantee_turns_wrong_way_lanes_and_fills_roads_without_lanes():
     from cmtool.maps.lanegraph import LaneGraph
     from cmtool.metrics.geometric import legal_oneway, sd_adherence
     from cmtool.sample.guarantee import guarantee
-    from cmtool.sample.layouts import without_connectors
+    from cmtool.data.layouts import without_connectors
 
     sd_map = SDMap(roads=[road("one", [[-40, 0], [40, 0]], oneway=1, lanes=1),
                           road("two", [[10, -40], [10, 40]], lanes=2)])

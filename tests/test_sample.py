@@ -154,6 +154,22 @@ def test_same_seed_same_json_and_cfg_zero_is_the_unguided_model(sampling_ckpt, t
         tmp_path / "a" / "sd_bos.json")
 
 
+def test_candidates_keep_the_best_of_the_maps_drawn_for_each(sampling_ckpt, tmp_path, capsys):
+    cm = sampling_ckpt["controlmap"]
+    common = ("--ckpt", cm, "--sd", SD_PNG, "--steps", STEPS, "--city", "PIT", "--quiet")
+    assert in_process(capsys, "sample", *common, "--num", 3, "--no-log", "--out", tmp_path / "all")[0] == 0
+    assert in_process(capsys, "sample", *common, "--candidates", 3, "--out", tmp_path / "best")[0] == 0
+    drawn = [json.loads((tmp_path / "all" / f"sd_bos_s{k}.json").read_text())["meta"] for k in range(3)]
+    (best,) = [json.loads(p.read_text()) for p in (tmp_path / "best").glob("*.json")]
+    means = [round(float(np.mean([v for v in (m["validity"], m.get("sd_coverage"), m.get("legal_oneway"))
+                                  if v is not None])), 6) for m in drawn]
+    assert best["meta"]["candidates"] == {"chosen": int(np.argmax(means)), "scores": means}  # the same three draws
+    assert best["lanes"] == json.loads((tmp_path / "all" / f"sd_bos_s{int(np.argmax(means))}.json").read_text())["lanes"]
+    assert "/sample_2/control/sd" in {str(c.entity_path) for c in RrdReader(tmp_path / "best" / "sample.rrd").stream()}
+    code, _, err = in_process(capsys, "sample", *common, "--candidates", 0, "--no-log", "--out", tmp_path / "x")
+    assert code == 2 and "--candidates" in err
+
+
 def test_drawings_and_other_sizes_are_converted_with_a_note(sampling_ckpt, tmp_path, capsys):
     sketches = tmp_path / "sketches"
     sketches.mkdir()

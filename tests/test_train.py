@@ -173,8 +173,33 @@ def test_encoder_stage_trains_an_encoder_for_a_frozen_packed_decoder(runs, tmp_p
     assert all(torch.equal(v.float(), after[k]) for k, v in decoder.items())  # the decoder stayed as packed
     trained = load_file(str(ckpt.resolve(root / "rvae") / ckpt.WEIGHTS))
     assert _encoder(after) and not torch.equal(after["trunk.0.weight"], trained["trunk.0.weight"])
+    # it ships beside that decoder (pack --encoder), and the packed weights then encode by themselves
+    packed = cli("pack", "--ckpt", runs["controlnet"], "--rvae", tmp_path / "w" / "rvae", "--encoder", tmp_path / "enc",
+                 "--out", tmp_path / "full")
+    assert packed.returncode == 0, packed.stderr
+    shipped = ckpt.read_weights(tmp_path / "full" / "rvae")
+    assert all(torch.equal(v, after[k].half()) for k, v in shipped.items()) and _encoder(shipped).keys() == \
+        _encoder(after).keys()
+    assert ckpt.load_config(tmp_path / "full" / "rvae")["encoder_trained"]["step"] == 4
+    assert "trained for this decoder by `cmtool train encoder`" in cli("info", tmp_path / "full" / "rvae").stdout
+    from cmtool.sample.generator import MapGenerator
+    assert MapGenerator.load(tmp_path / "full" / "controlmap").encode([]).shape == (0, 64, 8, 8)
     assert "frozen, from" in cli("info", tmp_path / "enc").stdout
     assert "which stays frozen" in cli("info", recipe).stdout
+
+
+def test_encoder_stage_names_a_decoder_weight_of_the_wrong_shape(runs, tmp_path):
+    from cmtool.train.recipe import load_recipe
+    from cmtool.train.stages import EncoderStage
+
+    assert cli("pack", "--ckpt", runs["controlnet"], "--out", tmp_path / "w").returncode == 0
+    weights = load_file(str(tmp_path / "w" / "rvae" / ckpt.WEIGHTS))
+    weights["query.weight"] = weights["query.weight"][:-1]
+    save_file(weights, str(tmp_path / "w" / "rvae" / ckpt.WEIGHTS))
+    recipe = write_recipe(tmp_path / "encoder.toml", "encoder", 2, data=str(runs["data"]),
+                          rvae=str(tmp_path / "w" / "rvae"))
+    with pytest.raises(CmtoolError, match=r"query.weight of shape \(\d+, \d+\), not"):
+        EncoderStage(load_recipe(recipe), torch.device("cpu")).model()
 
 
 def test_decoder_stage_trains_the_decoder_on_the_frozen_encoder(runs, tmp_path):
@@ -201,6 +226,10 @@ def test_decoder_stage_trains_the_decoder_on_the_frozen_encoder(runs, tmp_path):
     assert packed.returncode == 0, packed.stderr
     shipped = load_file(str(tmp_path / "w" / "rvae" / ckpt.WEIGHTS))
     assert not _encoder(shipped) and torch.equal(shipped["query.weight"], after["query.weight"].half())
+    # an encoder for another decoder does not ship with this one
+    refused = cli("pack", "--ckpt", runs["controlnet"], "--rvae", tmp_path / "dec", "--encoder", root / "rvae",
+                  "--out", tmp_path / "w5")
+    assert refused.returncode == 1 and "its decoder or latent scale is not the one that ships" in refused.stderr
     # ... but refuses an RVAE with another encoder
     other = tmp_path / "other"
     shutil.copytree(ckpt.resolve(tmp_path / "dec"), other)
@@ -293,6 +322,59 @@ def test_control_branch_starts_from_another_controlmap(runs, tmp_path):
     (tmp_path / "other.toml").write_text(other)
     with pytest.raises(CmtoolError, match="branch_from needs a ControlMap"):
         ControlNetStage(load_recipe(tmp_path / "other.toml"), torch.device("cpu")).model()
+
+
+def test_a_branch_that_reads_the_rule_layout_starts_as_the_branch_without(runs, tmp_path, capsys):
+    from cmtool.data.cache import load_dataset
+    from cmtool.data.synth import generate_city
+    from cmtool.model.controlmap import sd_tensor
+    from cmtool.train.recipe import load_recipe
+    from cmtool.train.stages import ControlNetStage
+    from tests.conftest import in_process
+
+    root = runs["root"]
+    layout = '\nin_channels = 5\nlayout = "rules"\n'
+    recipe = write_recipe(tmp_path / "c.toml", "controlnet", 2, data=str(runs["data"]), rvae=str(root / "rvae"),
+                          dit=str(runs["controlnet"]), branch_from=str(runs["controlnet"]), layout_dropout=0.5,
+                          preview_every=0)
+    recipe.write_text(recipe.read_text() + layout)
+    stage = ControlNetStage(load_recipe(recipe), torch.device("cpu"))  # the DiT taken from a ControlMap's base
+    model = stage.model().eval()
+    old, _ = ckpt.load_model(runs["controlnet"], "cpu")
+    first = model.encoder.stages[0].down.weight
+    assert first.shape[1] == 5 and torch.equal(first[:, 3:], torch.zeros_like(first[:, 3:]))
+    # the control images of the train scenes: SD raster, then the rule layout's lanes on the SD roads
+    images = stage.dataset().sd
+    scenes = load_dataset(runs["data"], "train")
+    assert images.shape == (24, 128, 128, 5) and np.array_equal(images[..., :3], scenes.arrays["sd"])
+    lanes = images[..., 3:].any(-1)
+    near = np.stack([cv2.dilate((sd[..., 0] > 0).astype(np.uint8), np.ones((25, 25))) > 0 for sd in images])
+    assert lanes.sum() > 24 * 200 and (lanes & near).sum() > 0.9 * lanes.sum()
+    x, t, y = torch.randn(4, 64, 8, 8), torch.tensor([10, 200, 500, 900]), torch.tensor([0, 1, 2, 3])
+    control = torch.stack([sd_tensor(c) for c in images[:4]])
+    with torch.no_grad():
+        assert torch.allclose(model(x, t, y, control=control), old(x, t, y, control=control[:, :3]), atol=1e-5)
+
+    result = cli("train", "controlnet", "--recipe", recipe, "--out", tmp_path / "cn", "--quiet")
+    assert result.returncode == 0, result.stderr
+    city = tmp_path / "pit.json"
+    generate_city("PIT", seed=2, extent=300.0).save(city)
+    code, _, err = in_process(capsys, "sample", "--ckpt", tmp_path / "cn", "--from-hd", city, "--steps", 3, "--quiet",
+                              "--out", tmp_path / "maps")
+    assert code == 0, err
+    (made,) = [p for p in (tmp_path / "maps").glob("*.json") if not p.name.endswith(".gt.json")]
+    assert json.loads(made.read_text())["meta"]["layout"] == "rules"
+    assert "/control/layout" in {str(c.entity_path) for c in RrdReader(tmp_path / "maps" / "sample.rrd").stream()}
+    code, _, err = in_process(capsys, "sample", "--ckpt", tmp_path / "cn", "--sd", REPO / "sample_data" / "sd_lav.png",
+                              "--steps", 3, "--no-log", "--quiet", "--out", tmp_path / "pic")  # no layout: zeros
+    assert code == 0, err
+    (made,) = (tmp_path / "pic").glob("*.json")
+    assert json.loads(made.read_text())["meta"]["layout"] == "none"
+
+    bad = recipe.read_text().replace("in_channels = 5", "in_channels = 3")
+    (tmp_path / "bad.toml").write_text(bad)
+    with pytest.raises(CmtoolError, match="control.in_channels: must be 5"):
+        ControlNetStage(load_recipe(tmp_path / "bad.toml"), torch.device("cpu")).model()
 
 
 def test_dit_starts_from_a_dit_or_a_controlmaps_frozen_base(runs, tmp_path, capsys):

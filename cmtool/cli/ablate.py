@@ -71,13 +71,14 @@ def _ablate_options(fn):
 def ablate_cfg(ckpt, data_dir, split, n, steps, sampler, smooth, out, device, precision, quiet, weights, seeds, backbone,
                weights_file, no_features):
     """Sweep the guidance weight w: SD adherence, GT Recall and diversity against w."""
-    from cmtool.eval.ablations import cfg_sweep
+    from cmtool.eval.ablations import cfg_sweep, layouts_of
     from cmtool.metrics.features import FeatureExtractor
 
     ws = _floats(weights, "--w")
     gen, scenes = _ablation_setup(ckpt, data_dir, split, n, device, smooth, precision)
     extractor = None if no_features else FeatureExtractor(backbone, weights_file, gen.device)
-    cfg_sweep(gen, scenes, ws, seeds, steps, extractor, out, progress=not quiet, sampler=sampler)
+    cfg_sweep(gen, scenes, ws, seeds, steps, extractor, out, progress=not quiet, sampler=sampler,
+              layouts=layouts_of(gen, data_dir, split, scenes))
     click.echo((out / "ablate_cfg.md").read_text().rstrip())
     click.echo(f"wrote {out / 'ablate_cfg.md'}, {out / 'ablate_cfg.png'}, {out / 'ablate_cfg.rrd'}")
 
@@ -94,13 +95,20 @@ def ablate_city_swap(ckpt, data_dir, split, n, steps, sampler, smooth, out, devi
 
     --ckpt may also name a DiT: its maps ignore the SD maps, whose two-way roads still judge them
     where they happen to meet (the oncoming-lane columns judge every map)."""
-    from cmtool.eval.ablations import city_swap
+    from cmtool.eval.ablations import city_swap, layouts_of
+    from cmtool.maps.hdmap import drives_on
+    from cmtool.model.controlmap import NO_LAYOUT
 
     names = [v.strip() for v in labels.split(",") if v.strip()]
     gen, scenes = _ablation_setup(ckpt, data_dir, split, n, device, smooth, precision, dit_ok=True)
     for name in names:
         gen.label(name)  # unknown labels fail before any work
-    city_swap(gen, scenes, names, steps, cfg, seed, out, progress=not quiet, sampler=sampler, city_cfg=city_cfg)
+    layouts = None
+    if gen.layout != NO_LAYOUT:  # each label's maps read the layout of its own driving side
+        layouts = {name: layouts_of(gen, data_dir, split, scenes, None if name.lower() == "none" else drives_on(name))
+                   for name in names}
+    city_swap(gen, scenes, names, steps, cfg, seed, out, progress=not quiet, sampler=sampler, city_cfg=city_cfg,
+              layouts=layouts)
     click.echo((out / "ablate_city_swap.md").read_text().rstrip())
     click.echo(f"wrote {out / 'ablate_city_swap.md'}, {out / 'ablate_city_swap.png'}")
 

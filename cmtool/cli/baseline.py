@@ -6,7 +6,7 @@ from pathlib import Path
 
 import click
 
-from cmtool.cli.common import SEED, Finite
+from cmtool.cli.common import SEED, map_input_options, map_inputs
 from cmtool.core.errors import CmtoolError
 
 INPUTS_HELP = """
@@ -33,14 +33,7 @@ def baseline():
 
 def _inputs(command):
     for option in reversed([
-        click.option("--osm", type=click.Path(path_type=Path), help="OpenStreetMap .osm/.osm.pbf file."),
-        click.option("--center", help="With --osm: LAT,LON of the frame centre, or a .jsonl of {lat, lon, heading}."),
-        click.option("--heading", default=0.0, show_default=True, type=Finite(),
-                     help="With --osm: compass heading that points up, degrees."),
-        click.option("--from-hd", "from_hd", type=click.Path(path_type=Path),
-                     help="HD map JSON (procedural or imported)."),
-        click.option("--pose", help="With --from-hd: X,Y,YAW (m, m, degrees) or a .jsonl of {x, y, yaw} [default: a "
-                                    "random drivable pose]."),
+        map_input_options,
         click.option("--seed", default=0, show_default=True, type=SEED, help="Seed of the random pose."),
         click.option("--side", default="auto", show_default=True, type=click.Choice(["auto", "right", "left"]),
                      help="Driving side; auto: the HD map's city's, else right."),
@@ -68,27 +61,18 @@ def netconvert(**options):
 
 
 def _run(method, osm, center, heading, from_hd, pose, seed, side, out, grid, whole):
+    from cmtool.data.layouts import LAYOUTS
     from cmtool.maps.hdmap import drives_on
     from cmtool.sample import inputs as src
     from cmtool.sample.baseline import baseline_maps, write_baseline_maps
-    from cmtool.sample.layouts import LAYOUTS
     from cmtool.sample.run import summary_table
 
     if (osm is None) == (from_hd is None):
         raise CmtoolError("give one SD input: --osm or --from-hd")
-    if center is not None and osm is None:
-        raise CmtoolError("--center goes with --osm")
-    if pose is not None and from_hd is None:
-        raise CmtoolError("--pose goes with --from-hd")
+    if osm is not None and center is None and whole is None:
+        raise CmtoolError("--osm needs --center LAT,LON (or a .jsonl of centres), or --whole")
     side = None if side == "auto" else side
-    if osm is not None:
-        if center is None and whole is None:
-            raise CmtoolError("--osm needs --center LAT,LON (or a .jsonl of centres), or --whole")
-        inputs = [] if center is None else src.osm_inputs(osm, src.parse_points(
-            center, ("lat", "lon", "heading"), {"heading": heading}, "--center"))
-    else:
-        poses = src.parse_points(pose, ("x", "y", "yaw"), {}, "--pose") if pose is not None else None
-        inputs = [] if whole is not None and pose is None else src.hd_inputs(from_hd, poses, seed)
+    inputs = map_inputs(osm, center, heading, from_hd, pose, seed, whole=whole is not None)
     if whole is not None:
         if inputs:
             sd_map, city = inputs[0].sd_map, inputs[0].city

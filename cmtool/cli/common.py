@@ -116,6 +116,46 @@ def _checkpoint(path: Path | None) -> Path:
     return bundled_checkpoint() if path is None else path
 
 
+def map_input_options(command):
+    """--osm/--center/--heading and --from-hd/--pose: SD inputs cut from a map (``cmtool sample`` and ``baseline``)."""
+    for option in reversed([
+        click.option("--osm", type=click.Path(path_type=Path), help="OpenStreetMap .osm/.osm.pbf file."),
+        click.option("--center", help="With --osm: LAT,LON of the frame centre, or a .jsonl of {lat, lon, heading}."),
+        click.option("--heading", default=0.0, show_default=True, type=Finite(),
+                     help="With --osm: compass heading that points up, degrees."),
+        click.option("--from-hd", "from_hd", type=click.Path(path_type=Path),
+                     help="HD map JSON (procedural or imported)."),
+        click.option("--pose", help="With --from-hd: X,Y,YAW (m, m, degrees) or a .jsonl of {x, y, yaw} [default: a "
+                                    "random drivable pose]."),
+    ]):
+        command = option(command)
+    return command
+
+
+def map_inputs(osm, center, heading, from_hd, pose, seed, whole: bool = False) -> list:
+    """The frames that the map input options name (:func:`map_input_options`; at most one of --osm and --from-hd
+    given, none of them: no frames); ``whole``: frames are optional (a whole map is asked for)."""
+    from cmtool.sample import inputs as src
+
+    if center is not None and osm is None:
+        raise CmtoolError("--center goes with --osm")
+    if pose is not None and from_hd is None:
+        raise CmtoolError("--pose goes with --from-hd")
+    if osm is not None:
+        if center is None:
+            if whole:
+                return []
+            raise CmtoolError("--osm needs --center LAT,LON (or a .jsonl of centres)")
+        return src.osm_inputs(osm, src.parse_points(center, ("lat", "lon", "heading"), {"heading": heading},
+                                                    "--center"))
+    if from_hd is not None:
+        if pose is None and whole:
+            return []
+        poses = src.parse_points(pose, ("x", "y", "yaw"), {}, "--pose") if pose is not None else None
+        return src.hd_inputs(from_hd, poses, seed)
+    return []
+
+
 def init_options(command):
     """--init, --strength and --encoder: SDEdit from a rule-based layout (``cmtool sample`` and ``cmtool eval``)."""
     for option in reversed([

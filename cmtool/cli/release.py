@@ -32,15 +32,19 @@ def info(path, as_json):
               help="RVAE to ship instead of the one the ControlMap was trained on: a `cmtool train decoder` run "
                    "on that RVAE (same encoder, so the same latent space), or an already packed decoder "
                    "with the same latent scale (e.g. cmtool/weights/rvae).")
+@click.option("--encoder", default=None, type=click.Path(path_type=Path),
+              help="Ship this RVAE's encoder too: a `cmtool train encoder` run for the decoder that ships (same "
+                   "decoder weights and latent scale), so that `sample --init` needs no --encoder.")
 @click.option("--out", default=None, type=click.Path(file_okay=False, path_type=Path),
               help="Folder to write [default: the package's own cmtool/weights].")
-def pack(ckpt, rvae, out):
-    """Pack a trained ControlMap (and its RVAE's decoder) as float16 weights to ship with cmtool."""
+def pack(ckpt, rvae, encoder, out):
+    """Pack a trained ControlMap (and its RVAE's decoder, with --encoder an encoder too) as float16 weights to ship
+    with cmtool."""
     from cmtool.model.release import BUNDLED, MANIFEST
     from cmtool.model.release import pack as pack_release
 
     out = out or BUNDLED
-    manifest = pack_release(ckpt, out, rvae=rvae)
+    manifest = pack_release(ckpt, out, rvae=rvae, encoder=encoder)
     for name, f in manifest["files"].items():
         click.echo(f"{out / name}  {f['bytes'] / 1e6:.2f} MB  sha256 {f['sha256'][:16]}...")
     click.echo(f"total {manifest['total_bytes'] / 1e6:.2f} MB; checksums in {out / MANIFEST}")

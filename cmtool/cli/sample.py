@@ -8,7 +8,7 @@ from pathlib import Path
 import click
 
 from cmtool.cli.common import (CITY_CFG_HELP, PRECISION_OPTION, SEED, SMOOTH_OPTION, Finite, _device, _generator,
-                               attach_init, init_options, sampler_options)
+                               attach_init, init_options, map_input_options, map_inputs, sampler_options)
 from cmtool.core.errors import CmtoolError
 
 SAMPLE_HELP = """Generate lane-level HD maps from SD maps with ControlMap, recording every denoising step.
@@ -30,14 +30,11 @@ Large sets in several processes (CPU or GPUs), the same maps as one process:
               help="ControlMap (or DiT) checkpoint or run folder [default: the weights shipped with cmtool].")
 @click.option("--sd", "sd_paths", multiple=True, type=click.Path(path_type=Path),
               help="SD raster / road drawing picture, or a folder of them (repeatable).")
-@click.option("--osm", type=click.Path(path_type=Path), help="OpenStreetMap .osm/.osm.pbf file.")
-@click.option("--center", help="With --osm: LAT,LON of the frame centre, or a .jsonl of {lat, lon, heading}.")
-@click.option("--heading", default=0.0, show_default=True, type=Finite(),
-              help="With --osm: compass heading that points up, degrees.")
-@click.option("--from-hd", "from_hd", type=click.Path(path_type=Path), help="HD map JSON (procedural or imported).")
-@click.option("--pose", help="With --from-hd: X,Y,YAW (m, m, degrees) or a .jsonl of {x, y, yaw} [default: a random "
-              "drivable pose].")
+@map_input_options
 @click.option("--num", default=1, show_default=True, type=click.IntRange(min=1), help="Maps per SD input.")
+@click.option("--candidates", default=1, show_default=True, type=click.IntRange(min=1),
+              help="Draw this many maps for each one and keep the best: the highest mean of its validity score, "
+                   "SD road covered and legal one-way share (every candidate is in the recording).")
 @click.option("--seed", default=0, show_default=True, type=SEED, help="Random seed.")
 @sampler_options
 @click.option("--eta", default=0.0, show_default=True, type=Finite(min=0),
@@ -67,7 +64,7 @@ Large sets in several processes (CPU or GPUs), the same maps as one process:
 @click.option("--device", help="torch device [default: cuda when available, else cpu].")
 @PRECISION_OPTION
 @click.option("--quiet", is_flag=True, help="No progress line.")
-def sample(ckpt, sd_paths, osm, center, heading, from_hd, pose, num, seed, steps, sampler, eta, city, cfg, city_cfg,
+def sample(ckpt, sd_paths, osm, center, heading, from_hd, pose, num, candidates, seed, steps, sampler, eta, city, cfg, city_cfg,
            init, strength, encoder_path, smooth, batch, out, rrd, grid, spawn, connect_url, serve, raw, no_log, device,
            precision, quiet):
     import shlex
@@ -79,29 +76,16 @@ def sample(ckpt, sd_paths, osm, center, heading, from_hd, pose, num, seed, steps
     kinds = [name for name, given in (("--sd", sd_paths), ("--osm", osm), ("--from-hd", from_hd)) if given]
     if len(kinds) > 1:
         raise CmtoolError(f"give one kind of SD input, not {' and '.join(kinds)}")
-    if center is not None and osm is None:
-        raise CmtoolError("--center goes with --osm")
-    if pose is not None and from_hd is None:
-        raise CmtoolError("--pose goes with --from-hd")
     if no_log and (rrd or spawn or connect_url or serve):
         raise CmtoolError("--no-log cannot be combined with --rrd, --spawn, --connect or --serve")
     if spawn + bool(connect_url) + serve > 1:
         raise CmtoolError("give one of --spawn, --connect and --serve")
     settings = SampleSettings(num=num, seed=seed, steps=steps, sampler=sampler, eta=eta, cfg=cfg, city=city,
                               city_cfg=city_cfg, batch=batch, init=init, strength=strength if init != "none" else 1.0,
-                              guarantee=not raw)
+                              guarantee=not raw, candidates=candidates)
     settings.check()
-    if sd_paths:
-        inputs = src.image_inputs(sd_paths)
-    elif osm is not None:
-        if center is None:
-            raise CmtoolError("--osm needs --center LAT,LON (or a .jsonl of centres)")
-        inputs = src.osm_inputs(osm, src.parse_points(center, ("lat", "lon", "heading"), {"heading": heading},
-                                                      "--center"))
-    elif from_hd is not None:
-        poses = src.parse_points(pose, ("x", "y", "yaw"), {}, "--pose") if pose is not None else None
-        inputs = src.hd_inputs(from_hd, poses, seed)
-    else:
+    inputs = src.image_inputs(sd_paths) if sd_paths else map_inputs(osm, center, heading, from_hd, pose, seed)
+    if not inputs:
         inputs = [src.ControlInput("uncond", None, "no SD input")]
     info = D.setup(str(_device(device)))
     gen = _generator(ckpt, str(info.device), smooth, precision)

@@ -27,6 +27,7 @@ import rerun.blueprint as rrb
 
 from cmtool.core.jsonio import write_json, write_text_atomic
 from cmtool.core.progress import Progress
+from cmtool.data.layouts import scene_layout_rasters
 from cmtool.diffusion.settings import DEFAULT_SAMPLER, SamplerSettings
 from cmtool.maps.hdmap import drives_on
 from cmtool.maps.lanegraph import LaneGraph
@@ -36,6 +37,7 @@ from cmtool.metrics.retrieval import batch_recall
 from cmtool.metrics.suite import markdown_table, weighted_mean
 from cmtool.metrics.topology import topology_fd
 from cmtool.metrics.validity import check
+from cmtool.model.controlmap import NO_LAYOUT
 from cmtool.sample.generator import MapGenerator
 from cmtool.viz.draw import BACKGROUND, TEXT, graph_panel, grid, sd_panel, title_strip
 from cmtool.viz.recording import close_recording, log_lanes, log_sd, open_recording
@@ -45,18 +47,29 @@ PICTURE_SCENES = 4
 
 
 def generate(gen: MapGenerator, sds: np.ndarray, labels: list[int], cfg: float, steps: int, seed: int,
-             sampler: str = DEFAULT_SAMPLER, batch: int = 64, city_cfg: float = 1.0) -> list[LaneGraph]:
+             sampler: str = DEFAULT_SAMPLER, batch: int = 64, city_cfg: float = 1.0,
+             layouts: list | None = None) -> list[LaneGraph]:
     """One map per SD raster (a DiT ignores them) at guidance weight ``cfg``; a batch's noise depends only on the
-    seed and its first scene, so other weights, labels and checkpoints see the same noise."""
+    seed and its first scene, so other weights, labels and checkpoints see the same noise. ``layouts``: the layout
+    rasters of a branch that reads them (:attr:`MapGenerator.layout`)."""
     settings = SamplerSettings(cfg=cfg, steps=steps, sampler=sampler, seed=seed, batch=batch)
     meta = {"cfg": cfg, "seed": seed, "sampler": sampler, "smooth": gen.smooth}
     return gen.generate_all(sds if gen.has_control else None, labels, settings, [dict(meta) for _ in labels],
-                            city_cfg=city_cfg)
+                            city_cfg=city_cfg, layouts=layouts)
+
+
+def layouts_of(gen: MapGenerator, data_dir, split: str, scenes, side: str | None = None) -> list | None:
+    """The layout rasters of ``scenes`` (the first of a dataset split) when ``gen``'s branch reads one, else None;
+    ``side``: laid out for this driving side [default: each scene's city's]."""
+    if gen.layout == NO_LAYOUT:
+        return None
+    return scene_layout_rasters(data_dir, split, scenes, gen.layout, side)
 
 
 def cfg_sweep(gen: MapGenerator, scenes, weights: list[float], seeds: int, steps: int, extractor: FeatureExtractor | None,
-              out, progress: bool = True, sampler: str = DEFAULT_SAMPLER) -> list[dict]:
-    """The sweep's rows (one per w), written with its plot and recording to ``out``."""
+              out, progress: bool = True, sampler: str = DEFAULT_SAMPLER, layouts: list | None = None) -> list[dict]:
+    """The sweep's rows (one per w), written with its plot and recording to ``out``; ``layouts``: see
+    :func:`generate`."""
     sds = np.stack([s.sd for s in scenes])
     truth = [s.to_lanegraph() for s in scenes]
     labels = [gen.known_label(s.city) for s in scenes]
@@ -66,7 +79,7 @@ def cfg_sweep(gen: MapGenerator, scenes, weights: list[float], seeds: int, steps
         for w in weights:
             runs = []
             for seed in range(seeds):
-                runs.append(generate(gen, sds, labels, w, steps, seed, sampler))
+                runs.append(generate(gen, sds, labels, w, steps, seed, sampler, layouts=layouts))
                 bar.update()
             maps_by_w[w] = runs[0]
             adherence = [sd_adherence(m.lanes, sd) for m, sd in zip(runs[0], sds)]
@@ -123,15 +136,18 @@ def _cfg_blueprint(scenes: int) -> rrb.Blueprint:
 
 
 def city_swap(gen: MapGenerator, scenes, labels: list[str], steps: int, cfg: float, seed: int, out,
-              progress: bool = True, sampler: str = DEFAULT_SAMPLER, city_cfg: float = 1.0) -> list[dict]:
+              progress: bool = True, sampler: str = DEFAULT_SAMPLER, city_cfg: float = 1.0,
+              layouts: dict[str, list] | None = None) -> list[dict]:
     """Driving side per city label on the same SD maps and noise (judged against the two-way SD roads
-    and by the side of oncoming lanes), at city-label guidance ``city_cfg``, written to ``out``."""
+    and by the side of oncoming lanes), at city-label guidance ``city_cfg``, written to ``out``; ``layouts``: per
+    label, the layout rasters laid out for its driving side (see :func:`generate`)."""
     sds = np.stack([s.sd for s in scenes])
     rows, maps = [], {}
     with Progress(len(labels), "ablate city-swap", "labels", enabled=progress) as bar:
         for name in labels:
             y = gen.label(name)
-            maps[name] = generate(gen, sds, [y] * len(scenes), cfg, steps, seed, sampler, city_cfg=city_cfg)
+            maps[name] = generate(gen, sds, [y] * len(scenes), cfg, steps, seed, sampler, city_cfg=city_cfg,
+                                  layouts=None if layouts is None else layouts[name])
             shares = [driving_side(m.lanes, sd, "left") for m, sd in zip(maps[name], sds)]
             oncoming = [oncoming_side(m.lanes, "left") for m in maps[name]]
             left = weighted_mean([s for s, n in shares], [n for s, n in shares])

@@ -33,22 +33,23 @@ from cmtool.core import dist as D
 from cmtool.core.errors import CmtoolError
 from cmtool.core.jsonio import read_json, write_json, write_text_atomic
 from cmtool.core.progress import Progress
-from cmtool.data.cache import MissingSDMaps, load_dataset, load_manifest, scene_sd_maps
+from cmtool.data.cache import MissingSDMaps, load_dataset
+from cmtool.data.layouts import LAYOUTS, layout_raster, scene_layouts
 from cmtool.data.scene import Scene
 from cmtool.diffusion.settings import SamplerSettings
 from cmtool.formats.sumo import netconvert_path
-from cmtool.maps.hdmap import drives_on
 from cmtool.maps.lanegraph import LaneGraph, write_jsonl
 from cmtool.metrics.features import FeatureExtractor, sd_image
 from cmtool.metrics.lanes import lane_scores
 from cmtool.metrics.suite import evaluate, reference_image_features, summary_table
 from cmtool.metrics.validity import check
 from cmtool.model import checkpoint as ckpt
+from cmtool.model.controlmap import NO_LAYOUT
 from cmtool.model.release import BUNDLED
 from cmtool.sample import DEFAULT_SMOOTH
-from cmtool.sample.guarantee import guarantee
-from cmtool.sample.layouts import LAYOUTS, NO_INIT, check_init, cropped_layouts
 from cmtool.sample.generator import MapGenerator
+from cmtool.sample.guarantee import guarantee
+from cmtool.sample.layouts import NO_INIT, check_init
 from cmtool.viz.draw import graph_panel, grid, sd_panel, title_strip
 from cmtool.viz.recording import close_recording, log_lanes, log_sd, open_recording
 from cmtool.viz.show import write_png
@@ -95,11 +96,15 @@ def run_eval(gen: MapGenerator, settings: EvalSettings, out: Path, extractor: Fe
     settings.weights = ckpt.weights_digest(gen.path, ckpt.resolve(ckpt.linked(gen.path, gen.config["rvae"])),
                                            *([gen.encoder_path] if settings.init != NO_INIT and gen.encoder_path else []))
     scenes = [data.scene(i) for i in range(n)]
-    starts = None
+    starts = layouts = None
     if settings.init != NO_INIT:
         gen.encode([])  # an RVAE without an encoder fails here
         starts = scene_layouts(settings.data, settings.split, scenes, settings.init)
-    generated = _generate(gen, scenes, settings, out / "cache", progress, info, starts)
+    if gen.layout != NO_LAYOUT:
+        read = starts if settings.init == gen.layout else scene_layouts(settings.data, settings.split, scenes,
+                                                                         gen.layout)
+        layouts = [layout_raster(scene, s.sd.shape[0]) for scene, s in zip(read, scenes)]
+    generated = _generate(gen, scenes, settings, out / "cache", progress, info, starts, layouts)
     if not info.main:
         return None
     try:
@@ -161,15 +166,6 @@ def frame_groups(scenes, reference, generated: dict[str, list]) -> dict:
     return out
 
 
-def scene_layouts(data_dir, split: str, scenes, method: str, roads_only: bool = False) -> list[Scene]:
-    """The ``method`` layout (rules, netconvert) of each scene's SD map (the one its SD raster was drawn from),
-    cropped as the dataset cropped the scene; ``roads_only``: without its junction connectors."""
-    recipe = load_manifest(data_dir)["recipe"]
-    crop = {k: recipe[k] for k in ("num_lines", "num_points", "num_lights", "frame_m", "min_piece_m")}
-    frames = [(sd_map, s.pose, drives_on(s.city)) for s, sd_map in zip(scenes, scene_sd_maps(data_dir, split))]
-    return cropped_layouts(frames, method, roads_only, **crop)
-
-
 def _as_map(scene: Scene, method: str, k: int) -> LaneGraph:
     graph = scene.to_lanegraph()
     graph.meta = {"method": method, "scene": k}
@@ -177,7 +173,7 @@ def _as_map(scene: Scene, method: str, k: int) -> LaneGraph:
 
 
 def _generate(gen: MapGenerator, scenes, settings: EvalSettings, cache: Path, progress: bool,
-              info: D.DistInfo, starts: list[Scene] | None) -> dict[str, list] | None:
+              info: D.DistInfo, starts: list[Scene] | None, layouts: list | None) -> dict[str, list] | None:
     """Both methods' maps for ``scenes``, continuing from (and extending) the cache: on the main process; the
     others generate their turns' batches and get None."""
     start, done = None, None
@@ -193,7 +189,8 @@ def _generate(gen: MapGenerator, scenes, settings: EvalSettings, cache: Path, pr
         bar.update(start)
         for mine in D.rounds(list(range(start, len(scenes), settings.batch)), info):
             made = [_batch_lines(gen, scenes[b0:b0 + settings.batch], b0, settings,
-                                 None if starts is None else starts[b0:b0 + settings.batch]) for b0 in mine]
+                                 None if starts is None else starts[b0:b0 + settings.batch],
+                                 None if layouts is None else layouts[b0:b0 + settings.batch]) for b0 in mine]
             for part in D.gather(made, info) or []:
                 for lines in part:
                     for m in METHODS:
@@ -228,10 +225,10 @@ def _open_cache(cache: Path, settings: EvalSettings) -> tuple[int, dict[str, lis
     return start, done
 
 
-def _batch_lines(gen: MapGenerator, batch, b0: int, settings: EvalSettings,
-                 starts: list[Scene] | None) -> dict[str, list[str]]:
+def _batch_lines(gen: MapGenerator, batch, b0: int, settings: EvalSettings, starts: list[Scene] | None,
+                 layouts: list | None) -> dict[str, list[str]]:
     """Both methods' maps of the scenes ``batch`` (starting at scene ``b0``; ControlMap from the layouts ``starts``
-    when given) as JSON lines; the batch's noise depends on ``b0`` alone, so the maps do not depend on which
+    when given, reading the layout rasters ``layouts`` when its branch reads one) as JSON lines; the batch's noise depends on ``b0`` alone, so the maps do not depend on which
     process makes them."""
     lines = {}
     for m in METHODS:  # the same noise for both methods
@@ -243,7 +240,8 @@ def _batch_lines(gen: MapGenerator, batch, b0: int, settings: EvalSettings,
             init = None if starts is None else gen.encode(starts)
         metas = [{"method": m, "scene": b0 + k, "seed": settings.seed} for k in range(len(batch))]
         lines[m] = [json.dumps(g.to_json(), separators=(",", ":")) for g in
-                    gen.generate(sd, labels, settings, b0, init=init, strength=settings.strength, metas=metas)]
+                    gen.generate(sd, labels, settings, b0, init=init, strength=settings.strength, layouts=layouts,
+                                 metas=metas)]
     return lines
 
 

@@ -108,10 +108,11 @@ class ControlConfig:
     """
 
     num_blocks: int = 6
-    in_channels: int = 3
+    in_channels: int = 3  # 3 SD raster channels, + 2 with a layout
     image_px: int = 128
     widths: tuple[int, ...] = (32, 64, 128, 192)
     groups: int = 32
+    layout: str = "none"  # "rules": the control image carries the rule layout's lanes too (cmtool.data.layouts)
 
     def __post_init__(self) -> None:
         self.widths = tuple(self.widths)

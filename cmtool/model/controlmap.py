@@ -1,6 +1,7 @@
 """ControlMap (stage 3): an SD-map ControlNet branch on a frozen, pretrained DiT.
 
-A convolutional control encoder turns the ``(B, 3, 128, 128)`` SD raster into a ``(B, 64, 8, 8)``
+A convolutional control encoder turns the ``(B, 3, 128, 128)`` SD raster (with ``control.layout``, followed by
+the two channels of the rule layout's lanes: :mod:`cmtool.data.layouts`) into a ``(B, 64, 8, 8)``
 map, adds 2D sine-cosine positions and flattens it to 64 tokens. Trainable copies of the first
 ``M`` DiT blocks (initialised from the base) run on ``base tokens + proj(control tokens)``; the
 output of copy ``m`` passes a zero-initialised linear layer and is added to the output of base block
@@ -17,13 +18,26 @@ import torch.nn.functional as F
 from torch import Tensor, nn
 
 from cmtool.core.errors import CmtoolError
+from cmtool.data.layouts import LAYOUT_CHANNELS, LAYOUTS, control_raster
 from cmtool.model.config import ControlConfig
 from cmtool.model.dit import DiT, sincos_pos_embed_2d
 
+SD_CHANNELS = 3
+NO_LAYOUT = "none"
+
 
 def sd_tensor(sd: np.ndarray) -> Tensor:
-    """(H, W, 3) uint8 SD raster -> (3, H, W) float32 in [0, 1] (the control encoder's input)."""
+    """(H, W, C) uint8 control image (an SD raster, maybe with layout channels) -> (C, H, W) float32 in [0, 1]."""
     return torch.from_numpy(np.ascontiguousarray(sd.transpose(2, 0, 1))).float().div_(255.0)
+
+
+def control_images(config: ControlConfig, sd: np.ndarray, layouts: list | None = None) -> np.ndarray:
+    """The control images (B, H, W, in_channels) uint8 that a branch of ``config`` reads, from SD rasters ``sd``
+    (B, H, W, 3) and, when it reads a layout, each scene's layout raster (None, or None entries: no layout)."""
+    if config.layout == NO_LAYOUT:
+        return np.asarray(sd)
+    layouts = layouts if layouts is not None else [None] * len(sd)
+    return np.stack([control_raster(s, lay) for s, lay in zip(sd, layouts)])
 
 
 class EncoderStage(nn.Module):
@@ -42,7 +56,7 @@ class EncoderStage(nn.Module):
 
 
 class ControlEncoder(nn.Module):
-    """SD raster ``(B, 3, px, px)`` in [0, 1] -> control tokens ``(B, (px/16)**2, out_channels)``."""
+    """Control image ``(B, C, px, px)`` in [0, 1] -> control tokens ``(B, (px/16)**2, out_channels)``."""
 
     def __init__(self, config: ControlConfig, out_channels: int):
         super().__init__()
@@ -87,7 +101,7 @@ class ControlMap(nn.Module):
         return [p for name, p in self.named_parameters() if not name.startswith("base.")]
 
     def encode_control(self, control: Tensor) -> Tensor:
-        """SD rasters ``(B, 3, px, px)`` -> control tokens ``(B, T, hidden)`` (fixed over a sampling run)."""
+        """Control images ``(B, C, px, px)`` -> control tokens ``(B, T, hidden)`` (fixed over a sampling run)."""
         return self.proj(self.encoder(control))
 
     def forward(self, x: Tensor, t: Tensor, y: Tensor, control: Tensor | None = None) -> Tensor:
@@ -141,5 +155,10 @@ def _validate(config: ControlConfig, dit: DiT) -> None:
     if dit.config.latent_channels % 4:
         raise CmtoolError(f"dit.latent_channels: must be divisible by 4 for the control tokens, got "
                           f"{dit.config.latent_channels}")
-    if config.in_channels <= 0:
-        raise CmtoolError(f"control.in_channels: must be > 0, got {config.in_channels}")
+    if config.layout not in (NO_LAYOUT, *LAYOUTS):
+        raise CmtoolError(f"control.layout: choose {NO_LAYOUT}, {', '.join(LAYOUTS)}, got {config.layout!r}")
+    wanted = SD_CHANNELS + (LAYOUT_CHANNELS if config.layout != NO_LAYOUT else 0)
+    if config.in_channels != wanted:
+        raise CmtoolError(f"control.in_channels: must be {wanted} with control.layout = {config.layout!r} "
+                          f"({SD_CHANNELS} SD channels{f', {LAYOUT_CHANNELS} layout channels' if wanted > 3 else ''}), "
+                          f"got {config.in_channels}")

@@ -4,7 +4,8 @@
 ``cmtool/weights/``::
 
     controlmap/   config.json + model.safetensors   frozen DiT + control branch, float16
-    rvae/         config.json + model.safetensors   the RVAE's decoder only (latent -> lanes), float16
+    rvae/         config.json + model.safetensors   the RVAE's decoder (latent -> lanes), float16, and with
+                                                    ``--encoder`` an encoder into its latent space (HD -> latent)
     MANIFEST.json                                   SHA-256 and size of every file, where they came from
 
 Weights over 16 MiB are split into files of at most that size (``model-00001-of-00002.safetensors``
@@ -19,6 +20,8 @@ from __future__ import annotations
 
 import json
 from pathlib import Path
+
+import torch
 
 from cmtool.core.errors import CmtoolError
 from cmtool.core.jsonio import read_json, write_text_atomic
@@ -39,10 +42,12 @@ def bundled_checkpoint() -> Path:
     return path
 
 
-def pack(controlmap, out: Path, rvae=None) -> dict:
+def pack(controlmap, out: Path, rvae=None, encoder=None) -> dict:
     """Write the float16 release set of the ControlMap checkpoint ``controlmap`` into ``out``;
     returns the manifest. ``rvae``: an RVAE to ship instead of the ControlMap's own, which must
-    share its encoder (a decoder fine-tune of it) so that it reads the same latent space."""
+    share its encoder (a decoder fine-tune of it) so that it reads the same latent space. ``encoder``: an RVAE
+    whose encoder ships too, one trained for the shipped decoder (``cmtool train encoder``: the same decoder
+    weights and latent scale), so that the weights encode maps (``sample --init``) by themselves."""
     src = ckpt.resolve(controlmap)
     config = ckpt.load_config(src)
     if config["kind"] != "controlmap":
@@ -54,8 +59,10 @@ def pack(controlmap, out: Path, rvae=None) -> dict:
     dit_training = None
     if config.get("dit"):
         try:
-            dit_training = {k: v for k, v in ckpt.load_config(ckpt.linked(src, config["dit"])).items()
-                            if k in ckpt.DIT_RECORD}
+            dit = ckpt.load_config(ckpt.linked(src, config["dit"]))
+            if dit["kind"] == "controlmap":  # a branch trained on another ControlMap's frozen DiT
+                dit = dit.get("dit_training") or {}
+            dit_training = {k: v for k, v in dit.items() if k in ckpt.DIT_RECORD}
         except CmtoolError:
             pass  # the DiT run is gone; its weights are inside the ControlMap anyway
 
@@ -70,15 +77,37 @@ def pack(controlmap, out: Path, rvae=None) -> dict:
                if not k.startswith(ENCODER_PREFIXES)}
     rvae_out = {k: v for k, v in rvae_config.items() if k not in ("format", "version")}
     rvae_out.update(weights="decoder", packed_from=rvae_config.get("packed_from", str(rvae_src)))
+    if encoder is not None:
+        enc_src, enc_config, trunk = _encoder_for(ckpt.resolve(encoder), rvae_config, decoder)
+        decoder |= trunk
+        rvae_out.update(weights="full", encoder_trained={
+            "path": enc_config.get("packed_from", str(enc_src)),
+            **{k: enc_config[k] for k in ("own_latent_scale", "reconstruction", "step", "recipe_path", "training")
+               if k in enc_config}})
     ckpt.save_checkpoint(out / "rvae", rvae_out, decoder, max_file_bytes=MAX_FILE_BYTES)
 
     files = sorted(p for p in out.rglob("*") if p.is_file() and p.name != MANIFEST)
     manifest = {"files": {p.relative_to(out).as_posix(): {"sha256": ckpt.file_sha256(p), "bytes": p.stat().st_size}
                           for p in files},
-                "controlmap": str(src), "rvae": str(rvae_src)}
+                "controlmap": cm_config["packed_from"], "rvae": rvae_out["packed_from"],
+                **({"encoder": rvae_out["encoder_trained"]["path"]} if encoder is not None else {})}
     manifest["total_bytes"] = sum(f["bytes"] for f in manifest["files"].values())
     write_text_atomic(out / MANIFEST, json.dumps(manifest, indent=1) + "\n")
     return manifest
+
+
+def _encoder_for(src: Path, decoder_config: dict, decoder: dict) -> tuple[Path, dict, dict]:
+    """The float16 encoder weights of the RVAE ``src`` (and its path and config), checked to encode into the latent
+    space of ``decoder``: the same latent scale and decoder weights (as float16)."""
+    config = ckpt.load_config(src)
+    if config["kind"] != "rvae" or config.get("weights") == "decoder":
+        raise CmtoolError(f"--encoder {src}: not an RVAE with an encoder (a `cmtool train encoder` run)")
+    weights = ckpt.read_weights(src)
+    same = all(k in weights and torch.equal(weights[k].half(), v) for k, v in decoder.items())
+    if not same or config.get("latent_scale") != decoder_config.get("latent_scale"):
+        raise CmtoolError(f"--encoder {src}: its decoder or latent scale is not the one that ships; train one for it "
+                          "with `cmtool train encoder` (train.rvae = that decoder)")
+    return src, config, {k: v.half() for k, v in weights.items() if k.startswith(ENCODER_PREFIXES)}
 
 
 def _same_latent_space(trained_on: Path, other: Path) -> Path:

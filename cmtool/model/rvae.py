@@ -137,8 +137,9 @@ class RVAE(nn.Module):
     def encode(self, raster: Tensor) -> tuple[Tensor, Tensor]:
         """Raster (B, C, H, W) -> posterior mean and log-variance, each (B, latent_channels, S, S)."""
         if self.trunk is None:
-            raise CmtoolError("this RVAE holds its decoder only (the released weights); encoding HD rasters "
-                              "needs a full RVAE checkpoint from `cmtool train rvae`")
+            raise CmtoolError("this RVAE holds its decoder only (a packed decoder); encoding HD rasters needs a full "
+                              "RVAE checkpoint (`cmtool train rvae`, `cmtool train encoder`, or weights packed with "
+                              "--encoder, as the shipped ones are)")
         if tuple(raster.shape[1:]) != (self.config.in_channels, self.config.raster_px, self.config.raster_px):
             raise ValueError(f"expected rasters of shape (B, {self.config.in_channels}, {self.config.raster_px}, "
                              f"{self.config.raster_px}), got {tuple(raster.shape)}")

@@ -1,4 +1,4 @@
-"""``cmtool baseline``: the rule-based lane layouts (:mod:`cmtool.sample.layouts`) of the same SD inputs that
+"""``cmtool baseline``: the rule-based lane layouts (:mod:`cmtool.data.layouts`) of the same SD inputs that
 ``cmtool sample`` takes, written as ``sample`` writes its maps, so that they compare file for file."""
 
 from __future__ import annotations

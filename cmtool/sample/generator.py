@@ -28,7 +28,7 @@ from cmtool.maps.lanegraph import LaneGraph, infer_successors, join_successors
 from cmtool.maps.neighbours import find_neighbours, lane_widths
 from cmtool.model import checkpoint as ckpt
 from cmtool.model.config import ScheduleConfig
-from cmtool.model.controlmap import ControlMap, sd_tensor
+from cmtool.model.controlmap import NO_LAYOUT, ControlMap, control_images, sd_tensor
 from cmtool.model.rvae import ELEMENTS, decoded_elements
 from cmtool.sample import DEFAULT_SMOOTH
 
@@ -84,6 +84,12 @@ class MapGenerator:
         return isinstance(self.model, ControlMap)
 
     @property
+    def layout(self) -> str:
+        """The layout (``cmtool.data.layouts.LAYOUTS``) whose lanes the control branch reads beside the SD raster,
+        or ``"none"``."""
+        return self.model.config.layout if self.has_control else NO_LAYOUT
+
+    @property
     def control_blocks(self) -> int:
         """Number of DiT blocks that receive control residuals (0 for a plain DiT)."""
         return len(self.model.copies) if self.has_control else 0
@@ -112,45 +118,50 @@ class MapGenerator:
 
     def generate(self, sd: np.ndarray | None, labels, settings: SamplerSettings, first: int = 0, *,
                  city_cfg: float = 1.0, eta: float = 0.0, init: torch.Tensor | None = None, strength: float = 1.0,
-                 metas: list[dict] | None = None, callback=None) -> list[LaneGraph]:
+                 layouts: list | None = None, metas: list[dict] | None = None, callback=None) -> list[LaneGraph]:
         """The lane graphs of one batch: maps ``first, first + 1, ...`` of a run sampled as ``settings`` say, for SD
         rasters ``sd`` (B, 128, 128, 3) uint8 (None: the DiT alone) and label indices ``labels`` (B,); ``init``,
-        ``strength``: start from these latents (:meth:`encode`); ``metas``: each map's meta entries;
-        ``callback``: called with every step's :class:`~cmtool.diffusion.samplers.StepInfo`. The noise depends on
-        ``settings.seed`` and ``first`` alone."""
+        ``strength``: start from these latents (:meth:`encode`); ``layouts``: each map's layout raster
+        (:func:`cmtool.data.layouts.layout_raster`, None: none) when the branch reads one (:attr:`layout`);
+        ``metas``: each map's meta entries; ``callback``: called with every step's
+        :class:`~cmtool.diffusion.samplers.StepInfo`. The noise depends on ``settings.seed`` and ``first`` alone."""
         noise, steps = self.batch_noise(len(labels), settings.seed, first)
         z = self.sample(sd, labels, cfg=settings.cfg, city_cfg=city_cfg, steps=settings.steps,
                         sampler=settings.sampler, eta=eta, noise=noise, generator=steps, init=init,
-                        strength=strength, callback=callback)
+                        strength=strength, layouts=layouts, callback=callback)
         metas = metas or [{} for _ in labels]
         return [self.lane_graph(el, self.city_name(y), meta) for el, y, meta in zip(self.decode(z), labels, metas)]
 
     def generate_all(self, sds: np.ndarray | None, labels, settings: SamplerSettings, metas: list[dict] | None = None,
-                     city_cfg: float = 1.0, init: torch.Tensor | None = None, strength: float = 1.0) -> list[LaneGraph]:
+                     city_cfg: float = 1.0, init: torch.Tensor | None = None, strength: float = 1.0,
+                     layouts: list | None = None) -> list[LaneGraph]:
         """:meth:`generate` over all maps, ``settings.batch`` at a time, in one process."""
         maps = []
         for b0 in range(0, len(labels), settings.batch):
             part = slice(b0, b0 + settings.batch)
             maps += self.generate(None if sds is None else sds[part], labels[part], settings, b0, city_cfg=city_cfg,
                                   init=None if init is None else init[part], strength=strength,
+                                  layouts=None if layouts is None else layouts[part],
                                   metas=None if metas is None else metas[part])
         return maps
 
     def sample(self, sd: np.ndarray | None, labels, *, cfg: float, steps: int, sampler: str = DEFAULT_SAMPLER,
                city_cfg: float = 1.0, eta: float = 0.0, generator: torch.Generator | None = None,
                noise: torch.Tensor | None = None, init: torch.Tensor | None = None, strength: float = 1.0,
-               callback=None) -> torch.Tensor:
+               layouts: list | None = None, callback=None) -> torch.Tensor:
         """Clean latents (B, C, H, W) in the DiT's scaled space for SD rasters ``sd`` (B, 128, 128, 3)
         uint8 (None: no control) and label indices ``labels`` (B,); ``noise``: the initial latent;
         ``city_cfg``: guidance on the city label (1: none); ``init``, ``strength``: start from these scaled
-        latents, noised ``strength`` of the way (:func:`cmtool.diffusion.samplers.sample`)."""
+        latents, noised ``strength`` of the way (:func:`cmtool.diffusion.samplers.sample`); ``layouts``: as
+        :meth:`generate`'s."""
         y = torch.as_tensor(np.asarray(labels, np.int64), device=self.device)
         control = None
         if sd is not None:
             if not self.has_control:
                 raise CmtoolError(f"{self.path}: a DiT checkpoint has no control branch; give a ControlMap "
                                   "checkpoint or leave out the SD input")
-            control = torch.stack([sd_tensor(s) for s in sd]).to(self.device)
+            images = control_images(self.model.config, sd, layouts)
+            control = torch.stack([sd_tensor(c) for c in images]).to(self.device)
         with torch.autocast(self.device.type, dtype=torch.bfloat16, enabled=self.precision == "bf16"):
             return sample(self.model, self.schedule, y, control=control, cfg=cfg, city_cfg=city_cfg, steps=steps,
                           sampler=sampler, eta=eta, generator=generator, noise=noise, init=init, strength=strength,
@@ -175,8 +186,8 @@ class MapGenerator:
         encoder's posterior mean, in the DiT's scaled space."""
         encoder = self.encoder if self.encoder is not None else self.rvae
         if encoder.trunk is None:
-            raise CmtoolError(f"{self.path}: its RVAE holds no encoder (the shipped weights hold the decoder only); "
-                              "give --encoder RUN (`cmtool train encoder` trains one for it)")
+            raise CmtoolError(f"{self.path}: its RVAE holds no encoder (weights packed without --encoder); give "
+                              "--encoder RUN (`cmtool train encoder` trains one for it)")
         if not scenes:
             return torch.zeros((0, *self.model.latent_shape), device=self.device)
         px = self.rvae.config.frame_m / self.rvae.config.raster_px

@@ -5,7 +5,7 @@ road without a lane, whatever the model drew.
   :func:`cmtool.metrics.geometric.legal_oneway` judges a map) is turned round; its successor links are dropped
   and found again by endpoint proximity.
 - **Roads without a lane.** The rule layout of the same frame without its junction connectors
-  (:mod:`cmtool.sample.layouts`, where the input has an SD map) lends every lane of it that lies mostly farther
+  (:mod:`cmtool.data.layouts`, where the input has an SD map) lends every lane of it that lies mostly farther
   than ``COVER_M`` from the map's lanes, with the successor links among them and to the map's lanes at shared
   ends.
 

@@ -28,18 +28,20 @@ from cmtool.core.errors import CmtoolError
 from cmtool.core.geometry import polyline_length
 from cmtool.core.jsonio import OutputSet, json_text
 from cmtool.core.progress import Progress
-from cmtool.diffusion.settings import SamplerSettings, SamplingError
+from cmtool.data.layouts import layout_raster
 from cmtool.data.scene import Scene
+from cmtool.diffusion.settings import SamplerSettings, SamplingError
 from cmtool.maps.lanegraph import LaneGraph
 from cmtool.metrics.geometric import legal_oneway, sd_adherence
 from cmtool.metrics.suite import weighted_mean
 from cmtool.metrics.validity import check
+from cmtool.model.controlmap import NO_LAYOUT
 from cmtool.sample.generator import MapGenerator
 from cmtool.sample.guarantee import guarantee, raw_scores
 from cmtool.sample.inputs import ControlInput
 from cmtool.sample.layouts import NO_INIT, check_init, layout_scenes
 from cmtool.viz.draw import graph_panel, legend, sd_panel, title_strip
-from cmtool.viz.recording import APP_IDS, close_recording, log_lanes, log_sd, open_recording, served
+from cmtool.viz.recording import APP_IDS, close_recording, log_lanes, log_layout, log_sd, open_recording, served
 from cmtool.viz.show import write_png
 from cmtool.viz.trajectory import TrajectoryLogger, sampling_blueprint
 
@@ -60,6 +62,7 @@ class SampleSettings(SamplerSettings):
     init: str = NO_INIT  # start from this rule-based layout of the input (cmtool.sample.layouts), encoded
     strength: float = 1.0  # with init: how far up the noise schedule the layout is noised before denoising
     guarantee: bool = True  # no lane against a one-way SD road, no SD road without a lane (cmtool.sample.guarantee)
+    candidates: int = 1  # maps drawn per map asked for; the best (:func:`choose`) is kept
 
     def check(self, prefix: str = "--") -> None:
         super().check(prefix)
@@ -68,6 +71,8 @@ class SampleSettings(SamplerSettings):
             raise SamplingError(f"{prefix}city-cfg: guidance weight must be a finite number >= 0, got {self.city_cfg}")
         if self.num < 1:
             raise SamplingError(f"{prefix}num: must be at least 1, got {self.num}")
+        if self.candidates < 1:
+            raise SamplingError(f"{prefix}candidates: must be at least 1, got {self.candidates}")
 
 
 @dataclass
@@ -79,8 +84,10 @@ class Job:
     label: int
     index: int  # the map's number for this input (0 .. num-1)
     prefix: str = ""
+    candidate: int = 0  # which of the --candidates drawn for this map (0 .. candidates-1)
     init: Scene | None = None  # the layout the map starts from (--init)
     rules: LaneGraph | None = None  # the rule layout of its frame, which the guarantee lends lanes from
+    layout: np.ndarray | None = None  # the layout raster the control branch reads (when it reads one)
 
 
 @dataclass
@@ -97,18 +104,28 @@ def plan(gen: MapGenerator, inputs: list[ControlInput], settings: SampleSettings
     if any(item.sd is not None for item in inputs) and not gen.has_control:
         raise CmtoolError(f"{gen.path}: a DiT checkpoint has no control branch; give a ControlMap checkpoint "
                           "or no SD input")
-    starts = rules = [None] * len(inputs)
+    starts = rules = controls = [None] * len(inputs)
     if settings.init != NO_INIT:
         gen.encode([])  # an RVAE without an encoder fails here, before any layout is made
         starts = layout_scenes(inputs, settings.init)
     if settings.guarantee and all(item.sd_map is not None for item in inputs):
         rules = [s.to_lanegraph() for s in layout_scenes(inputs, "rules", roads_only=True)]
+    if gen.layout != NO_LAYOUT:  # an SD picture has no map to lay lanes out on: its layout channels stay empty
+        mapped = [k for k, item in enumerate(inputs) if item.sd_map is not None and item.pose is not None]
+        if settings.init == gen.layout:
+            scenes = [starts[k] for k in mapped]
+        else:
+            scenes = layout_scenes([inputs[k] for k in mapped], gen.layout)
+        controls = [None] * len(inputs)
+        for k, scene in zip(mapped, scenes):
+            controls[k] = layout_raster(scene, inputs[k].sd.shape[0])
     jobs = []
-    for item, start, layout in zip(inputs, starts, rules):
+    for item, start, layout, control in zip(inputs, starts, rules, controls):
         label = gen.known_label(item.city) if settings.city.lower() == AUTO else gen.label(settings.city)
         for k in range(settings.num):
-            jobs.append(Job(item.name if settings.num == 1 else f"{item.name}_s{k}", item, label, k, init=start,
-                            rules=layout))
+            for c in range(settings.candidates):
+                jobs.append(Job(item.name if settings.num == 1 else f"{item.name}_s{k}", item, label, k, init=start,
+                                rules=layout, layout=control, candidate=c))
     if len(jobs) > 1:
         for i, job in enumerate(jobs):
             job.prefix = f"sample_{i}/"
@@ -135,7 +152,7 @@ def run_sample(gen: MapGenerator, jobs: list[Job], settings: SampleSettings, out
         if rrd is not None or viewer is not None:
             rec = sampling_recording(rrd, viewer)
             log_run_header(rec, gen, jobs, settings, command)
-        maps = generate_maps(gen, jobs, settings, rec, progress, info)
+        maps = choose(generate_maps(gen, jobs, settings, rec, progress, info), settings.candidates)
         strength = f", city cfg {settings.city_cfg:g}" if settings.city_cfg != 1 else ""
         write_maps(out, maps, lambda g: f"generated: {g.city or 'no city'}, w = {settings.cfg:g}{strength}", outputs,
                    grid)
@@ -193,8 +210,8 @@ def _batch_maps(gen: MapGenerator, batch: list[Job], start: int, settings: Sampl
     began = time.perf_counter()
     init = gen.encode([j.init for j in batch]) if settings.init != NO_INIT else None
     graphs = gen.generate(sd, [j.label for j in batch], settings, start, city_cfg=settings.city_cfg, eta=settings.eta,
-                          init=init, strength=settings.strength, metas=[_meta(gen, j, settings) for j in batch],
-                          callback=logger)
+                          init=init, strength=settings.strength, layouts=[j.layout for j in batch],
+                          metas=[_meta(gen, j, settings) for j in batch], callback=logger)
     for k, (job, graph) in enumerate(zip(batch, graphs)):
         score_map(graph, job.source.sd)
         if settings.guarantee and job.source.sd is not None:
@@ -210,6 +227,25 @@ def _batch_maps(gen: MapGenerator, batch: list[Job], start: int, settings: Sampl
                       static=True)
     seconds = (time.perf_counter() - began) / len(batch)
     return [(graph, seconds) for graph in graphs]
+
+
+def choose(maps: list[SampledMap], candidates: int) -> list[SampledMap]:
+    """Of each run of ``candidates`` maps drawn for one map (consecutive, as :func:`plan` orders them), the one with
+    the best mean of its validity score, SD road covered and legal one-way share (those it has; the first of equals),
+    its meta recording every candidate's mean under ``candidates``; the time is the run's."""
+    if candidates == 1:
+        return maps
+    chosen = []
+    for start in range(0, len(maps), candidates):
+        run = maps[start:start + candidates]
+        scores = [round(float(np.mean([v for v in (m.graph.meta["validity"], m.graph.meta.get("sd_coverage"),
+                                                    m.graph.meta.get("legal_oneway")) if v is not None])), 6)
+                  for m in run]
+        best = run[int(np.argmax(scores))]
+        best.graph.meta["candidates"] = {"chosen": best.job.candidate, "scores": scores}
+        best.seconds = sum(m.seconds for m in run)
+        chosen.append(best)
+    return chosen
 
 
 def score_map(graph: LaneGraph, sd: np.ndarray | None) -> None:
@@ -229,7 +265,8 @@ def _meta(gen: MapGenerator, job: Job, settings: SampleSettings) -> dict:
     return {"source": job.source.source, "checkpoint": str(gen.path), "seed": settings.seed, "index": job.index,
             "cfg": settings.cfg, "city_cfg": settings.city_cfg, "steps": settings.steps, "sampler": settings.sampler,
             "eta": settings.eta, "smooth": gen.smooth, "precision": gen.precision, **geo,
-            **({"init": settings.init, "strength": settings.strength} if settings.init != NO_INIT else {})}
+            **({"init": settings.init, "strength": settings.strength} if settings.init != NO_INIT else {}),
+            **({"layout": gen.layout if job.layout is not None else NO_LAYOUT} if gen.layout != NO_LAYOUT else {})}
 
 
 def _partial(rrd: Path) -> Path:
@@ -280,7 +317,8 @@ def _viewer_sink(rec: rr.RecordingStream, viewer: str) -> rr.GrpcSink | rr.GrpcS
 
 
 def log_run_header(rec, gen: MapGenerator, jobs: list[Job], settings: SampleSettings, command: str) -> None:
-    names = [f"{j.name} ({gen.city_name(j.label) or 'no city'})" for j in jobs]
+    names = [f"{j.name}{f' #{j.candidate}' if settings.candidates > 1 else ''} ({gen.city_name(j.label) or 'no city'})"
+             for j in jobs]
     rec.send_blueprint(sampling_blueprint([j.prefix for j in jobs], names, gen.control_blocks,
                                           any(j.source.truth is not None for j in jobs)))
     lines = [f"# cmtool sample\n\n`{command}`\n" if command else "# cmtool sample\n",
@@ -294,6 +332,8 @@ def log_run_header(rec, gen: MapGenerator, jobs: list[Job], settings: SampleSett
     for job in jobs:
         if job.source.sd is not None:
             log_sd(rec, job.prefix, job.source.sd, static=True)
+        if job.layout is not None:
+            log_layout(rec, job.prefix, job.layout)
         truth = job.source.truth
         if truth is not None:
             log_lanes(rec, f"{job.prefix}truth/", truth.lanes, truth.green_lights, truth.red_lights, truth.successors,

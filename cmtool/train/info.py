@@ -78,6 +78,11 @@ def describe(path: Path, as_json: bool = False) -> str:
         source = source.get("init_from")
     if config.get("weights") == "decoder":
         rows.append(("weights", "decoder only (latent -> lanes), as shipped; encoding needs the training run"))
+    if config.get("encoder_trained"):
+        enc = config["encoder_trained"]
+        rows.append(("encoder", f"trained for this decoder by `cmtool train encoder` ({enc['path']}, "
+                                f"{enc.get('step', '?')} steps; the scale of its own latents "
+                                f"{enc.get('own_latent_scale', float('nan')):.4f})"))
     if config.get("packed_from"):
         rows.append(("packed from", config["packed_from"]))
     if config.get("encoder_from"):

@@ -59,6 +59,8 @@ class TrainRecipe:
     #                      driving on the other side (teaches the label the driving side; never dropped)
     sd_shift_m: float = 0.0  # controlnet: move each SD raster sideways by up to this many metres (uniform, whole
     #                          pixels), so that where the road lies in the frame does not give the driving side away
+    layout_dropout: float = 0.0  # controlnet with control.layout: share of scenes shown without their layout
+    #                              channels, as an SD picture comes (no map to lay lanes out on)
     min_snr_gamma: float = 0.0  # dit, controlnet: Min-SNR-gamma loss weights min(SNR, gamma) / SNR (Hang et al.,
     #                             ICCV 2023, use 5): nearly clean timesteps (SNR > gamma) count less; 0 = plain MSE
     ckpt_every: int = 500
@@ -88,6 +90,8 @@ class TrainRecipe:
             raise CmtoolError(f"{where}: train.min_snr_gamma: a dit- and controlnet-stage option (diffusion loss)")
         if self.sd_shift_m and self.stage not in ("", "controlnet"):
             raise CmtoolError(f"{where}: train.sd_shift_m: SD rasters are a controlnet-stage input")
+        if self.layout_dropout and self.stage not in ("", "controlnet"):
+            raise CmtoolError(f"{where}: train.layout_dropout: layout channels are a controlnet-stage input")
         if self.branch_from and self.stage not in ("", "controlnet"):
             raise CmtoolError(f"{where}: train.branch_from: a control branch is a controlnet-stage option")
         if self.init_from and self.stage not in ("", "dit"):
@@ -97,7 +101,7 @@ class TrainRecipe:
                               f"got {self.precision!r}")
         if self.lr_schedule not in ("cosine", "constant"):
             raise CmtoolError(f"{where}: train.lr_schedule: expected cosine or constant, got {self.lr_schedule!r}")
-        for key in ("ema_decay", "label_dropout", "mirror", "min_lr_ratio"):
+        for key in ("ema_decay", "label_dropout", "mirror", "min_lr_ratio", "layout_dropout"):
             if not 0.0 <= getattr(self, key) <= 1.0:
                 raise CmtoolError(f"{where}: train.{key}: must lie in [0, 1], got {getattr(self, key)}")
         if len(self.betas) != 2 or not all(0.0 <= b < 1.0 for b in self.betas):

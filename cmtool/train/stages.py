@@ -13,11 +13,12 @@ import torch.nn.functional as F
 
 from cmtool.core.errors import CmtoolError
 from cmtool.data.cache import load_dataset, load_manifest
+from cmtool.data.layouts import layout_raster, scene_layouts
 from cmtool.diffusion.samplers import sample
 from cmtool.diffusion.schedule import NoiseSchedule
 from cmtool.maps.hdmap import drives_on
 from cmtool.model import checkpoint as ckpt
-from cmtool.model.controlmap import ControlMap, sd_tensor
+from cmtool.model.controlmap import NO_LAYOUT, SD_CHANNELS, ControlMap, control_images, sd_tensor
 from cmtool.model.dit import DiT, DiTConfig
 from cmtool.model.rvae import ENCODER_PREFIXES, RVAE, decoded_elements, same_encoder
 from cmtool.model.rvae_loss import denoise_input, rvae_loss
@@ -211,9 +212,14 @@ class EncoderStage(RVAEStage):
         decoder = {k: v for k, v in ckpt.read_weights(self.parent).items() if not k.startswith(ENCODER_PREFIXES)}
         own = model.state_dict()
         missing = sorted(k for k in own if not k.startswith(ENCODER_PREFIXES) and k not in decoder)
-        if missing or set(decoder) - set(own):
-            raise CmtoolError(f"{self.parent}: its decoder weights do not match its config "
-                              f"({'missing ' + missing[0] if missing else 'unexpected weights'})")
+        shaped = sorted(k for k, v in decoder.items() if k in own and v.shape != own[k].shape)
+        if missing or set(decoder) - set(own) or shaped:
+            problem = "unexpected weights"
+            if missing:
+                problem = f"missing {missing[0]}"
+            elif shaped:
+                problem = f"{shaped[0]} of shape {tuple(decoder[shaped[0]].shape)}, not {tuple(own[shaped[0]].shape)}"
+            raise CmtoolError(f"{self.parent}: its decoder weights do not match its config ({problem})")
         model.load_state_dict({k: v.to(own[k].dtype) for k, v in decoder.items()}, strict=False)
         for name, p in model.named_parameters():
             p.requires_grad_(name.startswith(ENCODER_PREFIXES))
@@ -397,8 +403,9 @@ class ControlNetStage(_DiffusionStage):
         super().__init__(recipe, device)
         self.dit_path = ckpt.resolve(_path(recipe.train.dit, "dit", recipe.path)).resolve()
         dit_config = ckpt.load_config(self.dit_path)
-        if dit_config["kind"] != "dit":
-            raise CmtoolError(f"{self.dit_path}: a {dit_config['kind']} checkpoint, train.dit needs a DiT")
+        if dit_config["kind"] not in ("dit", "controlmap"):
+            raise CmtoolError(f"{self.dit_path}: a {dit_config['kind']} checkpoint, train.dit needs a DiT (or a "
+                              "ControlMap, whose frozen DiT it takes)")
         self.dit_config = dit_config
         self.cities = dit_config["cities"]
         wanted = dataclasses.asdict(dataclasses.replace(recipe.dit, num_classes=len(self.cities)).resolved())
@@ -414,38 +421,68 @@ class ControlNetStage(_DiffusionStage):
         self.shift_px = round(recipe.train.sd_shift_m / px_m)
         self.latents = read_latents(self.latent_dir, "train")
         self.branch_from = ckpt.resolve(recipe.train.branch_from).resolve() if recipe.train.branch_from else None
-        self._preview = None
+        self.layout = recipe.control.layout
+        if self.layout != NO_LAYOUT and recipe.train.mirror > 0:
+            raise CmtoolError(f"{recipe.path}: train.mirror does not mirror layout channels; leave it at 0 with "
+                              "control.layout")
+        if recipe.train.layout_dropout and self.layout == NO_LAYOUT:
+            raise CmtoolError(f"{recipe.path}: train.layout_dropout needs control.layout")
+        self._preview = self._preview_control = None
 
     def model(self):
         dit, _ = ckpt.load_model(self.dit_path, "cpu")
-        model = ControlMap(dit, self.recipe.control)
+        model = ControlMap(dit.base if isinstance(dit, ControlMap) else dit, self.recipe.control)
         if self.branch_from is not None:
             self.load_branch(model)
         model.freeze_base()
         return model
 
     def load_branch(self, model: ControlMap) -> None:
-        """Copy the control branch (everything but the base DiT) of ``train.branch_from`` into ``model``."""
+        """Copy the control branch (everything but the base DiT) of ``train.branch_from`` into ``model``. A branch
+        without layout channels starts one that reads them: their input weights start at zero, so the new branch
+        computes what the old one did until training moves them."""
         path = self.branch_from
         config = ckpt.load_config(path)
-        wanted = ckpt.as_stored({"control": self.recipe.control, "model": self.dit_config["model"]})
-        if config["kind"] != "controlmap" or {k: config.get(k) for k in wanted} != wanted:
-            raise CmtoolError(f"{path}: train.branch_from needs a ControlMap with this recipe's [control] and "
-                              f"DiT size")
+        control = dataclasses.asdict(self.recipe.control)
+        source = {"in_channels": SD_CHANNELS, "layout": NO_LAYOUT, **(config.get("control") or {})}
+        if source["layout"] == NO_LAYOUT:
+            control |= {"in_channels": SD_CHANNELS, "layout": NO_LAYOUT}
+        wanted = ckpt.as_stored({"control": control, "model": self.dit_config["model"]})
+        if config["kind"] != "controlmap" or {"control": source, "model": config.get("model")} != wanted:
+            raise CmtoolError(f"{path}: train.branch_from needs a ControlMap with this recipe's [control] (or the "
+                              f"same without a layout) and DiT size")
         branch = {k: v for k, v in ckpt.read_weights(path).items() if not k.startswith("base.")}
         own = {k: v for k, v in model.state_dict().items() if not k.startswith("base.")}
         if set(branch) != set(own):
             raise CmtoolError(f"{path}: its control branch does not match the model this recipe builds")
-        model.load_state_dict({k: v.to(own[k].dtype) for k, v in branch.items()}, strict=False)
+        for key, value in branch.items():
+            if value.shape != own[key].shape:  # the first convolution: zero weights for the layout channels
+                value = torch.cat([value, value.new_zeros(own[key].shape[0], own[key].shape[1] - value.shape[1],
+                                                          *value.shape[2:])], dim=1)
+            branch[key] = value.to(own[key].dtype)
+        model.load_state_dict(branch, strict=False)
 
     def dataset(self):
         lat = self.latents
         scenes = _train_scenes(self.data_dir, lat, self.latent_dir)
         mirrored = self.mirrored(self.data_dir, lat.city) if self.recipe.train.mirror > 0 else None
-        return Latents(lat.mean, lat.logvar, self.labels(lat.city), scenes.arrays["sd"], mirrored)
+        images = self.control_images(scenes, "train", scenes.arrays["sd"])
+        return Latents(lat.mean, lat.logvar, self.labels(lat.city), images, mirrored)
+
+    def control_images(self, scenes, split: str, sd: np.ndarray) -> np.ndarray:
+        """The control images of the first scenes of a split, whose SD rasters are ``sd``: with the layout channels
+        when the branch reads them."""
+        if self.layout == NO_LAYOUT:
+            return sd
+        layouts = [layout_raster(s, sd.shape[1]) for s in scene_layouts(self.data_dir, split, scenes, self.layout)]
+        return control_images(self.recipe.control, sd, layouts)
 
     def loss(self, model, batch):
-        return self.diffusion_loss(model, batch, control=batch["sd"])
+        control = batch["sd"]
+        if self.recipe.train.layout_dropout:
+            drop = torch.rand(len(control), device=control.device) < self.recipe.train.layout_dropout
+            control = torch.cat([control[:, :SD_CHANNELS], control[:, SD_CHANNELS:] * ~drop.view(-1, 1, 1, 1)], 1)
+        return self.diffusion_loss(model, batch, control=control)
 
     def config(self):
         return {"kind": self.kind, "model": self.dit_config["model"], "control": dataclasses.asdict(self.recipe.control),
@@ -454,9 +491,11 @@ class ControlNetStage(_DiffusionStage):
 
     def preview(self, model, rec):
         if self._preview is None:
-            scenes = load_dataset(self.data_dir, _preview_split(self.data_dir))
+            split = _preview_split(self.data_dir)
+            scenes = load_dataset(self.data_dir, split)
             self._preview = [scenes.scene(i) for i in range(min(PREVIEWS, len(scenes)))]
-        control = torch.stack([sd_tensor(s.sd) for s in self._preview]).to(self.device)
+            self._preview_control = self.control_images(self._preview, split, np.stack([s.sd for s in self._preview]))
+        control = torch.stack([sd_tensor(c) for c in self._preview_control]).to(self.device)
         y = torch.full((len(control),), len(self.cities), device=self.device)
         gen = torch.Generator(self.device).manual_seed(0)
         z = sample(model, self.schedule, y, control=control, cfg=1.0, steps=self.recipe.train.preview_steps,

@@ -165,6 +165,20 @@ def log_sd(rec: rr.RecordingStream, prefix: str, sd: np.ndarray, frame_m: float 
             rr.Transform3D(translation=[-half, -half, 0.0], scale=frame_m / size), static=static)
 
 
+def log_layout(rec: rr.RecordingStream, prefix: str, layout: np.ndarray, frame_m: float = 64.0) -> None:
+    """Log the layout channels a control branch reads (:func:`cmtool.data.layouts.layout_raster`) at
+    ``<prefix>control/layout``: each lane pixel in the hue of its heading, the rest transparent."""
+    size = layout.shape[0]
+    half = frame_m / 2.0
+    c, s = (layout.astype(np.float64) / 255.0 * 2.0 - 1.0).transpose(2, 0, 1)
+    drawn = layout.any(-1)
+    image = np.zeros((size, size, 4), np.uint8)
+    image[drawn, :3] = heading_colours(np.arctan2(s[drawn], c[drawn]))
+    image[drawn, 3] = 200
+    rec.log(f"{prefix}control/layout", rr.Image(image, draw_order=-5.0, magnification_filter="Nearest"),
+            rr.Transform3D(translation=[-half, -half, 0.0], scale=frame_m / size), static=True)
+
+
 def log_scene(rec: rr.RecordingStream, prefix: str, scene) -> None:
     """Log a scene's lanes, successor arrows, light lines and SD raster under ``prefix``."""
     log_lanes(rec, prefix, scene.lines[scene.line_mask], scene.green[scene.green_mask], scene.red[scene.red_mask],
