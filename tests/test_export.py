@@ -281,3 +281,71 @@ def test_ground_truth_of_a_lanelet2_map_exports_back_where_it_lies(tmp_path, cap
         lonlat = np.array(f["geometry"]["coordinates"])
         xy = proj.to_metres(lonlat[:, 1], lonlat[:, 0])
         assert shapely.distance(shapely.points(xy), source).max() < 0.05
+
+
+def test_every_command_takes_every_map_that_holds_lanes(tmp_path, capsys):
+    """Issue 43: HD maps of any source, and lane graphs, go into validate, export, metrics, data sd/raster/poses and
+    sample --from-hd; files without lanes get one line saying what they are."""
+    from cmtool.data.synth import generate_city
+    from cmtool.formats.mapfile import map_kind, read_hd_map, read_lane_graphs
+    from cmtool.maps.hdmap import HDMap
+
+    city = tmp_path / "city.json"
+    hd = generate_city("LAV", seed=3, extent=300.0)
+    hd.save(city)
+    (graph,) = read_lane_graphs(city)
+    assert len(graph.lanes) == len(hd.lanes) and graph.city == "LAV"
+    assert len(graph.successors) == sum(len(lane.successors) for lane in hd.lanes.values())
+    assert all(np.abs(lane).max() < graph.frame_m / 2 - 1.0 for lane in graph.lanes)  # the whole map inside its frame
+    back = graph.to_hd()  # and back: the same lanes, links and lights
+    assert back.reference_errors() == [] and len(back.lanes) == len(hd.lanes)
+    assert sorted(len(l.successors) for l in back.lanes.values()) == sorted(len(l.successors) for l in hd.lanes.values())
+    assert len(back.stop_lines) == sum(s.state in ("green", "red") for s in hd.stop_lines)
+
+    assert in_process(capsys, "validate", city)[0] == 0
+    for fmt, suffix in (("lanelet2", "osm"), ("opendrive", "xodr"), ("geojson", "geojson")):
+        code, out, err = in_process(capsys, "export", "--format", fmt, city, "--origin", "36.1,-115.2", "--out",
+                                    tmp_path / f"city.{suffix}")
+        assert code == 0, err
+    code, _, err = in_process(capsys, "metrics", "--generated", city, "--reference", city, "--no-features", "--json",
+                              tmp_path / "m.json")
+    assert code == 0, err
+    text = (tmp_path / "m.json").read_text()
+    assert "NaN" not in text and "Infinity" not in text  # strict JSON: what no score exists for is null
+    json.loads(text, parse_constant=lambda c: pytest.fail(f"non-standard JSON constant {c}"))
+    for command in (("data", "sd", city, "--out", tmp_path / "sd.json"),
+                    ("data", "raster", city, "--png", tmp_path / "sd.png"),
+                    ("data", "poses", city, "--n", 2, "--out", tmp_path / "poses.jsonl"),
+                    ("sample", "--from-hd", city, "--steps", 3, "--no-log", "--quiet", "--out", tmp_path / "s")):
+        code, _, err = in_process(capsys, *command)
+        assert code == 0, (command, err)
+    generated = tmp_path / "s" / "city.json"  # a lane graph of one frame goes wherever an HD map goes
+    assert map_kind(generated)[0] == "lanegraph" and map_kind(city)[0] == "hdmap"
+    assert len(read_hd_map(generated).lanes) == len(read_lane_graphs(generated)[0].lanes)
+    for command in (("data", "sd", generated, "--out", tmp_path / "sd2.json"),
+                    ("sample", "--from-hd", generated, "--steps", 3, "--no-log", "--quiet", "--out", tmp_path / "s2")):
+        code, _, err = in_process(capsys, *command)
+        assert code == 0, (command, err)
+
+    # imported formats, read by content: an Argoverse 2 map and a Lanelet2 map, placed where they lie
+    av2 = sorted((SHARED_DATA / "av2").glob("*.json"))[0]
+    lanelet2 = sorted((SHARED_DATA / "lanelet2").glob("*.osm"))[0]
+    assert map_kind(av2)[0] == "av2" and map_kind(lanelet2)[0] == "lanelet2"
+    assert in_process(capsys, "validate", av2)[0] == 0
+    code, out, err = in_process(capsys, "export", "--format", "opendrive", lanelet2, "--out", tmp_path / "l2.xodr")
+    assert code == 0 and "heading 90" in out, err  # the import's projection origin, x east
+
+    # files without lanes, and files of no map kind: one line each
+    code, _, err = in_process(capsys, "validate", tmp_path / "sd.json")
+    assert code == 1 and "an SD map (roads, no lanes)" in err and len(err.strip().splitlines()) == 1
+    code, _, err = in_process(capsys, "export", "--format", "lanelet2", SHARED_DATA / "osm" / "finland_test.osm.pbf",
+                              "--origin", "60,25", "--out", tmp_path / "x.osm")
+    assert code == 1 and "an OpenStreetMap file (roads, no lanes)" in err
+    two = tmp_path / "two.jsonl"
+    write_jsonl(two, [graph, graph])
+    code, _, err = in_process(capsys, "data", "sd", two, "--out", tmp_path / "x.json")
+    assert code == 1 and "2 lane graphs; this command takes one map" in err
+    (tmp_path / "list.json").write_text("[1, 2]")
+    code, _, err = in_process(capsys, "validate", tmp_path / "list.json")
+    assert code == 1 and len(err.strip().splitlines()) == 1
+    assert isinstance(HDMap.load(city), HDMap)

@@ -88,7 +88,7 @@ def import_(fmt, file, out, city):
 def sd(hd_map, out, origin, offset, rotation, drop_minor, seed):
     """Derive the SD map (one polyline per road, as OpenStreetMap shows it) of an HD map."""
     from cmtool.data.sd_derive import SDJitter, derive_sd
-    from cmtool.maps.hdmap import HDMap
+    from cmtool.formats.mapfile import read_hd_map
 
     if offset < 0 or rotation < 0 or not 0.0 <= drop_minor <= 1.0:
         raise CmtoolError("jitter must be non-negative and --drop-minor within [0, 1]")
@@ -98,7 +98,7 @@ def sd(hd_map, out, origin, offset, rotation, drop_minor, seed):
     if to_osm:
         lat0, lon0 = _origin(origin)
     jitter = SDJitter(offset, rotation, drop_minor)
-    sd_map = derive_sd(HDMap.load(hd_map), jitter=jitter if jitter.enabled else None, seed=seed)
+    sd_map = derive_sd(read_hd_map(hd_map), jitter=jitter if jitter.enabled else None, seed=seed)
     if to_osm:
         from cmtool.formats.osm import write_osm
 
@@ -116,14 +116,15 @@ def sd(hd_map, out, origin, offset, rotation, drop_minor, seed):
               help="Heading of the frame's forward axis, degrees (90 = north up).")
 @click.option("--png", required=True, type=click.Path(dir_okay=False, path_type=Path), help="SD raster PNG to write.")
 def raster(sd_map, x, y, yaw, png):
-    """Rasterise a 64 m window of an SD map into the 128 x 128 RGB control image (docs/data.md)."""
+    """Rasterise a 64 m window of an SD map into the 128 x 128 RGB control image (docs/data.md). SD_MAP may be
+    any map file: an SD map JSON, an OpenStreetMap file, or an HD map or lane graph (the SD map derived from it)."""
     import numpy as np
 
+    from cmtool.data.frames import read_sd_source
     from cmtool.data.sd_raster import rasterize_sd
-    from cmtool.maps.sdmap import SDMap
     from cmtool.viz.show import write_png
 
-    sd_obj = SDMap.load(sd_map)
+    sd_obj = read_sd_source(sd_map)
     if not sd_obj.roads:
         raise CmtoolError(f"{sd_map}: the SD map has no roads")
     pts = np.concatenate([r.polyline for r in sd_obj.roads])
@@ -254,12 +255,12 @@ def stats(maps, seeds, extent):
     """Per-city statistics of HD maps: lanes per road, block length, intersection degree, curvature,
     one-way share. Without MAPS, of procedural cities of all four styles."""
     from cmtool.data.stats import map_stats
-    from cmtool.maps.hdmap import HDMap
+    from cmtool.formats.mapfile import read_hd_map
 
     if maps:
         rows = {}
         for path in maps:
-            hd = HDMap.load(path)
+            hd = read_hd_map(path)
             rows.setdefault(hd.city, []).append(map_stats(hd))
     else:
         from cmtool.data.synth import generate_city

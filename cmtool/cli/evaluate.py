@@ -36,7 +36,7 @@ def metrics(generated, reference, control, json_out, backbone, weights, no_featu
     """Score generated lane graphs against a reference set (and their SD controls): topology FDs,
     improved precision/recall, Control / GT Recall with p-values, and geometric lane metrics."""
     from cmtool.core.jsonio import write_json
-    from cmtool.maps.lanegraph import read_jsonl
+    from cmtool.formats.mapfile import read_lane_graphs
     from cmtool.metrics.features import FeatureExtractor
     from cmtool.metrics.scenes import cpu_count
     from cmtool.metrics.suite import evaluate, load_controls, summary_table
@@ -46,7 +46,7 @@ def metrics(generated, reference, control, json_out, backbone, weights, no_featu
         names = [str(p) for p in generated]
     if len(set(names)) < len(names):
         raise CmtoolError("--generated: a file given twice")
-    sets, ref = [read_jsonl(p) for p in generated], read_jsonl(reference)
+    sets, ref = [read_lane_graphs(p) for p in generated], read_lane_graphs(reference)
     controls = load_controls(control) if control is not None else None
     extractor = None if no_features else FeatureExtractor(backbone, weights, _device(device),
                                                           precision=feature_precision)

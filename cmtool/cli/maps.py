@@ -20,20 +20,22 @@ LARGE_SCENE = 2000  # lanes; export announces itself for scenes this large
 @click.option("--out", type=click.Path(dir_okay=False, path_type=Path),
               help="With --repair: the repaired maps (.jsonl).")
 def validate(maps, json_out, repair, out):
-    """Check lane graphs (a .json scene or a .jsonl of scenes) for what planners need: dangling lanes,
+    """Check lane graphs (a .json scene or a .jsonl of scenes, or a whole HD map: cmtool's JSON, Argoverse 2,
+    Lanelet2) for what planners need: dangling lanes,
     bad successor joins, crossings outside intersections, self-intersections, short lanes, kinks;
     routability; a validity score in [0, 1] per scene."""
     import numpy as np
 
     from cmtool.core.jsonio import write_json
-    from cmtool.maps.lanegraph import read_jsonl, write_jsonl
+    from cmtool.formats.mapfile import read_lane_graphs
+    from cmtool.maps.lanegraph import write_jsonl
     from cmtool.metrics.repair import repair as repair_graph
     from cmtool.metrics.validity import check
 
     if repair != (out is not None):
         raise CmtoolError("--repair needs --out FILE.jsonl for the repaired maps" if repair
                           else "--out goes with --repair")
-    graphs = read_jsonl(maps)
+    graphs = read_lane_graphs(maps)
     if repair:
         repaired = [repair_graph(g) for g in graphs]
         for i, (_, changes) in enumerate(repaired):
@@ -77,18 +79,19 @@ def validate(maps, json_out, repair, out):
               help="Lane width where the map records none and no neighbours give one, metres.")
 @click.option("--out", required=True, type=click.Path(dir_okay=False, path_type=Path), help="File to write.")
 def export(fmt, map_path, origin, heading, scene, lane_width, out):
-    """Export a lane graph (a generated or ground-truth scene) for simulators and GIS tools."""
+    """Export a lane graph (a generated or ground-truth scene) or a whole HD map (cmtool's JSON, Argoverse 2,
+    Lanelet2: it records where it lies when imported) for simulators and GIS tools."""
     import math
 
     import numpy as np
 
     from cmtool.core.jsonio import write_json
     from cmtool.formats.geojson import to_geojson
-    from cmtool.maps.lanegraph import read_jsonl
+    from cmtool.formats.mapfile import read_lane_graphs
     from cmtool.maps.neighbours import graph_neighbours
     from cmtool.metrics.validity import check
 
-    graphs = read_jsonl(map_path)
+    graphs = read_lane_graphs(map_path)
     if scene >= len(graphs):
         raise CmtoolError(f"{map_path}: no scene {scene} ({len(graphs)} scene{'s' if len(graphs) != 1 else ''})")
     graph = graphs[scene]

@@ -4,6 +4,7 @@ from __future__ import annotations
 
 import errno
 import json
+import math
 import os
 import tempfile
 from contextlib import contextmanager
@@ -146,8 +147,20 @@ def write_text_atomic(path: str | os.PathLike, text: str) -> None:
 
 
 def json_text(obj) -> str:
-    """``obj`` as one line of compact JSON."""
-    return json.dumps(obj, separators=(",", ":")) + "\n"
+    """``obj`` as one line of compact, strict JSON: NaN and infinite numbers (which JSON has no words for, and
+    readers other than Python's refuse) are written as null."""
+    return json.dumps(strict(obj), separators=(",", ":"), allow_nan=False) + "\n"
+
+
+def strict(obj):
+    """``obj`` with every non-finite float (NaN, infinities) replaced by None, in nested dicts, lists and tuples."""
+    if isinstance(obj, float):
+        return obj if math.isfinite(obj) else None
+    if isinstance(obj, dict):
+        return {k: strict(v) for k, v in obj.items()}
+    if isinstance(obj, (list, tuple)):
+        return [strict(v) for v in obj]
+    return obj
 
 
 def write_json(path: str | os.PathLike, obj) -> None:

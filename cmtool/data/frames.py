@@ -20,16 +20,14 @@ from __future__ import annotations
 
 from collections import Counter
 from dataclasses import dataclass
-from pathlib import Path
 
 import numpy as np
 import shapely
 
-from cmtool.core.errors import CmtoolError
 from cmtool.core.geometry import from_frame, to_frame
-from cmtool.core.jsonio import read_json
 from cmtool.data.scene import Pose
 from cmtool.data.sd_derive import derive_sd
+from cmtool.formats.mapfile import map_kind, read_hd_map
 from cmtool.formats.osm import read_osm
 from cmtool.maps.hdmap import HDMap
 from cmtool.maps.roadgraph import RoadGraph, road_graph
@@ -207,18 +205,14 @@ def mix_table(frames: list[Frame]) -> dict[str, int]:
 
 
 def read_sd_source(path) -> SDMap:
-    """The SD map of any map file cmtool reads: OpenStreetMap ``.osm``/``.osm.pbf``, SD map JSON,
-    or HD map JSON (its derived SD map)."""
-    if Path(path).name.endswith((".osm", ".osm.pbf", ".osm.xml")):
+    """The SD map of any map file cmtool reads (:mod:`cmtool.formats.mapfile`): OpenStreetMap ``.osm``/``.osm.pbf``
+    and SD map JSON as they are, the others (HD maps, lane graphs) as the SD map derived from them."""
+    kind, obj = map_kind(path)
+    if kind == "osm":
         return read_osm(path)
-    obj = read_json(path)
-    kind = obj.get("format") if isinstance(obj, dict) else None
-    if kind == "cmtool.sdmap":
+    if kind == "sdmap":
         return SDMap.from_json(obj, where=str(path))
-    if kind == "cmtool.hdmap":
-        return derive_sd(HDMap.from_json(obj, where=str(path)))
-    raise CmtoolError(f"{path}: expected an OpenStreetMap file (.osm, .osm.pbf) or a cmtool SD or HD map JSON "
-                      f"(format {kind!r})")
+    return derive_sd(read_hd_map(path))
 
 
 # ----------------------------------------------------------------------------- statistics

@@ -35,6 +35,9 @@ from cmtool.core.errors import CmtoolError
 from cmtool.core.geometry import unit
 from cmtool.core.jsonio import Fields, MalformedLine, json_lines, read_json, write_text_atomic
 from cmtool.core.unionfind import UnionFind
+from cmtool.maps.hdmap import HDMap, Lane, StopLine, drives_on
+
+HD_MARGIN_M = 2.0  # a whole map's frame (LaneGraph.from_hd) reaches this far beyond its farthest point
 
 
 @dataclass
@@ -100,11 +103,60 @@ class LaneGraph:
             geo_origin(geo, f"{where}: meta.geo")
         return graph
 
+    @classmethod
+    def from_hd(cls, hd: HDMap) -> "LaneGraph":
+        """A whole HD map as one lane graph, in the map's own metres: its lanes with their successors, left
+        neighbours and widths, its green and red stop lines as light lines; ``frame_m`` the square about the
+        origin that holds it all (so that only lanes ending at the map's outer edge touch the border); ``meta.geo``
+        where the map records its place (an imported map's projection origin, x east and y north)."""
+        ids = list(hd.lanes)
+        index = {k: i for i, k in enumerate(ids)}
+        lanes = [np.asarray(hd.lanes[k].centerline, np.float64) for k in ids]
+        lights = {state: [np.asarray(s.line, np.float64) for s in hd.stop_lines if s.state == state]
+                  for state in ("green", "red")}
+        points = [p for p in (*lanes, *lights["green"], *lights["red"]) if len(p)]
+        reach = float(max((np.abs(p).max() for p in points), default=32.0))
+        return cls(
+            lanes=lanes,
+            successors=[(index[k], index[s]) for k in ids for s in hd.lanes[k].successors if s in index],
+            left_neighbors=[(index[k], index[hd.lanes[k].left_neighbor]) for k in ids
+                            if hd.lanes[k].left_neighbor in index],
+            widths=[float(hd.lanes[k].width) for k in ids],
+            green_lights=lights["green"], red_lights=lights["red"], city=hd.city,
+            frame_m=2.0 * (math.ceil(reach) + HD_MARGIN_M),
+            meta={"source": hd.source, **({"geo": geo} if (geo := _hd_geo(hd.meta)) else {})})
+
+    def to_hd(self) -> HDMap:
+        """The lane graph as an HD map (lanes ``l0, l1, ...``; light lines as stop lines of their colour). It
+        records no intersection lanes: a lane graph does not say which lanes are junction connectors."""
+        hd = HDMap(city=self.city or "", drives_on=drives_on(self.city), source=str(self.meta.get("source", "")),
+                   meta={"geo": self.meta["geo"]} if "geo" in self.meta else {})
+        for k, lane in enumerate(self.lanes):
+            width = 3.5 if self.widths is None else float(self.widths[k])
+            hd.add_lane(Lane(f"l{k}", np.asarray(lane, np.float64), width=width))
+        for i, j in self.successors:
+            hd.link(f"l{i}", f"l{j}")
+        for i, j in self.left_neighbors or []:
+            hd.lanes[f"l{i}"].left_neighbor, hd.lanes[f"l{j}"].right_neighbor = f"l{j}", f"l{i}"
+        for state, lines in (("green", self.green_lights), ("red", self.red_lights)):
+            hd.stop_lines += [StopLine(f"{state[0]}{k}", np.asarray(line, np.float64), state)
+                              for k, line in enumerate(lines)]
+        return hd
+
     @property
     def geo(self) -> tuple[float, float, float] | None:
         """(lat, lon, compass heading) of the frame's origin and forward axis, when recorded."""
         geo = self.meta.get("geo")
         return None if geo is None else geo_origin(geo, "meta.geo")
+
+
+def _hd_geo(meta: dict) -> dict | None:
+    """Where an HD map lies: its recorded ``geo``, or the projection origin of an imported map (x east)."""
+    if "geo" in meta:
+        return meta["geo"]
+    if "lat0" in meta and "lon0" in meta:
+        return {"lat": meta["lat0"], "lon": meta["lon0"], "heading": 90.0}
+    return None
 
 
 def geo_origin(geo, where: str) -> tuple[float, float, float]:

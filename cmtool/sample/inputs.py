@@ -91,9 +91,9 @@ def osm_sd_map(path) -> SDMap:
 def hd_sd_map(path):
     """An HD map JSON, which must hold lanes, and the SD map derived from it."""
     from cmtool.data.sd_derive import derive_sd
-    from cmtool.maps.hdmap import HDMap
+    from cmtool.formats.mapfile import read_hd_map
 
-    hd = HDMap.load(path)
+    hd = read_hd_map(path)
     if not hd.lanes:
         raise CmtoolError(f"{path}: the HD map has no lanes")
     return hd, derive_sd(hd)

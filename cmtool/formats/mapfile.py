@@ -1,0 +1,79 @@
+"""Any map file, told apart by its content: what lets every command take every map cmtool writes or imports.
+
+Kinds (:func:`map_kind`): ``hdmap`` (cmtool HD map JSON), ``lanegraph`` (lane graph ``.json`` or ``.jsonl``, as
+``sample`` writes them), ``sdmap`` (cmtool SD map JSON), ``av2`` (an Argoverse 2 map JSON), ``lanelet2`` (a
+Lanelet2 ``.osm``), ``osm`` (OpenStreetMap, ``.osm`` or ``.osm.pbf``: roads without lanes) and ``nuplan``
+(a nuPlan ``.gpkg``). :func:`read_lane_graphs` and :func:`read_hd_map` read whichever holds lanes, converting
+between a whole HD map and one lane graph (:meth:`LaneGraph.from_hd`, :meth:`LaneGraph.to_hd`); a file without
+lanes gets one line saying what it is and which command makes lanes of it.
+"""
+
+from __future__ import annotations
+
+import json
+import os
+from pathlib import Path
+
+from cmtool.core.errors import CmtoolError
+from cmtool.core.jsonio import read_text
+from cmtool.formats.importers import import_hd_map
+from cmtool.maps.hdmap import FORMAT as HD_FORMAT
+from cmtool.maps.hdmap import HDMap
+from cmtool.maps.lanegraph import LaneGraph, read_jsonl
+from cmtool.maps.sdmap import FORMAT as SD_FORMAT
+
+NO_LANES = {
+    "sdmap": "an SD map (roads, no lanes); this command needs lanes, which `cmtool sample` and `cmtool baseline` "
+             "make from OpenStreetMap files (--osm) and HD maps (--from-hd)",
+    "osm": "an OpenStreetMap file (roads, no lanes): `cmtool sample --osm` or `cmtool baseline rules --osm ... "
+           "--whole MAP.json` makes lanes of it",
+}
+
+
+def map_kind(path: str | os.PathLike) -> tuple[str, object]:
+    """The kind of map in ``path`` and, for JSON files, the parsed object (None otherwise)."""
+    path = Path(path)
+    if path.suffix == ".gpkg":
+        return "nuplan", None
+    if path.name.endswith(".pbf"):
+        return "osm", None
+    text = read_text(path)
+    if text.lstrip().startswith("<"):
+        return ("lanelet2" if "lanelet" in text else "osm"), None
+    try:
+        obj = json.loads(text)
+    except json.JSONDecodeError:
+        return "lanegraph", None  # JSON Lines, or broken JSON: the lane graph reader names the line
+    if isinstance(obj, dict):
+        if obj.get("format") == HD_FORMAT:
+            return "hdmap", obj
+        if obj.get("format") == SD_FORMAT:
+            return "sdmap", obj
+        if "lane_segments" in obj:
+            return "av2", obj
+    return "lanegraph", obj
+
+
+def read_lane_graphs(path: str | os.PathLike) -> list[LaneGraph]:
+    """The lane graphs of a lane graph file, or a whole HD map (of any kind that holds lanes) as one."""
+    kind, _ = map_kind(path)
+    if kind == "lanegraph":
+        return read_jsonl(path)
+    return [LaneGraph.from_hd(read_hd_map(path))]
+
+
+def read_hd_map(path: str | os.PathLike) -> HDMap:
+    """The HD map of any map file that holds lanes: an HD map JSON, an imported format, or a lane graph file of
+    one map (:meth:`LaneGraph.to_hd`)."""
+    kind, obj = map_kind(path)
+    if kind in NO_LANES:
+        raise CmtoolError(f"{path}: {NO_LANES[kind]}")
+    if kind == "hdmap":
+        return HDMap.from_json(obj, str(path))
+    if kind == "lanegraph":
+        graphs = read_jsonl(path)
+        if len(graphs) != 1:
+            raise CmtoolError(f"{path}: {len(graphs)} lane graphs; this command takes one map (write the one you "
+                              "mean to a file of its own)")
+        return graphs[0].to_hd()
+    return import_hd_map(kind, path)
