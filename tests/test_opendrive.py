@@ -113,6 +113,41 @@ def test_the_asam_checker_finds_no_errors(name, qc_check, tmp_path):
         assert not errors, f"{name} #{n}: {errors[:5]} (and {len(warnings)} warnings: {warnings[:5]})"
 
 
+def carla_missing(xodr: str) -> set[tuple[int, int]]:
+    """The driving lanes (road id, lane id) of an OpenDRIVE text that the ``carla`` wheel's offline map (no server)
+    leaves out of its topology."""
+    carla = pytest.importorskip("carla", reason="the carla wheel (test extra; Linux x86_64, Python 3.10 to 3.12)")
+    root = ET.fromstring(xodr.encode())
+    lanes = {(int(r.get("id")), int(l.get("id"))) for r in root.iter("road") for l in r.iter("lane")
+             if l.get("type") == "driving"}
+    seen = {(w.road_id, w.lane_id) for pair in carla.Map("cmtool", xodr).get_topology() for w in pair}
+    return lanes - seen
+
+
+@pytest.mark.parametrize("name", MAPS)
+def test_carla_keeps_every_exported_lane_in_its_topology(name):
+    for n, graph in enumerate(lane_graphs(name)):
+        assert carla_missing(to_opendrive(graph, *ORIGIN, HEADING)) == set(), f"{name} #{n}"
+
+
+def test_carla_keeps_every_lane_of_whole_maps_and_of_generated_ones(tmp_path, capsys):
+    from cmtool.formats.mapfile import read_lane_graphs
+    from tests.conftest import in_process
+
+    city = tmp_path / "city.json"
+    generate_city("LAV", seed=3, extent=300.0).save(city)
+    for path in (city, *AV2.values(), *([OSM] if OSM.is_file() else [])):
+        (graph,) = read_lane_graphs(path)
+        assert carla_missing(to_opendrive(graph, *ORIGIN, HEADING)) == set(), path
+    code, _, err = in_process(capsys, "sample", "--from-hd", city, "--num", 6, "--steps", 10, "--no-log", "--quiet",
+                              "--out", tmp_path / "maps")  # the shipped weights
+    assert code == 0, err
+    for path in sorted((tmp_path / "maps").glob("city_s*.json")):
+        if not path.name.endswith(".gt.json"):
+            (graph,) = read_lane_graphs(path)
+            assert carla_missing(to_opendrive(graph, *ORIGIN, HEADING)) == set(), path
+
+
 def read_xodr(path) -> dict:
     """Our own reader: {"geoReference": text, "roads": {id: road}, "connections": [(incoming road, connecting
     road, contact point, [(from, to)])]}; a road is {"junction", "length", "links" {tag: (elementType, elementId,

@@ -334,8 +334,8 @@ def _xml(roads, junctions, lane_links, widths, lat0: float, lon0: float) -> str:
 
 def _road_xml(root, road: _Road, widths, lane_links, signal_ids) -> None:
     lengths, s = _lengths(road.points)
-    element = _sub(root, "road", name=f"road {road.id}", length=s[-1], id=road.id, junction=road.junction,
-                   rule="LHT" if road.lht else "RHT")
+    element = _sub(root, "road", name=f"road {road.id}", length=_road_length(s[-2], lengths[-1]), id=road.id,
+                   junction=road.junction, rule="LHT" if road.lht else "RHT")
     if road.links:
         link = _sub(element, "link")
         for end, tag in ((START, "predecessor"), (END, "successor")):
@@ -381,6 +381,17 @@ def _lane_xml(group, road: _Road, lane_id: int, widths, lane_links) -> None:
     _sub(lane, "roadMark", sOffset=0.0, type="solid" if outer else "broken", weight="standard", color="standard",
          width=0.12, laneChange="none" if outer else "both")
     _sub(lane, "userData", code="cmtool:lane", value=k)
+
+
+def _road_length(last_s: float, last_length: float) -> float:
+    """The road length to write: where its last geometry ends as the file states it, shortened by whole
+    micrometres until it is no longer once read as a 32-bit float (as CARLA reads it: a road length a hair
+    longer than its geometry makes the lookup at the lane's end fail, and the lane drops out of its topology)."""
+    end = float(_text(last_s)) + float(_text(last_length))
+    length = float(_text(end))
+    while float(np.float32(length)) > min(end, length):
+        length = float(_text(length - 1e-6))
+    return length
 
 
 def _sub(parent, tag: str, **attrs) -> ET.Element:
