@@ -91,7 +91,8 @@ def test_recording_has_every_step_of_every_map(sampled):
         # DDIM with eta 0 ends on the last predicted clean latent: the final map is the last x0 decoded
         last_x0 = [r for s, r in rows[p + "diffusion/x0/lanes"] if s == STEPS - 1][0]["LineStrips2D:strips"]
         final = rows[p + "hd/lanes"][0][1]["LineStrips2D:strips"]
-        np.testing.assert_allclose(np.array(last_x0.values.to_pylist()), np.array(final.values.to_pylist()), atol=1e-4)
+        np.testing.assert_allclose(np.array(last_x0.values.to_pylist()), np.array(final.values.to_pylist()),
+                                   atol=6e-4)  # the final map in millimetres, as its file keeps it
     info = rows["/info"][0][1]["TextDocument:text"].values[0].as_py()
     assert "seed 0" in info and "cfg w = 0.7" in info and "SGP" in info and "cmtool sample" in info
     reader = RrdReader(sampled["out"] / "sample.rrd")

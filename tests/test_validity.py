@@ -78,6 +78,16 @@ def test_wide_curves_are_not_kinks():
         assert any(p.kind == "kink" for p in check(LaneGraph(lanes=[arc(0, 0, 3.5, 0, np.pi / 2, n)])).problems)
 
 
+def test_sub_millimetre_steps_are_no_kinks_and_rounding_changes_no_score():
+    straight = np.array([[-20.0, 0.0], [0.0, 0.0], [0.0002, 0.0004], [20.0, 0.0]])  # a 0.45 mm step turning 63 degrees
+    corner = np.array([[-20.0, 0.0], [-1.0, 0.0], [0.0, 0.0], [0.0, 1.0], [0.0, 20.0]])  # a right angle: a kink
+    for lanes, kinks in (([straight], 0), ([corner], 1)):
+        graph = LaneGraph(lanes=lanes)
+        rounded = LaneGraph(lanes=[np.round(lane, 3) for lane in lanes])
+        assert check(graph).counts().get("kink", 0) == kinks
+        assert check(graph).score == check(rounded).score
+
+
 def test_validate_command(tmp_path, capsys):
     import json
 

@@ -38,6 +38,7 @@ from cmtool.maps.neighbours import infer_neighbours, same_direction
 
 MAX_GAP_M, MAX_TURN_DEG = 1.5, 60.0
 MIN_LENGTH_M, MIN_RADIUS_M = 2.0, 4.0
+STEP_M = 0.01  # vertices closer than this to the one before carry no direction for the kink check
 BORDER_M = 1.0  # an endpoint this close to the frame edge touches the border
 JUNCTION_REACH_M = 20.0
 
@@ -153,11 +154,24 @@ def _turns(line: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
     return np.arccos(np.clip(cos, -1.0, 1.0)), seg
 
 
+def _distinct(line: np.ndarray, step: float) -> np.ndarray:
+    """The vertices of ``line`` at least ``step`` from the one kept before (the last replacing a kept one closer
+    than that): a step shorter than that has no direction worth measuring, and rounding a file's coordinates to
+    the millimetre must not change the judgement."""
+    keep = [0]
+    for i in range(1, len(line)):
+        if np.linalg.norm(line[i] - line[keep[-1]]) >= step:
+            keep.append(i)
+    if keep[-1] != len(line) - 1 and len(keep) > 1:
+        keep[-1] = len(line) - 1
+    return line[keep] if len(keep) > 1 else line[[0, -1]]
+
+
 def _thinned(line: np.ndarray, spacing: float, corner: float) -> np.ndarray:
     """The vertices of ``line`` with each kept one at least ``spacing`` from the one before, except
     that vertices turning by more than ``corner`` are always kept; the last vertex replaces a kept
     one closer than that."""
-    line = line[np.r_[True, np.linalg.norm(np.diff(line, axis=0), axis=1) > 1e-9]]
+    line = _distinct(line, STEP_M)
     sharp = np.r_[False, _turns(line)[0] > corner, False] if len(line) >= 3 else np.zeros(len(line), bool)
     keep = [0]
     for i in range(1, len(line)):

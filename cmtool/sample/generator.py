@@ -217,14 +217,15 @@ class MapGenerator:
 
     def lane_graph(self, elements: dict[str, np.ndarray], city: str | None, meta: dict) -> LaneGraph:
         """A decoded latent as a lane graph: successors as the graph decoder predicted them, else inferred
-        from endpoint proximity (``meta["successors"]`` says which)."""
-        lanes = [np.asarray(l, np.float64) for l in elements["lines"]]
+        from endpoint proximity (``meta["successors"]`` says which); points rounded to the millimetre, as the
+        file keeps them, so that what is scored here is what a reader of the file scores."""
+        lanes = [np.round(np.asarray(l, np.float64), 3) for l in elements["lines"]]
         predicted = "successors" in elements
         successors = [(int(i), int(j)) for i, j in elements["successors"]] if predicted else infer_successors(lanes)
         meta = meta | {"successors": "predicted" if predicted else "endpoint proximity"}
         left, oncoming = find_neighbours(lanes)
         return LaneGraph(lanes=lanes, successors=successors, left_neighbors=left, oncoming=oncoming,
                          widths=lane_widths(lanes, left).round(2).tolist(),
-                         green_lights=[np.asarray(l, np.float64) for l in elements["green"]],
-                         red_lights=[np.asarray(l, np.float64) for l in elements["red"]],
+                         green_lights=[np.round(np.asarray(l, np.float64), 3) for l in elements["green"]],
+                         red_lights=[np.round(np.asarray(l, np.float64), 3) for l in elements["red"]],
                          city=city, frame_m=float(self.rvae.config.frame_m), meta=meta)
