@@ -10,7 +10,7 @@ import shapely
 
 from cmtool.core.geo import LocalProjection
 from cmtool.core.geometry import resample
-from cmtool.maps.lanegraph import LaneGraph, write_jsonl
+from cmtool.maps.lanegraph import LaneGraph, read_jsonl, write_jsonl
 from tests.conftest import SHARED_DATA, in_process
 
 
@@ -349,3 +349,39 @@ def test_every_command_takes_every_map_that_holds_lanes(tmp_path, capsys):
     code, _, err = in_process(capsys, "validate", tmp_path / "list.json")
     assert code == 1 and len(err.strip().splitlines()) == 1
     assert isinstance(HDMap.load(city), HDMap)
+
+
+def test_lanelet2_never_routes_a_turn_the_lane_graph_does_not_allow(tmp_path, capsys):
+    """Lanelet2 reads a lane as flowing into every lane whose start nodes its end nodes are: a lane that ends where
+    a fork starts would take every branch of it. The export leaves such a join out instead (issue 43)."""
+    pytest.importorskip("lanelet2")
+    from cmtool.formats.lanelet2_export import write_lanelet2
+
+    def line(a, b):
+        return np.linspace(a, b, 10)
+
+    lanes = [line((0, 0), (10, 0)), line((10, -10), (10, 0)), line((10, 0), (20, 0)), line((10, 0), (10, 10))]
+    graph = LaneGraph(lanes=lanes, successors=[(0, 2), (0, 3), (1, 2)])  # lane 1 may go on to 2, not to 3
+    write_lanelet2(graph, tmp_path / "fork.osm", 49.0, 8.4)
+    count, following = lanelet2_successors(tmp_path / "fork.osm", 49.0, 8.4)
+    assert count == 4 and following <= set(graph.successors) and len(following) == 2
+
+    city = tmp_path / "city.json"  # maps of the shipped weights, whose successors seldom form clean forks
+    from cmtool.data.synth import generate_city
+
+    generate_city("PIT", seed=2, extent=300.0).save(city)
+    code, _, err = in_process(capsys, "sample", "--from-hd", city, "--num", 6, "--steps", 10, "--no-log", "--quiet",
+                              "--out", tmp_path / "maps")
+    assert code == 0, err
+    kept = total = 0
+    for path in sorted((tmp_path / "maps").glob("city_s*.json")):
+        if path.name.endswith(".gt.json"):
+            continue
+        (generated,) = read_jsonl(path)
+        write_lanelet2(generated, tmp_path / "g.osm", 49.0, 8.4)
+        _, following = lanelet2_successors(tmp_path / "g.osm", 49.0, 8.4)
+        allowed = {(int(i), int(j)) for i, j in generated.successors}
+        assert following <= allowed, path
+        assert lanelet2_routes(tmp_path / "g.osm", 49.0, 8.4) <= source_routes(generated), path
+        kept, total = kept + len(following), total + len(allowed)
+    assert kept >= 0.7 * total, (kept, total)

@@ -39,30 +39,26 @@ START, END = 0, 1
 
 
 class _Ways:
-    """Nodes (deduplicated to the millimetre) and ways, numbered from 1."""
+    """Nodes and ways, numbered from 1. Nodes are shared by name only (a way's end named by the bound corner it
+    is joined to), never by position: Lanelet2 reads a shared node as a link, so two lanes that merely end at
+    one point must not share one, or each would inherit the other's successors."""
 
     def __init__(self):
-        self.node_ids: dict[tuple[int, int], int] = {}
+        self.named: dict[object, int] = {}
         self.nodes: list[np.ndarray] = []
         self.ways: list[tuple[list[int], dict]] = []
 
-    @staticmethod
-    def _key(p: np.ndarray) -> tuple[int, int]:
-        return round(float(p[0]) * 1000), round(float(p[1]) * 1000)
+    def node(self, p: np.ndarray, name=None) -> int:
+        if name is not None and name in self.named:
+            return self.named[name]
+        self.nodes.append(np.asarray(p, np.float64))
+        if name is not None:
+            self.named[name] = len(self.nodes)
+        return len(self.nodes)
 
-    def node(self, p: np.ndarray) -> int:
-        key = self._key(p)
-        if key not in self.node_ids:
-            self.node_ids[key] = len(self.nodes) + 1
-            self.nodes.append(np.asarray(p, np.float64))
-        return self.node_ids[key]
-
-    def way(self, points: np.ndarray, **tags) -> int:
-        refs = []
-        for p in points:
-            n = self.node(p)
-            if not refs or refs[-1] != n:
-                refs.append(n)
+    def way(self, points: np.ndarray, start=None, end=None, **tags) -> int:
+        """A way through ``points``; ``start``, ``end``: the names of its end nodes (None: nodes of its own)."""
+        refs = [self.node(points[0], start), *(self.node(p) for p in points[1:-1]), self.node(points[-1], end)]
         self.ways.append((refs, tags))
         return len(self.ways)
 
@@ -74,7 +70,7 @@ def to_lanelet2(graph, lat0: float, lon0: float, heading: float = 0.0, lane_widt
     widths = lane_widths(lanes, left, graph.widths, lane_width)
     bounds = {(i, side): offset(l, (0.5 if side == LEFT else -0.5) * w)
               for i, (l, w) in enumerate(zip(lanes, widths)) for side in (LEFT, RIGHT)}
-    corners = _Corners(len(lanes))
+    corners = _Corners(len(lanes), {(int(i), int(j)) for i, j in graph.successors})
     for i, j in graph.successors:
         corners.join([((i, LEFT, END), (j, LEFT, START)), ((i, RIGHT, END), (j, RIGHT, START))])
     shared = {}  # bound -> (the bound it shares a way with, whether that one runs against it)
@@ -97,7 +93,8 @@ def to_lanelet2(graph, lat0: float, lon0: float, heading: float = 0.0, lane_widt
             twin = resample(bounds[partner[0]], len(line))
             line = 0.5 * (line + (twin[::-1] if partner[1] else twin))
         line = _pin_ends(line, corners.position(bounds, (*key, START)), corners.position(bounds, (*key, END)))
-        way_of[key] = ways.way(line, type="line_thin", subtype="dashed" if partner and not partner[1] else "solid")
+        way_of[key] = ways.way(line, corners.name((*key, START)), corners.name((*key, END)), type="line_thin",
+                               subtype="dashed" if partner and not partner[1] else "solid")
         if partner is not None:
             way_of[partner[0]] = way_of[key]
     relations = []
@@ -123,29 +120,47 @@ def write_lanelet2(graph, path: str | os.PathLike, lat0: float, lon0: float, hea
 
 class _Corners:
     """The four corners of every lane's bounds, ``(lane, side, end)``, joined into shared nodes: lane
-    ends with their successors' starts, neighbours' shared bound ends. A join that would make one
-    lane's left and right corner at the same end one node (a lanelet of no width) is refused."""
+    ends with their successors' starts, neighbours' shared bound ends. Lanelet2 reads lane a as flowing
+    into lane b where a's end corners are b's start corners, so a join is refused where it would make one
+    lane's left and right corner at the same end one node (a lanelet of no width), or make a lane flow into
+    one the lane graph does not let it (``allowed``: the successor pairs): a lane ending where a fork starts
+    would otherwise take every branch of it."""
 
-    def __init__(self, n: int):
+    def __init__(self, n: int, allowed: set[tuple[int, int]]):
         keys = [(i, side, end) for i in range(n) for side in (LEFT, RIGHT) for end in (START, END)]
         self.sets = UnionFind(keys)
         self.members = {k: {k} for k in keys}
+        self.allowed = allowed
 
     def join(self, pairs) -> bool:
         """Join each pair of corners, all or none; whether they were joined."""
         trial = UnionFind(self.sets.find(k) for pair in pairs for k in pair)
         for a, b in pairs:
             trial.union(self.sets.find(a), self.sets.find(b))
-        for group in trial.groups():
-            merged = set().union(*(self.members[r] for r in group))
-            if any((i, 1 - side, end) in merged for i, side, end in merged):
-                return False
+        groups = [set().union(*(self.members[r] for r in group)) for group in trial.groups()]
+        if any((i, 1 - side, end) in merged for merged in groups for i, side, end in merged):
+            return False
+        new = {k: ("joined", n) for n, merged in enumerate(groups) for k in merged}
+
+        def node(key):  # the node a corner would be after the join
+            return new.get(key) or self.sets.find(key)
+
+        for merged in groups:  # the lanes that would flow into each other through these nodes
+            for a, side, end in merged:
+                for b, other, start in merged:
+                    if end == END and start == START and other == side and (a, b) not in self.allowed \
+                            and node((a, 1 - side, END)) == node((b, 1 - side, START)):
+                        return False
         for a, b in pairs:
             ra, rb = self.sets.find(a), self.sets.find(b)
             if ra != rb:
                 self.sets.union(ra, rb)
                 self.members[ra] |= self.members.pop(rb)
         return True
+
+    def name(self, key):
+        """The name of the node a corner is joined into (one per group of joined corners)."""
+        return self.sets.find(key)
 
     def position(self, bounds, key) -> np.ndarray:
         """Where a corner's node lies: the mean of the bound ends joined to it."""

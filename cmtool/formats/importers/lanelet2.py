@@ -7,8 +7,8 @@
 * Bounds: the ``left``/``right`` member ways may run against the lanelet. The right bound is
   reversed when that pairs the bounds' ends better, then both are reversed if the left bound lies
   on the right of travel, so the lanelet direction follows from the geometry alone.
-* Successors: B follows A when A's bounds end where B's bounds start (both end points within
-  0.1 m, which covers shared nodes). Neighbours: A's left bound is B's right bound, the same way
+* Successors: B follows A when A's bounds end on the nodes B's bounds start on (the left and the right
+  node shared, as Lanelet2 links lanelets; bounds that merely end at one place are not linked). Neighbours: A's left bound is B's right bound, the same way
   traversed in the same direction.
 * Intersections (Lanelet2 has no such flag): a lane is marked ``is_intersection`` when it diverges
   from or merges with a sibling, i.e. another lane starts where it starts but ends elsewhere, or
@@ -26,7 +26,6 @@ from dataclasses import dataclass
 from pathlib import Path
 
 import numpy as np
-from scipy.spatial import cKDTree
 
 from cmtool.core.errors import CmtoolError
 from cmtool.core.geo import LocalProjection
@@ -42,7 +41,6 @@ ROAD_SUBTYPES = {
     "emergency_lane": "vehicle",
     "bus_lane": "bus",
 }
-JOIN_TOL = 0.1  # metres between bound end points that count as the same point
 
 
 @dataclass
@@ -50,6 +48,7 @@ class _Bound:
     way: int
     reversed: bool  # traversed against the way's node order
     xy: np.ndarray  # (N, 2) in traversal order
+    ends: tuple[int, int]  # its first and last node ids, in traversal order
 
 
 @dataclass
@@ -125,8 +124,8 @@ def _bounds(osm: OsmData, xy: dict, rid: int, rel: OsmRelation, path: Path) -> t
             ways[role] = ref
     if len(ways) != 2:
         raise CmtoolError(f"{path}: {where}: needs one 'left' and one 'right' way member")
-    left = _Bound(ways["left"], False, _way_xy(osm, xy, ways["left"], where, path))
-    right = _Bound(ways["right"], False, _way_xy(osm, xy, ways["right"], where, path))
+    left, right = (_Bound(ways[side], False, _way_xy(osm, xy, ways[side], where, path),
+                          (osm.ways[ways[side]].nodes[0], osm.ways[ways[side]].nodes[-1])) for side in ("left", "right"))
     l, r = left.xy, right.xy
     aligned = np.linalg.norm(l[0] - r[0]) + np.linalg.norm(l[-1] - r[-1])
     crossed = np.linalg.norm(l[0] - r[-1]) + np.linalg.norm(l[-1] - r[0])
@@ -142,25 +141,25 @@ def _bounds(osm: OsmData, xy: dict, rid: int, rel: OsmRelation, path: Path) -> t
 
 
 def _flip(b: _Bound) -> _Bound:
-    return _Bound(b.way, not b.reversed, b.xy[::-1])
+    return _Bound(b.way, not b.reversed, b.xy[::-1], b.ends[::-1])
 
 
-def _ends(lanes: list[_Lanelet], end: int) -> np.ndarray:
-    """(N, 4) [left x, left y, right x, right y] of each lane's first (end=0) or last (end=-1) points."""
-    return np.array([np.concatenate([ll.left.xy[end], ll.right.xy[end]]) for ll in lanes])
+def _ends(lanes: list[_Lanelet], end: int) -> list[tuple[int, int]]:
+    """The (left, right) bound node ids at each lane's start (end=0) or end (end=-1)."""
+    return [(ll.left.ends[end], ll.right.ends[end]) for ll in lanes]
 
 
-def _matches(a: np.ndarray, b: np.ndarray) -> list[tuple[int, int]]:
-    """Index pairs (i, j) with a[i] and b[j] within JOIN_TOL on both the left and the right point."""
-    tree = cKDTree(b[:, :2])
-    pairs = []
-    for i, near in enumerate(tree.query_ball_point(a[:, :2], JOIN_TOL)):
-        pairs += [(i, j) for j in near if np.linalg.norm(a[i, 2:] - b[j, 2:]) <= JOIN_TOL]
-    return pairs
+def _matches(a: list, b: list) -> list[tuple[int, int]]:
+    """Index pairs (i, j) with a[i] and b[j] the same left and right nodes: as Lanelet2 itself links lanelets, by
+    the nodes they share, not by where nodes lie (two lanes that merely end at one point are not linked)."""
+    at = {}
+    for j, key in enumerate(b):
+        at.setdefault(key, []).append(j)
+    return [(i, j) for i, key in enumerate(a) for j in at.get(key, [])]
 
 
 def _link(hd: HDMap, lanes: list[_Lanelet]) -> None:
-    """Successor edges from coinciding bound ends, and the diverge/merge intersection flags."""
+    """Successor edges from shared bound end nodes, and the diverge/merge intersection flags."""
     if not lanes:
         return
     starts, ends = _ends(lanes, 0), _ends(lanes, -1)
