@@ -300,7 +300,9 @@ def test_every_command_takes_every_map_that_holds_lanes(tmp_path, capsys):
     back = graph.to_hd()  # and back: the same lanes, links and lights
     assert back.reference_errors() == [] and len(back.lanes) == len(hd.lanes)
     assert sorted(len(l.successors) for l in back.lanes.values()) == sorted(len(l.successors) for l in hd.lanes.values())
-    assert len(back.stop_lines) == sum(s.state in ("green", "red") for s in hd.stop_lines)
+    renamed = {lane: f"l{k}" for k, lane in enumerate(hd.lanes)}  # each light controls the same lanes
+    assert {(s.state, lane) for s in back.stop_lines for lane in s.lane_ids} == \
+        {(s.state, renamed[lane]) for s in hd.stop_lines if s.state in ("green", "red") for lane in s.lane_ids}
 
     assert in_process(capsys, "validate", city)[0] == 0
     for fmt, suffix in (("lanelet2", "osm"), ("opendrive", "xodr"), ("geojson", "geojson")):
@@ -385,3 +387,22 @@ def test_lanelet2_never_routes_a_turn_the_lane_graph_does_not_allow(tmp_path, ca
         assert lanelet2_routes(tmp_path / "g.osm", 49.0, 8.4) <= source_routes(generated), path
         kept, total = kept + len(following), total + len(allowed)
     assert kept >= 0.7 * total, (kept, total)
+
+
+def test_a_lanelet2_round_trip_keeps_the_city_and_every_light(tmp_path, capsys):
+    from cmtool.formats.importers import import_hd_map
+
+    lanes = [np.linspace((0, 0), (30, 0), 10), np.linspace((30, 0), (60, 0), 10), np.linspace((30, 0), (30, 30), 10)]
+    lights = {"green_lights": [lanes[1][:4], np.linspace((50, 20), (55, 20), 3)],  # the second controls no lane
+              "red_lights": [lanes[2][:4]]}
+    for city in ("SGP", None):
+        graph = LaneGraph(lanes=lanes, successors=[(0, 1), (0, 2)], city=city, **lights)
+        write_jsonl(tmp_path / "g.jsonl", [graph])
+        assert in_process(capsys, "export", "--format", "lanelet2", tmp_path / "g.jsonl", "--origin", "1.3,103.8",
+                          "--out", tmp_path / "g.osm")[0] == 0
+        hd = import_hd_map("lanelet2", tmp_path / "g.osm")
+        assert hd.city == (city or "") and hd.drives_on == ("left" if city == "SGP" else "right")
+        assert sorted((s.state, len(s.lane_ids)) for s in hd.stop_lines) == [("green", 0), ("green", 1), ("red", 1)]
+        back = LaneGraph.from_hd(hd)
+        assert (len(back.green_lights), len(back.red_lights), back.city) == (2, 1, city)
+    assert import_hd_map("lanelet2", SHARED_DATA / "lanelet2" / "mapping_example.osm").city == "KAR"

@@ -8,10 +8,12 @@ Lanelet2 routing finds successors. Neighbours (the lane graph's ``left_neighbors
 found from the geometry when it has none) that start and end abreast share one bound way: dashed
 between lane-change neighbours, so Lanelet2 routes lane changes; solid as the centre line of
 oncoming lanes (their left bounds in right-hand traffic, their right bounds in left-hand traffic).
-Each traffic-light line that controls a lane (:func:`~cmtool.maps.lanegraph.controlled_lanes`)
-becomes a ``regulatory_element`` (``subtype=traffic_light``) with a light way and a stop line across
-that lane's start, referenced by its lanelet. The scene frame's origin is placed at ``(lat0, lon0)``
-with its forward axis pointing to the compass ``heading``.
+Each traffic-light line becomes a ``regulatory_element`` (``subtype=traffic_light``, its state as
+``cmtool:state``) with a light way and a stop line across the start of the lane it controls
+(:func:`~cmtool.maps.lanegraph.controlled_lanes`), referenced by that lanelet; a light that controls no lane
+stays, referenced by none. Lanelets carry the city label as ``cmtool:city``, which cmtool's importer reads
+back. The scene frame's origin is placed at ``(lat0, lon0)`` with its forward axis pointing to the compass
+``heading``.
 """
 
 from __future__ import annotations
@@ -98,18 +100,21 @@ def to_lanelet2(graph, lat0: float, lon0: float, heading: float = 0.0, lane_widt
         if partner is not None:
             way_of[partner[0]] = way_of[key]
     relations = []
+    city = {"cmtool:city": graph.city or "none"}  # read back by cmtool's importer
     for i in range(len(lanes)):
         relations.append(([("way", way_of[(i, LEFT)], "left"), ("way", way_of[(i, RIGHT)], "right")],
                           {"type": "lanelet", "subtype": "road", "location": "urban", "one_way": "yes",
-                           "cmtool:lane": str(i)}))
-    for state, line, k in controlled_lanes(graph):
-        across = np.array([-1.0, 1.0]) * unit(lanes[k][1] - lanes[k][0])[::-1]
-        stop = np.array([line[0] + across * widths[k] / 2.0, line[0] - across * widths[k] / 2.0])
-        stop_way = ways.way(stop, type="stop_line")
+                           "cmtool:lane": str(i), **city}))
+    for state, line, k in controlled_lanes(graph, every=True):  # a light that controls no lane stays, unreferenced
+        along = lanes[k] if k is not None else line
+        across = np.array([-1.0, 1.0]) * unit(along[1] - along[0])[::-1]
+        half = (widths[k] if k is not None else lane_width) / 2.0
+        stop_way = ways.way(np.array([line[0] + across * half, line[0] - across * half]), type="stop_line")
         light_way = ways.way(line[:2], type="traffic_light", subtype="red_yellow_green")
         relations.append(([("way", light_way, "refers"), ("way", stop_way, "ref_line")],
                           {"type": "regulatory_element", "subtype": "traffic_light", "cmtool:state": state}))
-        relations[k][0].append(("relation", len(relations), "regulatory_element"))
+        if k is not None:
+            relations[k][0].append(("relation", len(relations), "regulatory_element"))
     return _xml(ways, relations, lat0, lon0, heading)
 
 

@@ -106,13 +106,15 @@ class LaneGraph:
     @classmethod
     def from_hd(cls, hd: HDMap) -> "LaneGraph":
         """A whole HD map as one lane graph, in the map's own metres: its lanes with their successors, left
-        neighbours and widths, its green and red stop lines as light lines; ``frame_m`` the square about the
+        neighbours and widths, its green and red lights as light lines (as scenes draw them: the centre line of
+        each lane a stop line controls, or the stop line itself where it names none); ``frame_m`` the square about the
         origin that holds it all (so that only lanes ending at the map's outer edge touch the border); ``meta.geo``
         where the map records its place (an imported map's projection origin, x east and y north)."""
         ids = list(hd.lanes)
         index = {k: i for i, k in enumerate(ids)}
         lanes = [np.asarray(hd.lanes[k].centerline, np.float64) for k in ids]
-        lights = {state: [np.asarray(s.line, np.float64) for s in hd.stop_lines if s.state == state]
+        lights = {state: [np.asarray(line, np.float64) for s in hd.stop_lines if s.state == state
+                          for line in ([hd.lanes[i].centerline for i in s.lane_ids if i in hd.lanes] or [s.line])]
                   for state in ("green", "red")}
         points = [p for p in (*lanes, *lights["green"], *lights["red"]) if len(p)]
         reach = float(max((np.abs(p).max() for p in points), default=32.0))
@@ -122,12 +124,13 @@ class LaneGraph:
             left_neighbors=[(index[k], index[hd.lanes[k].left_neighbor]) for k in ids
                             if hd.lanes[k].left_neighbor in index],
             widths=[float(hd.lanes[k].width) for k in ids],
-            green_lights=lights["green"], red_lights=lights["red"], city=hd.city,
+            green_lights=lights["green"], red_lights=lights["red"], city=hd.city or None,
             frame_m=2.0 * (math.ceil(reach) + HD_MARGIN_M),
             meta={"source": hd.source, **({"geo": geo} if (geo := _hd_geo(hd.meta)) else {})})
 
     def to_hd(self) -> HDMap:
-        """The lane graph as an HD map (lanes ``l0, l1, ...``; light lines as stop lines of their colour). It
+        """The lane graph as an HD map (lanes ``l0, l1, ...``; each light line a stop line of its colour across the
+        start of the lane it controls, :func:`controlled_lanes`, or along the light line where it controls none). It
         records no intersection lanes: a lane graph does not say which lanes are junction connectors."""
         hd = HDMap(city=self.city or "", drives_on=drives_on(self.city), source=str(self.meta.get("source", "")),
                    meta={"geo": self.meta["geo"]} if "geo" in self.meta else {})
@@ -138,9 +141,14 @@ class LaneGraph:
             hd.link(f"l{i}", f"l{j}")
         for i, j in self.left_neighbors or []:
             hd.lanes[f"l{i}"].left_neighbor, hd.lanes[f"l{j}"].right_neighbor = f"l{j}", f"l{i}"
-        for state, lines in (("green", self.green_lights), ("red", self.red_lights)):
-            hd.stop_lines += [StopLine(f"{state[0]}{k}", np.asarray(line, np.float64), state)
-                              for k, line in enumerate(lines)]
+        for n, (state, line, k) in enumerate(controlled_lanes(self, every=True)):
+            if k is None:
+                hd.stop_lines.append(StopLine(f"s{n}", line, state))
+                continue
+            lane = hd.lanes[f"l{k}"]
+            across = unit(lane.centerline[1] - lane.centerline[0])[::-1] * np.array([-1.0, 1.0]) * lane.width / 2.0
+            hd.stop_lines.append(StopLine(f"s{n}", np.array([lane.centerline[0] + across, lane.centerline[0] - across]),
+                                          state, [lane.id]))
         return hd
 
     @property
@@ -206,18 +214,25 @@ def write_jsonl(path: str | os.PathLike, graphs) -> None:
 LIGHT_REACH_M = 3.0  # a light line controls the lane starting this close to its start
 
 
-def controlled_lanes(graph) -> list[tuple[str, np.ndarray, int]]:
+def controlled_lanes(graph, every: bool = False) -> list[tuple[str, np.ndarray, int | None]]:
     """(state, light line, index of the lane it controls) for each green and red light line that starts
-    within ``LIGHT_REACH_M`` of a lane's start (the lane starting nearest); the others control nothing."""
-    starts = np.array([np.asarray(l, np.float64)[0] for l in graph.lanes]).reshape(-1, 2)
+    within ``LIGHT_REACH_M`` of a lane's start (the lane starting nearest, and of lanes starting alike, the one
+    that runs nearest its end: the branches of a fork start at one point); the others control nothing, and come
+    with the index None when ``every`` is set (else not at all)."""
+    lanes = [np.asarray(l, np.float64) for l in graph.lanes]
+    starts = np.array([l[0] for l in lanes]).reshape(-1, 2)
     out = []
     for state, lights in (("green", graph.green_lights), ("red", graph.red_lights)):
         for line in lights if len(starts) else []:
             line = np.asarray(line, np.float64)
             distance = np.linalg.norm(starts - line[0], axis=1)
-            k = int(np.argmin(distance))
-            if distance[k] <= LIGHT_REACH_M:
-                out.append((state, line, k))
+            near = np.flatnonzero(distance <= distance.min() + 0.01)
+            k = int(near[np.argmin([np.linalg.norm(lanes[i] - line[-1], axis=1).min() for i in near])])
+            if distance[k] <= LIGHT_REACH_M or every:
+                out.append((state, line, k if distance[k] <= LIGHT_REACH_M else None))
+    if every and not len(starts):
+        out = [(state, np.asarray(line, np.float64), None)
+               for state, lights in (("green", graph.green_lights), ("red", graph.red_lights)) for line in lights]
     return out
 
 

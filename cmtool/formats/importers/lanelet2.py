@@ -32,7 +32,7 @@ from cmtool.core.geo import LocalProjection
 from cmtool.core.geometry import resample
 from cmtool.formats.importers.common import centerline_and_width, tidy_references
 from cmtool.formats.osmxml import OsmData, OsmRelation, read_osm_xml
-from cmtool.maps.hdmap import Crosswalk, HDMap, Lane, StopLine
+from cmtool.maps.hdmap import LIGHT_STATES, Crosswalk, HDMap, Lane, StopLine, drives_on
 
 ROAD_SUBTYPES = {
     "road": "vehicle",
@@ -61,7 +61,8 @@ class _Lanelet:
 
 
 def import_lanelet2(path: str | os.PathLike, city: str | None = None) -> HDMap:
-    """Read a Lanelet2 OSM map (city code ``KAR``, the Karlsruhe example, unless ``city`` is given)."""
+    """Read a Lanelet2 OSM map (city code ``KAR``, the Karlsruhe example, unless ``city`` is given or the file is one
+    of cmtool's exports, which record it)."""
     path = Path(path)
     osm = read_osm_xml(path)
     lanelets = {rid: rel for rid, rel in osm.relations.items() if rel.tags.get("type") == "lanelet"}
@@ -70,7 +71,10 @@ def import_lanelet2(path: str | os.PathLike, city: str | None = None) -> HDMap:
     if not osm.nodes:
         raise CmtoolError(f"{path}: no nodes")
     xy, (lat0, lon0) = _project(osm)
-    hd = HDMap(city=city or "KAR", drives_on="right", source=f"lanelet2:{path.name}",
+    recorded = {rel.tags["cmtool:city"] for rel in lanelets.values() if "cmtool:city" in rel.tags}  # cmtool's exports
+    if not city:
+        city = ({"none": ""}.get(tag, tag) if len(recorded) == 1 and (tag := recorded.pop()) else "KAR")
+    hd = HDMap(city=city, drives_on=drives_on(city), source=f"lanelet2:{path.name}",
                meta={"lat0": lat0, "lon0": lon0})
 
     lanes: list[_Lanelet] = []
@@ -198,4 +202,6 @@ def _traffic_lights(hd: HDMap, osm: OsmData, xy: dict, lanes: list[_Lanelet], pa
         if not ref_lines:
             continue
         line = _way_xy(osm, xy, ref_lines[0], f"traffic light {rid}", path)
-        hd.stop_lines.append(StopLine(str(rid), line, "unknown", controlled.get(rid, [])))
+        state = rel.tags.get("cmtool:state", "unknown")  # cmtool's exports record the light's state
+        hd.stop_lines.append(StopLine(str(rid), line, state if state in LIGHT_STATES else "unknown",
+                                      controlled.get(rid, [])))
