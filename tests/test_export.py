@@ -299,7 +299,8 @@ def test_every_command_takes_every_map_that_holds_lanes(tmp_path, capsys):
     assert all(np.abs(lane).max() < graph.frame_m / 2 - 1.0 for lane in graph.lanes)  # the whole map inside its frame
     back = graph.to_hd()  # and back: the same lanes, links and lights
     assert back.reference_errors() == [] and len(back.lanes) == len(hd.lanes)
-    assert sorted(len(l.successors) for l in back.lanes.values()) == sorted(len(l.successors) for l in hd.lanes.values())
+    assert sorted(len(lane.successors) for lane in back.lanes.values()) == \
+        sorted(len(lane.successors) for lane in hd.lanes.values())
     renamed = {lane: f"l{k}" for k, lane in enumerate(hd.lanes)}  # each light controls the same lanes
     assert {(s.state, lane) for s in back.stop_lines for lane in s.lane_ids} == \
         {(s.state, renamed[lane]) for s in hd.stop_lines if s.state in ("green", "red") for lane in s.lane_ids}

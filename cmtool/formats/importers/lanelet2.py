@@ -8,7 +8,8 @@
   reversed when that pairs the bounds' ends better, then both are reversed if the left bound lies
   on the right of travel, so the lanelet direction follows from the geometry alone.
 * Successors: B follows A when A's bounds end on the nodes B's bounds start on (the left and the right
-  node shared, as Lanelet2 links lanelets; bounds that merely end at one place are not linked). Neighbours: A's left bound is B's right bound, the same way
+  node shared, as Lanelet2 links lanelets; bounds that merely end at one place are not linked).
+  Neighbours: A's left bound is B's right bound, the same way
   traversed in the same direction.
 * Intersections (Lanelet2 has no such flag): a lane is marked ``is_intersection`` when it diverges
   from or merges with a sibling, i.e. another lane starts where it starts but ends elsewhere, or
@@ -129,7 +130,8 @@ def _bounds(osm: OsmData, xy: dict, rid: int, rel: OsmRelation, path: Path) -> t
     if len(ways) != 2:
         raise CmtoolError(f"{path}: {where}: needs one 'left' and one 'right' way member")
     left, right = (_Bound(ways[side], False, _way_xy(osm, xy, ways[side], where, path),
-                          (osm.ways[ways[side]].nodes[0], osm.ways[ways[side]].nodes[-1])) for side in ("left", "right"))
+                          (osm.ways[ways[side]].nodes[0], osm.ways[ways[side]].nodes[-1]))
+                   for side in ("left", "right"))
     l, r = left.xy, right.xy
     aligned = np.linalg.norm(l[0] - r[0]) + np.linalg.norm(l[-1] - r[-1])
     crossed = np.linalg.norm(l[0] - r[-1]) + np.linalg.norm(l[-1] - r[0])
