@@ -7,6 +7,7 @@ import math
 import numpy as np
 import pytest
 import shapely
+from pathlib import Path
 
 from cmtool.core.geo import LocalProjection
 from cmtool.core.geometry import resample
@@ -407,3 +408,49 @@ def test_a_lanelet2_round_trip_keeps_the_city_and_every_light(tmp_path, capsys):
         back = LaneGraph.from_hd(hd)
         assert (len(back.green_lights), len(back.red_lights), back.city) == (2, 1, city)
     assert import_hd_map("lanelet2", SHARED_DATA / "lanelet2" / "mapping_example.osm").city == "KAR"
+
+
+def sumo_traffic(net, tmp_path, seconds: int = 60) -> dict[str, int]:
+    """SUMO's statistics after ``seconds`` of random trips on the network ``net`` (randomTrips.py, then sumo)."""
+    import subprocess
+    import sys
+    import xml.etree.ElementTree as ET
+
+    sumo = pytest.importorskip("sumo", reason="SUMO (the eclipse-sumo wheel, in the test extra)")
+    tools = Path(sumo.SUMO_HOME) / "tools"
+    trips, stats = tmp_path / "trips.xml", tmp_path / "stats.xml"
+    subprocess.run([sys.executable, str(tools / "randomTrips.py"), "-n", str(net), "-o", str(trips), "-e",
+                    str(seconds // 2), "--validate", "--seed", "1"], check=True, capture_output=True, timeout=120)
+    done = subprocess.run([str(Path(sumo.SUMO_HOME) / "bin" / "sumo"), "-n", str(net), "-r", str(trips), "--end",
+                           str(seconds), "--no-step-log", "--statistic-output", str(stats)], capture_output=True,
+                          text=True, timeout=120)
+    assert done.returncode == 0, done.stderr
+    root = ET.parse(stats).getroot()
+    vehicles, safety, teleports = (root.find(tag).attrib for tag in ("vehicles", "safety", "teleports"))
+    return {"inserted": int(vehicles["inserted"]), "arrived": int(vehicles["inserted"]) - int(vehicles["running"])
+            - int(vehicles["waiting"]), "collisions": int(safety["collisions"]), "teleports": int(teleports["total"])}
+
+
+def test_sumo_carries_traffic_on_an_exported_city_and_a_generated_map(tmp_path, capsys):
+    from cmtool.data.synth import generate_city
+    from cmtool.formats.sumo import netconvert_path
+
+    if netconvert_path() is None:
+        pytest.skip("SUMO's netconvert is not installed (pip install eclipse-sumo)")
+    city = tmp_path / "city.json"
+    generate_city("LAV", seed=3, extent=300.0).save(city)
+    code, out, err = in_process(capsys, "export", "--format", "sumo", city, "--origin", "36.1,-115.2", "--out",
+                                tmp_path / "city.net.xml")
+    assert code == 0 and "SUMO network of 32 lanes" in out, err
+    traffic = sumo_traffic(tmp_path / "city.net.xml", tmp_path)
+    assert traffic["inserted"] > 0 and traffic["arrived"] > 0 and traffic["collisions"] == traffic["teleports"] == 0
+    assert in_process(capsys, "data", "poses", city, "--n", 1, "--kind", "junction", "--out", tmp_path / "p.jsonl")[0] == 0
+    code, _, err = in_process(capsys, "sample", "--from-hd", city, "--pose", tmp_path / "p.jsonl", "--steps", 10,
+                              "--no-log", "--quiet", "--out", tmp_path / "maps")  # the shipped weights, at a junction
+    assert code == 0, err
+    (generated,) = [p for p in (tmp_path / "maps").glob("*.json") if not p.name.endswith(".gt.json")]
+    code, _, err = in_process(capsys, "export", "--format", "sumo", generated, "--origin", "36.1,-115.2", "--out",
+                              tmp_path / "gen.net.xml")
+    assert code == 0, err
+    traffic = sumo_traffic(tmp_path / "gen.net.xml", tmp_path, seconds=30)
+    assert traffic["inserted"] > 0 and traffic["collisions"] == 0

@@ -66,9 +66,10 @@ def validate(maps, json_out, repair, out):
 
 
 @click.command()
-@click.option("--format", "fmt", required=True, type=click.Choice(["lanelet2", "opendrive", "geojson"]),
+@click.option("--format", "fmt", required=True, type=click.Choice(["lanelet2", "opendrive", "geojson", "sumo"]),
               help="lanelet2: a Lanelet2 OSM map (.osm); opendrive: an OpenDRIVE 1.6 map (.xodr); "
-                   "geojson: GeoJSON features.")
+                   "geojson: GeoJSON features; sumo: a SUMO network for traffic (.net.xml; needs SUMO: "
+                   "pip install eclipse-sumo).")
 @click.argument("map_path", metavar="MAP", type=click.Path(dir_okay=False, path_type=Path))
 @click.option("--origin", help="LAT,LON where the scene's origin (the ego) lies [default: what the map's meta.geo "
                                "records, as maps from `sample --osm` do].")
@@ -114,6 +115,13 @@ def export(fmt, map_path, origin, heading, scene, lane_width, out):
         raise CmtoolError(f"--heading {heading}: expected a finite number of degrees")
     if len(graph.lanes) >= LARGE_SCENE:  # seconds of work ahead: say so before it starts
         click.echo(f"{map_path}: exporting {len(graph.lanes):,} lanes to {fmt} (about a second per 1,000)...", err=True)
+    if fmt == "sumo":
+        from cmtool.formats.sumo import write_sumo_net
+
+        warning = write_sumo_net(graph, out, lat0, lon0, heading, lane_width)
+        click.echo(f"{out}: SUMO network of {len(graph.lanes)} lanes (netconvert on the OpenDRIVE export); origin "
+                   f"{lat0:.7f},{lon0:.7f}, heading {heading:g}" + (f"; netconvert: {warning}" if warning else ""))
+        return
     if fmt in ("lanelet2", "opendrive"):
         if fmt == "lanelet2":
             from cmtool.formats.lanelet2_export import write_lanelet2 as write

@@ -1,6 +1,7 @@
 """SUMO networks: an SD map laid out by SUMO's ``netconvert`` (the rule-based converter CARLA's ``Osm2Odr`` also
-runs), read back as an HD map; the second baseline of ``cmtool eval`` and ``cmtool baseline`` when SUMO is
-installed (``pip install eclipse-sumo``).
+runs), read back as an HD map, the second baseline of ``cmtool eval`` and ``cmtool baseline``; and a lane graph as
+a SUMO network for traffic (:func:`write_sumo_net`, ``cmtool export --format sumo``), when SUMO is installed
+(``pip install eclipse-sumo``).
 
 The SD map goes to ``netconvert`` as an OpenStreetMap file (:func:`cmtool.formats.osm.write_osm`) with SUMO's
 recommended options for OpenStreetMap input (``OSM_OPTIONS``), and a transverse Mercator projection centred on
@@ -20,6 +21,7 @@ import defusedxml.ElementTree as ET
 import numpy as np
 
 from cmtool.core.errors import CmtoolError
+from cmtool.core.jsonio import write_text_atomic
 from cmtool.formats.osm import write_osm
 from cmtool.maps.hdmap import HDMap, Lane, drives_on
 from cmtool.maps.sdmap import SDMap
@@ -61,6 +63,29 @@ def netconvert_layout(sd: SDMap, side: str | None = None) -> HDMap:
     hd.city, hd.drives_on = sd.city or "", side
     hd.source = f"netconvert:{sd.source}" if sd.source else "netconvert"
     return hd
+
+
+def write_sumo_net(graph, path, lat0: float, lon0: float, heading: float = 0.0, lane_width: float = 3.5) -> str:
+    """Write ``graph`` (a LaneGraph) as a SUMO network (``.net.xml``): its OpenDRIVE export
+    (:mod:`cmtool.formats.opendrive_export`) read by ``netconvert``; returns netconvert's last warning line, if any."""
+    from cmtool.formats.opendrive_export import write_opendrive
+
+    exe = netconvert_path()
+    if exe is None:
+        raise CmtoolError("--format sumo needs SUMO's netconvert (pip install eclipse-sumo)")
+    with tempfile.TemporaryDirectory(prefix="cmtool-sumo-") as tmp:
+        xodr, net = Path(tmp) / "map.xodr", Path(tmp) / "map.net.xml"
+        write_opendrive(graph, xodr, lat0, lon0, heading, lane_width)
+        args = [exe, "--opendrive-files", str(xodr), "-o", str(net), "--no-turnarounds"]
+        try:
+            done = subprocess.run(args, capture_output=True, text=True, timeout=TIMEOUT_S)
+        except subprocess.TimeoutExpired:
+            raise CmtoolError(f"netconvert took over {TIMEOUT_S} s on {len(graph.lanes)} lanes") from None
+        if done.returncode != 0 or not net.is_file():
+            raise CmtoolError(f"netconvert failed: {(done.stderr or done.stdout).strip().splitlines()[-1:]}")
+        write_text_atomic(path, net.read_text("utf-8"))
+    warnings = [line for line in done.stderr.splitlines() if line.startswith("Warning")]
+    return warnings[-1] if warnings else ""
 
 
 def read_sumo_net(path) -> HDMap:
