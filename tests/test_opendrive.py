@@ -124,6 +124,44 @@ def carla_missing(xodr: str) -> set[tuple[int, int]]:
     return lanes - seen
 
 
+def carla_routes(graph) -> set[tuple[int, int]]:
+    """The ordered pairs of lanes (lane graph indices, from each lane's ``cmtool:lane`` user data) that a route
+    through the ``carla`` wheel's topology of the OpenDRIVE export joins."""
+    carla = pytest.importorskip("carla", reason="the carla wheel (test extra; Linux x86_64, Python 3.10 to 3.12)")
+    import networkx as nx
+
+    xodr = to_opendrive(graph, *ORIGIN, HEADING)
+    lane_of = {(int(road.get("id")), int(lane.get("id"))): int(data.get("value"))
+               for road in ET.fromstring(xodr.encode()).iter("road") for lane in road.iter("lane")
+               for data in lane.iter("userData") if data.get("code") == "cmtool:lane"}
+    topology = nx.DiGraph()
+    for a, b in carla.Map("cmtool", xodr).get_topology():
+        if lane_of[(a.road_id, a.lane_id)] != lane_of[(b.road_id, b.lane_id)]:
+            topology.add_edge(lane_of[(a.road_id, a.lane_id)], lane_of[(b.road_id, b.lane_id)])
+    return {(u, v) for u in topology for v in nx.descendants(topology, u)}
+
+
+def successor_routes(graph) -> set[tuple[int, int]]:
+    """The ordered pairs of lanes that the lane graph's successor edges join (no lane changes, as CARLA's
+    topology has none)."""
+    import networkx as nx
+
+    joins = nx.DiGraph([(int(i), int(j)) for i, j in graph.successors])
+    return {(u, v) for u in joins for v in nx.descendants(joins, u) if u != v}
+
+
+@pytest.mark.parametrize("name", MAPS)
+def test_carla_routes_what_the_lane_graph_allows(name):
+    """CARLA never routes a pair the lane graph does not join; on procedural maps it routes all of them. Elsewhere it
+    misses the pairs joined through a connector lane that two roads merge into (an OpenDRIVE connecting road has one
+    predecessor, and CARLA reads that one, not the junction's other connections)."""
+    for n, graph in enumerate(lane_graphs(name)):
+        routed, joined = carla_routes(graph), successor_routes(graph)
+        assert routed <= joined, f"{name} #{n}"
+        if name.startswith(("procedural", "fork")):
+            assert routed == joined, f"{name} #{n}"
+
+
 @pytest.mark.parametrize("name", MAPS)
 def test_carla_keeps_every_exported_lane_in_its_topology(name):
     for n, graph in enumerate(lane_graphs(name)):
@@ -146,6 +184,7 @@ def test_carla_keeps_every_lane_of_whole_maps_and_of_generated_ones(tmp_path, ca
         if not path.name.endswith(".gt.json"):
             (graph,) = read_lane_graphs(path)
             assert carla_missing(to_opendrive(graph, *ORIGIN, HEADING)) == set(), path
+            assert carla_routes(graph) <= successor_routes(graph), path
 
 
 def read_xodr(path) -> dict:
