@@ -354,6 +354,16 @@ def test_every_command_takes_every_map_that_holds_lanes(tmp_path, capsys):
     assert code == 1 and len(err.strip().splitlines()) == 1
     assert isinstance(HDMap.load(city), HDMap)
 
+    # cmtool convert: between cmtool's own formats
+    assert in_process(capsys, "convert", city, "--to", "lanegraph", "--out", tmp_path / "lg.json")[0] == 0
+    assert read_jsonl(tmp_path / "lg.json")[0].to_json() == graph.to_json()
+    assert in_process(capsys, "convert", tmp_path / "lg.json", "--to", "hdmap", "--out", tmp_path / "hd.json")[0] == 0
+    assert len(HDMap.load(tmp_path / "hd.json").lanes) == len(hd.lanes)
+    code, _, err = in_process(capsys, "convert", lanelet2, "--to", "hdmap", "--out", tmp_path / "kar.json")
+    assert code == 0 and HDMap.load(tmp_path / "kar.json").city == "KAR", err
+    code, _, err = in_process(capsys, "convert", city, "--to", "hdmap", "--out", city)
+    assert code == 1 and "the input itself" in err
+
 
 def test_lanelet2_never_routes_a_turn_the_lane_graph_does_not_allow(tmp_path, capsys):
     """Lanelet2 reads a lane as flowing into every lane whose start nodes its end nodes are: a lane that ends where

@@ -5,7 +5,7 @@ inside each command so ``cmtool --help`` stays fast. Every user error (a :class:
 bad option) ends with one ``Error: ...`` line on stderr and a non-zero exit, never a traceback.
 
 The commands live in one module per command group (data, train, sample, baseline, evaluate: metrics and eval,
-maps: validate and export, ablate, bench, release: info and pack); this module holds the root group and
+maps: validate, export and convert, ablate, bench, release: info and pack); this module holds the root group and
 :func:`main`, the entry point.
 """
 
@@ -30,7 +30,7 @@ def cli():
 
 
 for _command in (data.data, train.train_cmd, sample.sample, baseline.baseline, evaluate.metrics, evaluate.eval_cmd,
-                 maps.validate, maps.export, ablate.ablate, bench.bench, release.info, release.pack):
+                 maps.validate, maps.export, maps.convert, ablate.ablate, bench.bench, release.info, release.pack):
     cli.add_command(_command)
 
 

@@ -147,3 +147,30 @@ def export(fmt, map_path, origin, heading, scene, lane_width, out):
         kinds[f["properties"]["kind"]] = kinds.get(f["properties"]["kind"], 0) + 1
     plural = {"lane": "lanes", "boundary": "boundaries", "light": "lights"}
     click.echo(f"{out}: " + ", ".join(f"{v} {plural[k]}" for k, v in kinds.items()))
+
+
+@click.command()
+@click.argument("map_path", metavar="MAP", type=click.Path(dir_okay=False, path_type=Path))
+@click.option("--to", "kind", required=True, type=click.Choice(["hdmap", "lanegraph"]),
+              help="hdmap: cmtool's HD map JSON (what `data sd`, `data stats` and `sample --from-hd` read as a whole "
+                   "map); lanegraph: a lane graph JSON (what `sample` writes, and `metrics` and `export` read).")
+@click.option("--out", required=True, type=click.Path(dir_okay=False, path_type=Path), help="File to write.")
+def convert(map_path, kind, out):
+    """Convert a map between cmtool's own formats: any map file that holds lanes (an HD map of any source, a lane
+    graph of one map) to an HD map JSON or a lane graph JSON."""
+    from cmtool.core.jsonio import write_json
+    from cmtool.formats.mapfile import read_hd_map, read_lane_graphs
+
+    if out.resolve() == map_path.resolve():
+        raise CmtoolError(f"--out {out}: the input itself; write the converted map to another file")
+    if kind == "hdmap":
+        hd = read_hd_map(map_path)
+        hd.save(out)
+        click.echo(f"{out}: HD map of {hd.city or 'no city'}, {len(hd.lanes)} lanes, {len(hd.stop_lines)} stop lines")
+    else:
+        graphs = read_lane_graphs(map_path)
+        if len(graphs) != 1:
+            raise CmtoolError(f"{map_path}: already {len(graphs)} lane graphs (a .jsonl); nothing to convert")
+        write_json(out, graphs[0].to_json())
+        click.echo(f"{out}: lane graph of {graphs[0].city or 'no city'}, {len(graphs[0].lanes)} lanes, "
+                   f"{len(graphs[0].successors)} successors")
