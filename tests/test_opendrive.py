@@ -187,6 +187,22 @@ def test_carla_keeps_every_lane_of_whole_maps_and_of_generated_ones(tmp_path, ca
             assert carla_routes(graph) <= successor_routes(graph), path
 
 
+@pytest.mark.parametrize("name", MAPS)
+def test_sumo_reads_every_export_without_errors(name, tmp_path):
+    import subprocess
+
+    from cmtool.formats.sumo import netconvert_path
+
+    if netconvert_path() is None:
+        pytest.skip("SUMO's netconvert is not installed (pip install eclipse-sumo)")
+    for n, graph in enumerate(lane_graphs(name)):
+        write_opendrive(graph, tmp_path / "map.xodr", *ORIGIN, HEADING)
+        done = subprocess.run([netconvert_path(), "--opendrive-files", str(tmp_path / "map.xodr"), "-o",
+                               str(tmp_path / "map.net.xml")], capture_output=True, text=True, timeout=120)
+        errors = [line for line in (done.stdout + done.stderr).splitlines() if line.startswith("Error")]
+        assert done.returncode == 0 and not errors, f"{name} #{n}: {errors[:3]}"
+
+
 def read_xodr(path) -> dict:
     """Our own reader: {"geoReference": text, "roads": {id: road}, "connections": [(incoming road, connecting
     road, contact point, [(from, to)])]}; a road is {"junction", "length", "links" {tag: (elementType, elementId,
