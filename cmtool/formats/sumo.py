@@ -53,12 +53,7 @@ def netconvert_layout(sd: SDMap, side: str | None = None) -> HDMap:
                 "true", *OSM_OPTIONS, "--no-warnings", "true"]
         if side == "left":
             args.append("--lefthand")
-        try:
-            done = subprocess.run(args, capture_output=True, text=True, timeout=TIMEOUT_S)
-        except subprocess.TimeoutExpired:
-            raise CmtoolError(f"netconvert took over {TIMEOUT_S} s on {len(sd.roads)} roads") from None
-        if done.returncode != 0 or not net.is_file():
-            raise CmtoolError(f"netconvert failed: {(done.stderr or done.stdout).strip().splitlines()[-1:]}")
+        _netconvert(args, net, f"{len(sd.roads)} roads")
         hd = read_sumo_net(net)
     hd.city, hd.drives_on = sd.city or "", side
     hd.source = f"netconvert:{sd.source}" if sd.source else "netconvert"
@@ -76,16 +71,22 @@ def write_sumo_net(graph, path, lat0: float, lon0: float, heading: float = 0.0, 
     with tempfile.TemporaryDirectory(prefix="cmtool-sumo-") as tmp:
         xodr, net = Path(tmp) / "map.xodr", Path(tmp) / "map.net.xml"
         write_opendrive(graph, xodr, lat0, lon0, heading, lane_width)
-        args = [exe, "--opendrive-files", str(xodr), "-o", str(net), "--no-turnarounds"]
-        try:
-            done = subprocess.run(args, capture_output=True, text=True, timeout=TIMEOUT_S)
-        except subprocess.TimeoutExpired:
-            raise CmtoolError(f"netconvert took over {TIMEOUT_S} s on {len(graph.lanes)} lanes") from None
-        if done.returncode != 0 or not net.is_file():
-            raise CmtoolError(f"netconvert failed: {(done.stderr or done.stdout).strip().splitlines()[-1:]}")
+        done = _netconvert([exe, "--opendrive-files", str(xodr), "-o", str(net), "--no-turnarounds"], net,
+                           f"{len(graph.lanes)} lanes")
         write_text_atomic(path, net.read_text("utf-8"))
     warnings = [line for line in done.stderr.splitlines() if line.startswith("Warning")]
     return warnings[-1] if warnings else ""
+
+
+def _netconvert(args: list[str], net: Path, what: str) -> subprocess.CompletedProcess:
+    """Run netconvert (``args``) that should write ``net``; its failures and time-outs as one-line errors."""
+    try:
+        done = subprocess.run(args, capture_output=True, text=True, timeout=TIMEOUT_S)
+    except subprocess.TimeoutExpired:
+        raise CmtoolError(f"netconvert took over {TIMEOUT_S} s on {what}") from None
+    if done.returncode != 0 or not net.is_file():
+        raise CmtoolError(f"netconvert failed: {(done.stderr or done.stdout).strip().splitlines()[-1:]}")
+    return done
 
 
 def read_sumo_net(path) -> HDMap:
