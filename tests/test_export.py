@@ -429,8 +429,9 @@ def sumo_traffic(net, tmp_path, seconds: int = 60) -> dict[str, int]:
     sumo = pytest.importorskip("sumo", reason="SUMO (the eclipse-sumo wheel, in the test extra)")
     tools = Path(sumo.SUMO_HOME) / "tools"
     trips, stats = tmp_path / "trips.xml", tmp_path / "stats.xml"
-    subprocess.run([sys.executable, str(tools / "randomTrips.py"), "-n", str(net), "-o", str(trips), "-e",
-                    str(seconds // 2), "--validate", "--seed", "1"], check=True, capture_output=True, timeout=120)
+    subprocess.run([sys.executable, str(tools / "randomTrips.py"), "-n", str(net), "-o", str(trips), "-r",
+                    str(tmp_path / "routes.rou.xml"), "-e", str(seconds // 2), "--validate", "--seed", "1"],
+                   check=True, capture_output=True, timeout=120, cwd=tmp_path)
     done = subprocess.run([str(Path(sumo.SUMO_HOME) / "bin" / "sumo"), "-n", str(net), "-r", str(trips), "--end",
                            str(seconds), "--no-step-log", "--statistic-output", str(stats)], capture_output=True,
                           text=True, timeout=120)
