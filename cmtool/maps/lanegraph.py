@@ -1,4 +1,5 @@
-"""The lane graph JSON format: one 64 m scene in the ego frame per JSON object.
+"""The lane graph JSON format: one 64 m scene in the ego frame per JSON object (or a whole HD map in its own
+metres, :meth:`LaneGraph.from_hd`, its ``frame_m`` the square about the origin that holds it).
 
 This is the interchange format: what the model emits as a map and what the metrics read. A set of
 scenes is JSON Lines (``.jsonl``), one object per line::
