@@ -27,7 +27,7 @@ import shapely
 from cmtool.core.geometry import from_frame, to_frame
 from cmtool.data.scene import Pose
 from cmtool.data.sd_derive import derive_sd
-from cmtool.formats.mapfile import map_kind, read_hd_map
+from cmtool.formats.mapfile import hd_map_of, map_kind
 from cmtool.formats.osm import read_osm
 from cmtool.maps.hdmap import HDMap
 from cmtool.maps.roadgraph import RoadGraph, road_graph
@@ -212,7 +212,7 @@ def read_sd_source(path) -> SDMap:
         return read_osm(path)
     if kind == "sdmap":
         return SDMap.from_json(obj, where=str(path))
-    return derive_sd(read_hd_map(path))
+    return derive_sd(hd_map_of(path, kind, obj))
 
 
 # ----------------------------------------------------------------------------- statistics

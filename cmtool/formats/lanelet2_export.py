@@ -24,10 +24,10 @@ from xml.sax.saxutils import quoteattr
 import numpy as np
 
 from cmtool.core.geo import scene_to_latlon
-from cmtool.core.geometry import offset, resample, unit
+from cmtool.core.geometry import offset, resample
 from cmtool.core.jsonio import write_text_atomic
 from cmtool.core.unionfind import UnionFind
-from cmtool.maps.lanegraph import controlled_lanes
+from cmtool.maps.lanegraph import controlled_lanes, stop_line
 from cmtool.maps.neighbours import (
     LANE_WIDTH_M,
     abreast,
@@ -106,10 +106,8 @@ def to_lanelet2(graph, lat0: float, lon0: float, heading: float = 0.0, lane_widt
                           {"type": "lanelet", "subtype": "road", "location": "urban", "one_way": "yes",
                            "cmtool:lane": str(i), **city}))
     for state, line, k in controlled_lanes(graph, every=True):  # a light that controls no lane stays, unreferenced
-        along = lanes[k] if k is not None else line
-        across = np.array([-1.0, 1.0]) * unit(along[1] - along[0])[::-1]
-        half = (widths[k] if k is not None else lane_width) / 2.0
-        stop_way = ways.way(np.array([line[0] + across * half, line[0] - across * half]), type="stop_line")
+        stop = stop_line(lanes[k], widths[k], at=line[0]) if k is not None else stop_line(line, lane_width)
+        stop_way = ways.way(stop, type="stop_line")
         light_way = ways.way(line[:2], type="traffic_light", subtype="red_yellow_green")
         relations.append(([("way", light_way, "refers"), ("way", stop_way, "ref_line")],
                           {"type": "regulatory_element", "subtype": "traffic_light", "cmtool:state": state}))

@@ -56,16 +56,20 @@ def map_kind(path: str | os.PathLike) -> tuple[str, object]:
 
 def read_lane_graphs(path: str | os.PathLike) -> list[LaneGraph]:
     """The lane graphs of a lane graph file, or a whole HD map (of any kind that holds lanes) as one."""
-    kind, _ = map_kind(path)
+    kind, obj = map_kind(path)
     if kind == "lanegraph":
         return read_jsonl(path)
-    return [LaneGraph.from_hd(read_hd_map(path))]
+    return [LaneGraph.from_hd(hd_map_of(path, kind, obj))]
 
 
 def read_hd_map(path: str | os.PathLike) -> HDMap:
     """The HD map of any map file that holds lanes: an HD map JSON, an imported format, or a lane graph file of
     one map (:meth:`LaneGraph.to_hd`)."""
-    kind, obj = map_kind(path)
+    return hd_map_of(path, *map_kind(path))
+
+
+def hd_map_of(path, kind: str, obj) -> HDMap:
+    """:func:`read_hd_map` of a file whose kind and parsed JSON (:func:`map_kind`) are known (no second read)."""
     if kind in NO_LANES:
         raise CmtoolError(f"{path}: {NO_LANES[kind]}")
     if kind == "hdmap":

@@ -147,9 +147,7 @@ class LaneGraph:
                 hd.stop_lines.append(StopLine(f"s{n}", line, state))
                 continue
             lane = hd.lanes[f"l{k}"]
-            across = unit(lane.centerline[1] - lane.centerline[0])[::-1] * np.array([-1.0, 1.0]) * lane.width / 2.0
-            hd.stop_lines.append(StopLine(f"s{n}", np.array([lane.centerline[0] + across, lane.centerline[0] - across]),
-                                          state, [lane.id]))
+            hd.stop_lines.append(StopLine(f"s{n}", stop_line(lane.centerline, lane.width), state, [lane.id]))
         return hd
 
     @property
@@ -224,17 +222,25 @@ def controlled_lanes(graph, every: bool = False) -> list[tuple[str, np.ndarray, 
     starts = np.array([l[0] for l in lanes]).reshape(-1, 2)
     out = []
     for state, lights in (("green", graph.green_lights), ("red", graph.red_lights)):
-        for line in lights if len(starts) else []:
+        for line in lights:
             line = np.asarray(line, np.float64)
             distance = np.linalg.norm(starts - line[0], axis=1)
-            near = np.flatnonzero(distance <= distance.min() + 0.01)
-            k = int(near[np.argmin([np.linalg.norm(lanes[i] - line[-1], axis=1).min() for i in near])])
-            if distance[k] <= LIGHT_REACH_M or every:
-                out.append((state, line, k if distance[k] <= LIGHT_REACH_M else None))
-    if every and not len(starts):
-        out = [(state, np.asarray(line, np.float64), None)
-               for state, lights in (("green", graph.green_lights), ("red", graph.red_lights)) for line in lights]
+            k = None
+            if len(lanes):
+                near = np.flatnonzero(distance <= distance.min() + 0.01)
+                k = int(near[np.argmin([np.linalg.norm(lanes[i] - line[-1], axis=1).min() for i in near])])
+                k = k if distance[k] <= LIGHT_REACH_M else None
+            if k is not None or every:
+                out.append((state, line, k))
     return out
+
+
+def stop_line(line: np.ndarray, width: float, at: np.ndarray | None = None) -> np.ndarray:
+    """A stop line ``width`` long across the start of ``line`` (a lane centre line, or a light line), left end
+    first, centred on ``at`` [default: the line's start]."""
+    across = np.array([-1.0, 1.0]) * unit(line[1] - line[0])[::-1] * width / 2.0
+    at = line[0] if at is None else at
+    return np.array([at + across, at - across])
 
 
 def infer_successors(lanes, max_gap_m: float = 1.5, max_angle_deg: float = 60.0) -> list[tuple[int, int]]:

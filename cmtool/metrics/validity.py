@@ -154,31 +154,25 @@ def _turns(line: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
     return np.arccos(np.clip(cos, -1.0, 1.0)), seg
 
 
-def _distinct(line: np.ndarray, step: float) -> np.ndarray:
-    """The vertices of ``line`` at least ``step`` from the one kept before (the last replacing a kept one closer
-    than that): a step shorter than that has no direction worth measuring, and rounding a file's coordinates to
-    the millimetre must not change the judgement."""
-    keep = [0]
-    for i in range(1, len(line)):
-        if np.linalg.norm(line[i] - line[keep[-1]]) >= step:
-            keep.append(i)
-    if keep[-1] != len(line) - 1 and len(keep) > 1:
-        keep[-1] = len(line) - 1
-    return line[keep] if len(keep) > 1 else line[[0, -1]]
-
-
 def _thinned(line: np.ndarray, spacing: float, corner: float) -> np.ndarray:
     """The vertices of ``line`` with each kept one at least ``spacing`` from the one before, except
     that vertices turning by more than ``corner`` are always kept; the last vertex replaces a kept
-    one closer than that."""
-    line = _distinct(line, STEP_M)
+    one closer than that. Steps under ``STEP_M`` go first: they have no direction worth measuring, and
+    rounding a file's coordinates to the millimetre must not change the judgement."""
+    line = _spaced(line, STEP_M, np.zeros(len(line), bool))
     sharp = np.r_[False, _turns(line)[0] > corner, False] if len(line) >= 3 else np.zeros(len(line), bool)
+    return _spaced(line, spacing, sharp)
+
+
+def _spaced(line: np.ndarray, spacing: float, kept: np.ndarray) -> np.ndarray:
+    """The vertices of ``line`` at least ``spacing`` from the one kept before, and those ``kept`` marks; the last
+    vertex replaces a kept one closer than that (unless marked)."""
     keep = [0]
     for i in range(1, len(line)):
-        if sharp[i] or np.linalg.norm(line[i] - line[keep[-1]]) >= spacing:
+        if kept[i] or np.linalg.norm(line[i] - line[keep[-1]]) >= spacing:
             keep.append(i)
     if keep[-1] != len(line) - 1:
-        if len(keep) > 1 and not sharp[keep[-1]]:
+        if len(keep) > 1 and not kept[keep[-1]]:
             keep[-1] = len(line) - 1
         else:
             keep.append(len(line) - 1)

@@ -13,7 +13,7 @@ import torch.nn.functional as F
 
 from cmtool.core.errors import CmtoolError
 from cmtool.data.cache import load_dataset, load_manifest
-from cmtool.data.layouts import layout_raster, scene_layouts
+from cmtool.data.layouts import scene_layout_rasters
 from cmtool.diffusion.samplers import sample
 from cmtool.diffusion.schedule import NoiseSchedule
 from cmtool.maps.hdmap import drives_on
@@ -474,8 +474,7 @@ class ControlNetStage(_DiffusionStage):
         when the branch reads them."""
         if self.layout == NO_LAYOUT:
             return sd
-        layouts = [layout_raster(s, sd.shape[1]) for s in scene_layouts(self.data_dir, split, scenes, self.layout)]
-        return control_images(self.recipe.control, sd, layouts)
+        return control_images(self.recipe.control, sd, scene_layout_rasters(self.data_dir, split, scenes, self.layout))
 
     def loss(self, model, batch):
         control = batch["sd"]

@@ -74,7 +74,8 @@ def import_lanelet2(path: str | os.PathLike, city: str | None = None) -> HDMap:
     xy, (lat0, lon0) = _project(osm)
     recorded = {rel.tags["cmtool:city"] for rel in lanelets.values() if "cmtool:city" in rel.tags}  # cmtool's exports
     if not city:
-        city = ({"none": ""}.get(tag, tag) if len(recorded) == 1 and (tag := recorded.pop()) else "KAR")
+        tag = recorded.pop() if len(recorded) == 1 else ""
+        city = "" if tag == "none" else tag or "KAR"
     hd = HDMap(city=city, drives_on=drives_on(city), source=f"lanelet2:{path.name}",
                meta={"lat0": lat0, "lon0": lon0})
 
