@@ -5,6 +5,7 @@ import functools
 import logging
 import math
 import xml.etree.ElementTree as ET
+from collections import Counter
 
 import numpy as np
 import pytest
@@ -152,14 +153,10 @@ def successor_routes(graph) -> set[tuple[int, int]]:
 
 @pytest.mark.parametrize("name", MAPS)
 def test_carla_routes_what_the_lane_graph_allows(name):
-    """CARLA never routes a pair the lane graph does not join; on procedural maps it routes all of them. Elsewhere it
-    misses the pairs joined through a connector lane that two roads merge into (an OpenDRIVE connecting road has one
-    predecessor, and CARLA reads that one, not the junction's other connections)."""
+    """CARLA routes exactly the pairs the lane graph joins, also through connector lanes that several roads merge
+    into (CARLA follows a connecting road's own links, so the export writes one per route through it)."""
     for n, graph in enumerate(lane_graphs(name)):
-        routed, joined = carla_routes(graph), successor_routes(graph)
-        assert routed <= joined, f"{name} #{n}"
-        if name.startswith(("procedural", "fork")):
-            assert routed == joined, f"{name} #{n}"
+        assert carla_routes(graph) == successor_routes(graph), f"{name} #{n}"
 
 
 @pytest.mark.parametrize("name", MAPS)
@@ -168,7 +165,7 @@ def test_carla_keeps_every_exported_lane_in_its_topology(name):
         assert carla_missing(to_opendrive(graph, *ORIGIN, HEADING)) == set(), f"{name} #{n}"
 
 
-def test_carla_keeps_every_lane_of_whole_maps_and_of_generated_ones(tmp_path, capsys):
+def test_carla_keeps_every_lane_and_route_of_whole_maps_and_of_generated_ones(tmp_path, capsys):
     from cmtool.formats.mapfile import read_lane_graphs
     from tests.conftest import in_process
 
@@ -177,6 +174,7 @@ def test_carla_keeps_every_lane_of_whole_maps_and_of_generated_ones(tmp_path, ca
     for path in (city, *AV2.values(), *([OSM] if OSM.is_file() else [])):
         (graph,) = read_lane_graphs(path)
         assert carla_missing(to_opendrive(graph, *ORIGIN, HEADING)) == set(), path
+        assert carla_routes(graph) == successor_routes(graph), path
     code, _, err = in_process(capsys, "sample", "--from-hd", city, "--num", 6, "--steps", 10, "--no-log", "--quiet",
                               "--out", tmp_path / "maps")  # the shipped weights
     assert code == 0, err
@@ -184,7 +182,7 @@ def test_carla_keeps_every_lane_of_whole_maps_and_of_generated_ones(tmp_path, ca
         if not path.name.endswith(".gt.json"):
             (graph,) = read_lane_graphs(path)
             assert carla_missing(to_opendrive(graph, *ORIGIN, HEADING)) == set(), path
-            assert carla_routes(graph) <= successor_routes(graph), path
+            assert carla_routes(graph) == successor_routes(graph), path
 
 
 @pytest.mark.parametrize("name", MAPS)
@@ -295,7 +293,11 @@ def test_round_trip_keeps_lanes_widths_successors_and_centrelines(name, tmp_path
         xodr = read_xodr(tmp_path / "map.xodr")
         assert xodr["geoReference"].startswith(f"+proj=tmerc +lat_0={ORIGIN[0]:.9f} +lon_0={ORIGIN[1]:.9f} ")
         lanes = [lane for road in xodr["roads"].values() for lane in road["lanes"].values()]
-        assert sorted(lane["lane"] for lane in lanes) == list(range(len(graph.lanes))), f"#{n}"
+        assert sorted({lane["lane"] for lane in lanes}) == list(range(len(graph.lanes))), f"#{n}"
+        written = Counter(tuple((k, lane["lane"]) for k, lane in road["lanes"].items()) for road in xodr["roads"].values())
+        assert all(road["junction"] != "-1" for road in xodr["roads"].values()
+                   if written[tuple((k, lane["lane"]) for k, lane in road["lanes"].items())] > 1), \
+            f"#{n}: only connecting roads are written more than once"
         widths = lane_widths(graph.lanes, graph_neighbours(graph)[0], graph.widths)
         assert [lane["width"] for lane in lanes] == pytest.approx([widths[lane["lane"]] for lane in lanes], abs=1e-3)
         assert successor_edges(xodr) == {(int(i), int(j)) for i, j in graph.successors}, f"#{n}"

@@ -6,8 +6,8 @@ from pathlib import Path
 
 import click
 
-from cmtool.cli.common import (CITY_CFG_HELP, PRECISION_OPTION, SEED, SMOOTH_OPTION, Finite, _device, _generator,
-                               sampler_options)
+from cmtool.cli.common import (CITY_CFG_HELP, PRECISION_OPTION, SEED, SMOOTH_OPTION, DatasetDir, Finite, _device,
+                               _generator, sampler_options)
 from cmtool.core.errors import CmtoolError
 
 
@@ -41,7 +41,7 @@ def _floats(value: str, option: str) -> list[float]:
 _ABLATE_COMMON = [
     click.option("--ckpt", type=click.Path(path_type=Path),
                  help="ControlMap checkpoint or run folder [default: the weights shipped with cmtool]."),
-    click.option("--data", "data_dir", required=True, type=click.Path(file_okay=False, path_type=Path),
+    click.option("--data", "data_dir", required=True, type=DatasetDir(),
                  help="Dataset cache whose scenes give the SD maps."),
     click.option("--split", default="test", show_default=True),
     click.option("--n", default=64, show_default=True, type=click.IntRange(min=1), help="Scenes (the first N)."),
@@ -116,7 +116,7 @@ def ablate_city_swap(ckpt, data_dir, split, n, steps, sampler, smooth, out, devi
 @ablate.command("dit")
 @click.option("--ckpt", "ckpts", multiple=True, required=True, type=click.Path(path_type=Path),
               help="DiT (or ControlMap, sampled without control) checkpoint or run folder (repeatable).")
-@click.option("--data", "data_dir", required=True, type=click.Path(file_okay=False, path_type=Path),
+@click.option("--data", "data_dir", required=True, type=DatasetDir(),
               help="Dataset cache whose scenes give the city labels and the reference maps.")
 @click.option("--split", default="test", show_default=True)
 @click.option("--n", default=128, show_default=True, type=click.IntRange(min=2), help="Scenes (the first N).")
@@ -153,7 +153,7 @@ def ablate_dit(ckpts, data_dir, split, n, steps, sampler, seed, smooth, out, dev
               help="RVAE run whose encoder makes the latents [default: the RVAE's own]; needed for a decoder "
                    "without one, such as the shipped decoder (its encoder does not ship; `cmtool train encoder` "
                    "trains one for it).")
-@click.option("--data", "data_dir", required=True, type=click.Path(file_okay=False, path_type=Path),
+@click.option("--data", "data_dir", required=True, type=DatasetDir(),
               help="Dataset cache.")
 @click.option("--split", "splits", multiple=True, help="Split to measure (repeatable) [default: every split].")
 @click.option("--n", default=64, show_default=True, type=click.IntRange(min=1), help="Scenes per split and city.")

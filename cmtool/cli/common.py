@@ -31,6 +31,28 @@ class Finite(click.FloatRange):
         return "" if self.min is None and self.max is None else super()._describe_range()
 
 
+class DatasetDir(click.Path):
+    """A dataset folder (``cmtool data build``); a map file gets a line saying how to make a dataset of it."""
+
+    def __init__(self):
+        super().__init__(file_okay=False, path_type=Path)
+
+    def convert(self, value, param, ctx):
+        path = Path(value)
+        if path.is_file():
+            from cmtool.formats.mapfile import map_kind
+
+            try:
+                kind, obj = map_kind(path)
+            except (CmtoolError, OSError, UnicodeDecodeError):
+                kind = obj = None
+            if kind not in (None, "lanegraph") or obj is not None or path.suffix == ".jsonl":
+                self.fail(f"{path} is a map file ({kind}), not a dataset: list it under [[data.real_maps]] in a recipe "
+                          f"and run `cmtool data build` (docs/data.md), or try the map itself with "
+                          f"`cmtool sample --from-hd`", param, ctx)
+        return super().convert(value, param, ctx)
+
+
 SEED_MAX = 2**32 - 1
 SEED = click.IntRange(0, SEED_MAX)  # the same rule for every command's seed: what numpy and torch both take
 

@@ -8,8 +8,8 @@ from pathlib import Path
 import click
 
 from cmtool.core.errors import CmtoolError
-from cmtool.cli.common import (FEATURE_PRECISION_OPTION, PRECISION_OPTION, SEED, SMOOTH_OPTION, WORKERS_OPTION, Finite,
-                               _device, _generator, attach_init, init_options, sampler_options)
+from cmtool.cli.common import (FEATURE_PRECISION_OPTION, PRECISION_OPTION, SEED, SMOOTH_OPTION, WORKERS_OPTION,
+                               DatasetDir, Finite, _device, _generator, attach_init, init_options, sampler_options)
 
 
 @click.command()
@@ -71,7 +71,7 @@ def metrics(generated, reference, control, json_out, backbone, weights, no_featu
 @click.command("eval")
 @click.option("--ckpt", type=click.Path(path_type=Path),
               help="ControlMap checkpoint or run folder [default: the weights shipped with cmtool].")
-@click.option("--data", "data_dir", required=True, type=click.Path(file_okay=False, path_type=Path),
+@click.option("--data", "data_dir", required=True, type=DatasetDir(),
               help="Dataset cache (cmtool data build).")
 @click.option("--split", default="test", show_default=True, help="Split to evaluate on.")
 @click.option("--n", default=3904, show_default=True, type=click.IntRange(min=1),

@@ -79,7 +79,11 @@ def validate(maps, json_out, repair, out):
 @click.option("--lane-width", default=3.5, show_default=True, type=Finite(min=0.5, max=10.0),
               help="Lane width where the map records none and no neighbours give one, metres.")
 @click.option("--out", required=True, type=click.Path(dir_okay=False, path_type=Path), help="File to write.")
-def export(fmt, map_path, origin, heading, scene, lane_width, out):
+@click.option("--verify", is_flag=True,
+              help="Load the export in an independent reader (opendrive: CARLA's, from the carla wheel; lanelet2: the "
+                   "lanelet2 wheel's routing graph) and check that it routes the lane graph's successor joins and "
+                   "nothing else, keeping every lane; exit 1 where it does not.")
+def export(fmt, map_path, origin, heading, scene, lane_width, out, verify):
     """Export a lane graph (a generated or ground-truth scene) or a whole HD map (cmtool's JSON, Argoverse 2,
     Lanelet2: it records where it lies when imported) for simulators and GIS tools."""
     import math
@@ -87,11 +91,15 @@ def export(fmt, map_path, origin, heading, scene, lane_width, out):
     import numpy as np
 
     from cmtool.core.jsonio import write_json
+    from cmtool.formats.consumers import READERS
+    from cmtool.formats.consumers import verify as check_export
     from cmtool.formats.geojson import to_geojson
     from cmtool.formats.mapfile import read_lane_graphs
     from cmtool.maps.neighbours import graph_neighbours
     from cmtool.metrics.validity import check
 
+    if verify and fmt not in READERS:
+        raise CmtoolError(f"--verify checks {' and '.join(READERS)} exports, not {fmt}")
     graphs = read_lane_graphs(map_path)
     if scene >= len(graphs):
         raise CmtoolError(f"{map_path}: no scene {scene} ({len(graphs)} scene{'s' if len(graphs) != 1 else ''})")
@@ -139,6 +147,11 @@ def export(fmt, map_path, origin, heading, scene, lane_width, out):
                        + ", ".join(f"{k} {v}" for k, v in sorted(report.counts().items()))
                        + "); simulators may not route through sharply turning or crossing lanes "
                          "(see cmtool validate)", err=True)
+        if verify:
+            verdict = check_export(fmt, graph, out, lat0, lon0)
+            if not verdict.ok:
+                raise CmtoolError(f"{out}: {verdict.line()}")
+            click.echo(f"{out}: {verdict.line()}")
         return
     collection = to_geojson(graph, lat0, lon0, heading, lane_width)
     write_json(out, collection)

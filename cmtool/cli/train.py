@@ -7,7 +7,7 @@ from pathlib import Path
 
 import click
 
-from cmtool.cli.common import _device
+from cmtool.cli.common import DatasetDir, _device
 from cmtool.core.errors import CmtoolError
 from cmtool.train import PRECISIONS
 
@@ -19,7 +19,7 @@ from cmtool.train import PRECISIONS
               help="Run folder [default: the recipe's train.out].")
 @click.option("--resume", is_flag=True, help="Continue from the run folder's newest checkpoint (pipeline: from where "
               "it stopped, finished stages skipped).")
-@click.option("--data", "data_dir", type=click.Path(file_okay=False, path_type=Path),
+@click.option("--data", "data_dir", type=DatasetDir(),
               help="Override train.data (the dataset cache); pipeline: a dataset built before, instead of its data "
                    "stage.")
 @click.option("--steps", type=click.IntRange(min=1), help="Override train.steps (e.g. for a quick try).")

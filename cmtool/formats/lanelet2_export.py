@@ -2,23 +2,29 @@
 
 Every lane becomes a lanelet (``type=lanelet``, ``subtype=road``, ``one_way=yes``) whose left and
 right bounds are ways half its width either side of the centerline (widths from the lane graph, else
-from the spacing of neighbours, else ``lane_width``). Lane ends and starts joined by successor edges
-(forks and merges included) get one shared left and one shared right bound node, which is how
-Lanelet2 routing finds successors. Neighbours (the lane graph's ``left_neighbors`` and ``oncoming``,
-found from the geometry when it has none) that start and end abreast share one bound way: dashed
-between lane-change neighbours, so Lanelet2 routes lane changes; solid as the centre line of
-oncoming lanes (their left bounds in right-hand traffic, their right bounds in left-hand traffic).
-Each traffic-light line becomes a ``regulatory_element`` (``subtype=traffic_light``, its state as
-``cmtool:state``) with a light way and a stop line across the start of the lane it controls
-(:func:`~cmtool.maps.lanegraph.controlled_lanes`), referenced by that lanelet; a light that controls no lane
-stays, referenced by none. Lanelets carry the city label as ``cmtool:city``, which cmtool's importer reads
-back. The scene frame's origin is placed at ``(lat0, lon0)`` with its forward axis pointing to the compass
-``heading``.
+from the spacing of neighbours, else ``lane_width``). Lanelet2 routing reads lanelet b as following a
+where a's bounds end on the nodes b's start on, so lanes that go on to the same lanes end on one left
+and one right node, which the starts of those lanes share; a lane that several such groups go on to
+(lane 1 may go on to lane 2 but not to lane 3, which lane 0 forks into beside lane 2) gets a lanelet
+for each group, the copies alike but for their start nodes and with the same ``cmtool:lane``. Where
+Lanelet2's loader would read a lanelet's bounds the wrong way round (it judges by their middle points:
+lanes shorter than wide, or kinked), they are drawn plainer between the same end nodes. Neighbours
+(the lane graph's ``left_neighbors`` and ``oncoming``, found from the geometry when it has none) that
+start and end abreast share one bound way: dashed between lane-change neighbours, so Lanelet2 routes
+lane changes; solid as the centre line of oncoming lanes (their left bounds in right-hand traffic,
+their right bounds in left-hand traffic). Each traffic-light line becomes a ``regulatory_element``
+(``subtype=traffic_light``, its state as ``cmtool:state``) with a light way and a stop line across the
+start of the lane it controls (:func:`~cmtool.maps.lanegraph.controlled_lanes`), referenced by that
+lane's lanelets; a light that controls no lane stays, referenced by none. Lanelets carry the city label
+as ``cmtool:city``, which cmtool's importer reads back. The scene frame's origin is placed at
+``(lat0, lon0)`` with its forward axis pointing to the compass ``heading``.
 """
 
 from __future__ import annotations
 
 import os
+from collections import defaultdict
+from itertools import chain
 from xml.sax.saxutils import quoteattr
 
 import numpy as np
@@ -70,11 +76,12 @@ def to_lanelet2(graph, lat0: float, lon0: float, heading: float = 0.0, lane_widt
     lanes = [np.asarray(l, np.float64) for l in graph.lanes]
     left, oncoming = graph_neighbours(graph)
     widths = lane_widths(lanes, left, graph.widths, lane_width)
-    bounds = {(i, side): offset(l, (0.5 if side == LEFT else -0.5) * w)
-              for i, (l, w) in enumerate(zip(lanes, widths)) for side in (LEFT, RIGHT)}
-    corners = _Corners(len(lanes), {(int(i), int(j)) for i, j in graph.successors})
-    for i, j in graph.successors:
-        corners.join([((i, LEFT, END), (j, LEFT, START)), ((i, RIGHT, END), (j, RIGHT, START))])
+    lane_of, joins, allowed = _lanelets(len(lanes), {(int(i), int(j)) for i, j in graph.successors})
+    bounds = {(u, side): offset(lanes[i], (0.5 if side == LEFT else -0.5) * widths[i])
+              for u, i in enumerate(lane_of) for side in (LEFT, RIGHT)}
+    corners = _Corners(len(lane_of), allowed)
+    for (a, a_end), (b, b_end) in joins:
+        corners.join([((a, side, a_end), (b, side, b_end)) for side in (LEFT, RIGHT)])
     shared = {}  # bound -> (the bound it shares a way with, whether that one runs against it)
     beside = [((i, LEFT), (j, RIGHT), True) for i, j in left]  # lane-change neighbours: i's left bound is j's right
     for i, j in oncoming:  # the centre line: the bound on the side where the other lane lies, for both
@@ -86,23 +93,18 @@ def to_lanelet2(graph, lat0: float, lon0: float, heading: float = 0.0, lane_widt
         ends = ((START, START), (END, END)) if same else ((START, END), (END, START))
         if corners.join([((*mine, a), (*other, b)) for a, b in ends]):
             shared[mine], shared[other] = (other, not same), (mine, not same)
+    lines = _way_lines(bounds, shared, corners, len(lane_of))
     ways, way_of = _Ways(), {}
-    for key, line in bounds.items():
-        if key in way_of:
-            continue
+    for key, line in lines.items():
         partner = shared.get(key)
-        if partner is not None:
-            twin = resample(bounds[partner[0]], len(line))
-            line = 0.5 * (line + (twin[::-1] if partner[1] else twin))
-        line = _pin_ends(line, corners.position(bounds, (*key, START)), corners.position(bounds, (*key, END)))
         way_of[key] = ways.way(line, corners.name((*key, START)), corners.name((*key, END)), type="line_thin",
                                subtype="dashed" if partner and not partner[1] else "solid")
         if partner is not None:
             way_of[partner[0]] = way_of[key]
     relations = []
     city = {"cmtool:city": graph.city or "none"}  # read back by cmtool's importer
-    for i in range(len(lanes)):
-        relations.append(([("way", way_of[(i, LEFT)], "left"), ("way", way_of[(i, RIGHT)], "right")],
+    for u, i in enumerate(lane_of):
+        relations.append(([("way", way_of[(u, LEFT)], "left"), ("way", way_of[(u, RIGHT)], "right")],
                           {"type": "lanelet", "subtype": "road", "location": "urban", "one_way": "yes",
                            "cmtool:lane": str(i), **city}))
     for state, line, k in controlled_lanes(graph, every=True):  # a light that controls no lane stays, unreferenced
@@ -111,8 +113,8 @@ def to_lanelet2(graph, lat0: float, lon0: float, heading: float = 0.0, lane_widt
         light_way = ways.way(line[:2], type="traffic_light", subtype="red_yellow_green")
         relations.append(([("way", light_way, "refers"), ("way", stop_way, "ref_line")],
                           {"type": "regulatory_element", "subtype": "traffic_light", "cmtool:state": state}))
-        if k is not None:
-            relations[k][0].append(("relation", len(relations), "regulatory_element"))
+        for u in (u for u, i in enumerate(lane_of) if i == k):
+            relations[u][0].append(("relation", len(relations), "regulatory_element"))
     return _xml(ways, relations, lat0, lon0, heading)
 
 
@@ -121,13 +123,57 @@ def write_lanelet2(graph, path: str | os.PathLike, lat0: float, lon0: float, hea
     write_text_atomic(path, to_lanelet2(graph, lat0, lon0, heading, lane_width))
 
 
+def _way_lines(bounds, shared, corners, count: int) -> dict:
+    """Bound -> the points of its way (a shared way: under the bound that comes first), halfway to the bound it shares
+    the way with, its ends on their nodes; plainer for each of the ``count`` lanelets whose bounds Lanelet2 would
+    read the wrong way round."""
+    lines = {}
+    for key, line in bounds.items():
+        if key in lines or (key in shared and shared[key][0] in lines):
+            continue
+        partner = shared.get(key)
+        if partner is not None:
+            twin = resample(bounds[partner[0]], len(line))
+            line = 0.5 * (line + (twin[::-1] if partner[1] else twin))
+        lines[key] = _pin_ends(line, corners.position(bounds, (*key, START)), corners.position(bounds, (*key, END)))
+    for u in range(count):
+        keys = [(key, False) if key in lines else shared[key] for key in ((u, LEFT), (u, RIGHT))]  # (way, against)
+        bound = [lines[k][::-1] if against else lines[k] for k, against in keys]
+        for pair in chain([bound], _plain_bounds(bound[0][[0, -1]], bound[1][[0, -1]])):
+            if not _read_reversed(*pair):
+                for (k, against), line in zip(keys, pair):
+                    lines[k] = line[::-1] if against else line
+                break
+    return lines
+
+
+def _lanelets(n: int, successors: set[tuple[int, int]]):
+    """Lanelets for ``n`` lanes such that shared end nodes link exactly the successor pairs: lanes that go on to the
+    same lanes end on one pair of nodes, and a lane that several such groups go on to gets a lanelet for each (the
+    copies end where the lane ends). Returns the lane of each lanelet (the lanes themselves first), the lanelet ends
+    to join ((a, end), (b, end)) and the pairs of lanelets that may flow into each other."""
+    after = defaultdict(set)
+    for i, j in successors:
+        after[i].add(j)
+    lane_of, start_of, taken = list(range(n)), {}, set()  # start_of: (group, lane) -> its lanelet for that group
+    for group in sorted({frozenset(s) for s in after.values()}, key=sorted):
+        for j in sorted(group):
+            if j in taken:
+                lane_of.append(j)
+            start_of[(group, j)] = len(lane_of) - 1 if j in taken else j
+            taken.add(j)
+    joins = [((i, END), (start_of[(frozenset(after[i]), j)], START)) for i in sorted(after) for j in sorted(after[i])]
+    joins += [((u, END), (i, END)) for u, i in enumerate(lane_of) if u != i]
+    allowed = {(a, start_of[(frozenset(after[i]), j)]) for a, i in enumerate(lane_of) for j in after.get(i, ())}
+    return lane_of, joins, allowed
+
+
 class _Corners:
-    """The four corners of every lane's bounds, ``(lane, side, end)``, joined into shared nodes: lane
-    ends with their successors' starts, neighbours' shared bound ends. Lanelet2 reads lane a as flowing
-    into lane b where a's end corners are b's start corners, so a join is refused where it would make one
-    lane's left and right corner at the same end one node (a lanelet of no width), or make a lane flow into
-    one the lane graph does not let it (``allowed``: the successor pairs): a lane ending where a fork starts
-    would otherwise take every branch of it."""
+    """The four corners of every lanelet's bounds, ``(lanelet, side, end)``, joined into shared nodes:
+    lanelet ends with their successors' starts, neighbours' shared bound ends. Lanelet2 reads lanelet a as
+    flowing into lanelet b where a's end corners are b's start corners, so a join is refused where it would
+    make one lanelet's left and right corner at the same end one node (a lanelet of no width), or make a
+    lanelet flow into one it may not (``allowed``: pairs of lanelets)."""
 
     def __init__(self, n: int, allowed: set[tuple[int, int]]):
         keys = [(i, side, end) for i in range(n) for side in (LEFT, RIGHT) for end in (START, END)]
@@ -169,6 +215,48 @@ class _Corners:
         """Where a corner's node lies: the mean of the bound ends joined to it."""
         members = self.members[self.sets.find(key)]
         return np.mean([bounds[(i, side)][0 if end == START else -1] for i, side, end in members], axis=0)
+
+
+def _read_reversed(left: np.ndarray, right: np.ndarray) -> bool:
+    """Whether Lanelet2's loader might turn either bound of a lanelet round: it inverts the left bound unless the
+    middle point of the right one lies on its right, then the right bound unless the middle of the left lies on
+    its left (``lanelet::geometry::align``), each side taken at the nearest segment (any of them on a tie)."""
+    return bool((_sides(left, _middle(right)) >= 0.0).any() or (_sides(right, _middle(left)) <= 0.0).any())
+
+
+def _plain_bounds(left: np.ndarray, right: np.ndarray):
+    """Simpler (left, right) bounds between the same end points (``left``, ``right``: each bound's two ends):
+    straight lines; then three-point lines whose middles lie half a lane either side of one point, along a direction
+    in which both bounds advance past it; last, for ends that twist the lanelet, bounds that pass along two 1 m
+    tracks 0.2 m apart in its middle (in one of eight directions), which Lanelet2 reads by the tracks."""
+    yield (np.array([left[0], left.mean(axis=0), left[1]]), np.array([right[0], right.mean(axis=0), right[1]]))
+    centre = 0.25 * (left.sum(axis=0) + right.sum(axis=0))
+    half = 0.25 * (np.linalg.norm(left[0] - right[0]) + np.linalg.norm(left[1] - right[1]))
+    ahead = [v / max(float(np.linalg.norm(v)), 1e-9) for v in (left[1] - left[0], right[1] - right[0])]
+    for d in (ahead[0] + ahead[1], 0.5 * (left[1] + right[1] - left[0] - right[0])):
+        d = d / max(float(np.linalg.norm(d)), 1e-9)
+        n = np.array([-d[1], d[0]])
+        low, high = max(left[0] @ d, right[0] @ d), min(left[1] @ d, right[1] @ d)
+        if high > low:
+            middle = centre + (0.5 * (low + high) - centre @ d) * d
+            yield (np.array([left[0], middle + half * n, left[1]]), np.array([right[0], middle - half * n, right[1]]))
+    for angle in np.arange(8) * np.pi / 4:
+        d = np.array([np.cos(angle), np.sin(angle)])
+        n, track = np.array([-d[1], d[0]]), centre + np.outer([-0.5, 0.0, 0.5], d)
+        yield (np.vstack([left[0], track + 0.1 * n, left[1]]), np.vstack([right[0], track - 0.1 * n, right[1]]))
+
+
+def _middle(line: np.ndarray) -> np.ndarray:
+    return line[len(line) // 2] if len(line) > 2 else 0.5 * (line[0] + line[-1])
+
+
+def _sides(line: np.ndarray, p: np.ndarray) -> np.ndarray:
+    """The side of ``line`` that ``p`` lies on (positive: left) at each segment nearest it (within 1 mm)."""
+    a, ab = line[:-1], np.diff(line, axis=0)
+    t = np.clip(np.sum((p - a) * ab, axis=1) / np.maximum(np.sum(ab * ab, axis=1), 1e-18), 0.0, 1.0)
+    distance = np.linalg.norm(a + t[:, None] * ab - p, axis=1)
+    near = distance <= distance.min() + 1e-3
+    return ab[near, 0] * (p - a[near])[:, 1] - ab[near, 1] * (p - a[near])[:, 0]
 
 
 def _pin_ends(line: np.ndarray, start: np.ndarray, end: np.ndarray) -> np.ndarray:

@@ -16,12 +16,18 @@ Links: the road ends that successor edges join (transitively) form joints. A joi
 direct road link with lane links (a lane may have several successors there). Every other joint belongs to a junction,
 where each link must join a connecting road to a normal road: the roads linked at such joints are 2-coloured, per
 connected group the colouring in which connecting road ends meet fewest other roads, so the roads leaving a fork or
-entering a merge become connecting roads. Each end of a connecting road links to the road it shares most lane edges
-with; a junction ``connection`` (contact point on the connecting road, ``laneLink`` from the lane of the other road to
-the connecting road's) records each normal road that traffic enters it from (each it touches when there is none) and
-each road its links cannot name. Connecting roads at one joint or linked to each other share a junction; normal roads
-link to it. Where no colouring exists (an odd cycle of forks and merges), the downstream road of a normal-normal link
-becomes connecting too, and connecting roads may then link to each other within their junction.
+entering a merge become connecting roads. Connecting roads at one joint or linked to each other share a junction;
+normal roads link to it, and a normal road with both ends in one junction becomes connecting too (a reader cannot
+tell which of its ends a junction's roads meet). Where no colouring exists (an odd cycle of forks and merges), the
+downstream road of a normal-normal link becomes connecting too, and connecting roads may then link to each other
+within their junction.
+
+Readers such as CARLA follow a connecting road's own links (one road at each end) and keep one linked lane per lane
+end, not the junction's other connections. So a connecting road is written as copies, alike but for their links,
+such that every pair of a lane's predecessor and successor lanes is linked in one copy, each lane of a copy linked to
+at most one lane at each end (free ends link to the road most linked there). A junction ``connection`` (contact point
+on the connecting road, ``laneLink`` from the lane of the other road to the connecting road's) records each normal
+road that traffic enters a copy from (the one its links name; the normal roads it touches when none enters it).
 
 Each traffic-light line that controls a lane (:func:`~cmtool.maps.lanegraph.controlled_lanes`) becomes a dynamic ``signal`` (type
 1000001, the German traffic light code used by esmini and CARLA) at the centre of that lane's start, valid for it,
@@ -34,7 +40,8 @@ import math
 import os
 import xml.etree.ElementTree as ET
 from collections import defaultdict
-from dataclasses import dataclass, field
+from dataclasses import dataclass, field, replace
+from itertools import product
 
 import numpy as np
 
@@ -67,6 +74,7 @@ class _Road:
     points: np.ndarray | None = None  # the reference line, east/north metres
     links: dict = field(default_factory=dict)  # road end -> (elementType, elementId, contactPoint or None)
     signals: list = field(default_factory=list)  # (s, t, orientation, lane id, state)
+    lane_links: dict = field(default_factory=lambda: defaultdict(list))  # (lane index, road end) -> linked lane ids
 
     def ids(self) -> dict[int, int]:
         """Lane index -> lane id."""
@@ -96,9 +104,9 @@ def to_opendrive(graph, lat0: float, lon0: float, heading: float = 0.0, lane_wid
         road.points = _straightened(_without_repeats(_reference_line(road, lanes, widths) @ to_east_north))
         side |= {k: (r, lane_id) for k, lane_id in road.ids().items()}
     links = [_ends(roads, side, i, j) for i, j in dict.fromkeys((int(i), int(j)) for i, j in graph.successors)]
-    lane_links, junctions = _link(roads, side, links)
     _place_lights(graph, roads, side, widths)
-    return _xml(roads, junctions, lane_links, widths, lat0, lon0)
+    junctions = _link(roads, side, links)
+    return _xml(roads, junctions, widths, lat0, lon0)
 
 
 def write_opendrive(graph, path: str | os.PathLike, lat0: float, lon0: float, heading: float = 0.0,
@@ -198,9 +206,9 @@ def _ends(roads, side, i: int, j: int):
 
 
 def _link(roads, side, links):
-    """Set the roads' links and junctions (see the module docstring); returns the lane links ((lane index, road
-    end) -> ids of the lanes it links to there) and the junctions (id -> connections: (incoming road id, connecting
-    road id, contact point, [(incoming lane id, connecting lane id)]))."""
+    """Set the roads' links, lane links and junctions (see the module docstring), appending the copies of connecting
+    roads; returns the junctions (id -> connections: (incoming road id, connecting road id, contact point,
+    [(incoming lane id, connecting lane id)]))."""
     joints = UnionFind({e for a, b, _, _ in links for e in (a, b)})
     for a, b, _, _ in links:
         joints.union(a, b)
@@ -208,29 +216,85 @@ def _link(roads, side, links):
     looped = {a for a, b, _, _ in links if a == b}
     direct = {e for g in groups if len(g) == 2 and g[0][0] != g[1][0] and not looped & set(g) for e in g}
     conn = _connecting(links, direct)
-    junction_of = _junction_ids(conn, groups, first=len(roads) + 1)
-    for r, j in junction_of.items():
-        roads[r].junction = j
     partners = defaultdict(lambda: defaultdict(list))  # road end -> partner end -> [(lane here, lane there, inflow)]
     for a, b, i, j in links:
         partners[a][b].append((i, j, False))
         if b != a:
             partners[b][a].append((j, i, True))
+    junction_of = _junction_ids(conn, groups, first=0)
+    met = [[{junction_of[q[0]] for q in partners.get((r, end), {}) if q[0] in conn} for end in (START, END)]
+           for r in range(len(roads))]
+    conn |= {r for r, (start, end) in enumerate(met) if r not in conn and start & end}  # both ends in one junction
+    named = {e: max(others, key=lambda q: (len(others[q]), -q[0], q[1])) for e, others in partners.items()}
     fed = {side[j][0] for _, _, i, j in links if side[j][0] in conn and side[i][0] not in conn}
-    lane_links, junctions = defaultdict(list), defaultdict(list)
-    for (r, end), others in sorted(partners.items()):
-        if r not in conn and any(q[0] in conn for q in others):
-            roads[r].links[end] = ("junction", junction_of[next(q[0] for q in others if q[0] in conn)], None)
+    original = list(range(len(roads)))  # road index -> the road it copies
+    plans = {}  # road index -> ({road end: the partner end its links name there}, {(lane, road end): [lanes there]})
+    for r in range(len(roads)):
+        if r not in conn:  # an end that meets a connecting road links to its junction instead
+            ends = {e: named[(r, e)] for e in (START, END)
+                    if (r, e) in named and not any(q[0] in conn for q in partners[(r, e)])}
+            lanes = defaultdict(list)
+            for end, q in ends.items():
+                for here, there, _ in partners[(r, end)][q]:
+                    lanes[(here, end)].append(there)
+            plans[r] = (ends, lanes)
             continue
-        named = max(others, key=lambda q: (len(others[q]), -q[0], q[1]))
-        roads[r].links[end] = ("road", roads[named[0]].id, named[1])
-        for here, there, _ in others[named]:
-            lane_links[(here, end)].append(side[there][1])
-        for q, edges in sorted(others.items()) if r in conn else ():
-            if q != named or (q[0] not in conn and (any(e[2] for e in edges) or r not in fed)):
-                pairs = [(side[there][1], side[here][1]) for here, there, _ in edges]
-                junctions[junction_of[r]].append((roads[q[0]].id, roads[r].id, end, pairs))
-    return lane_links, dict(sorted(junctions.items()))
+        first, *more = _copies(roads[r], r, partners, named)
+        plans[r] = first
+        for plan in more:
+            plans[len(roads)] = plan
+            original.append(r)
+            roads.append(replace(roads[r], links={}, signals=list(roads[r].signals), lane_links=defaultdict(list)))
+    junction_of = _junction_ids(conn, groups, first=len(roads) + 1)
+    junctions = defaultdict(list)
+    for r, road in enumerate(roads):
+        o, (ends, lanes) = original[r], plans[r]
+        road.id, road.junction = r + 1, junction_of.get(o, -1)
+        for (k, end), others in lanes.items():
+            road.lane_links[(k, end)] = [side[there][1] for there in others]
+        for end in (START, END):
+            others = partners.get((o, end), {})
+            if o not in conn and any(q[0] in conn for q in others):
+                road.links[end] = ("junction", junction_of[next(q[0] for q in others if q[0] in conn)], None)
+            elif end in ends:
+                q = ends[end]
+                road.links[end] = ("road", q[0] + 1, q[1])
+                edges = [e for e in others[q] if e[1] in lanes.get((e[0], end), ())]
+                if o in conn and q[0] not in conn and (any(e[2] for e in edges) or o not in fed):
+                    pairs = [(side[there][1], side[here][1]) for here, there, _ in edges]
+                    junctions[road.junction].append((q[0] + 1, road.id, end, pairs))
+    return dict(sorted(junctions.items()))
+
+
+def _copies(road: _Road, r: int, partners, named) -> list[tuple[dict, dict]]:
+    """The copies connecting road ``r`` is written as, each ({road end: the partner end its links name there},
+    {(lane, road end): [the one lane it links to there]}): each pair of a lane's predecessor and successor lanes is
+    linked in one copy, and a lane links to one lane at each end of a copy (CARLA keeps only one). Free ends link to
+    the most linked partner."""
+    copies = []
+    for k, lane_id in road.ids().items():
+        entry, exit_ = (START, END) if road.runs_along(lane_id) else (END, START)
+        ins = [(entry, q, there) for q, edges in partners.get((r, entry), {}).items()
+               for here, there, inflow in edges if here == k and inflow]
+        outs = [(exit_, q, there) for q, edges in partners.get((r, exit_), {}).items()
+                for here, there, inflow in edges if here == k and not inflow]
+        for a, b in product(ins or [None], outs or [None]):
+            wants = [w for w in (a, b) if w]
+            fit = next((c for c in copies if all(c[0].get(end, q) == q and c[1].get((k, end), [there]) == [there]
+                                                 for end, q, there in wants)), None)
+            if fit is None:
+                fit = ({}, {})
+                copies.append(fit)
+            ends, lanes = fit
+            for end, q, there in wants:
+                ends[end], lanes[(k, end)] = q, [there]
+    for ends, lanes in copies or [({}, {})]:
+        for end in (START, END):
+            if (r, end) in named:
+                q = ends.setdefault(end, named[(r, end)])
+                for here, there, _ in partners[(r, end)][q]:
+                    lanes.setdefault((here, end), [there])
+    return copies or [({}, {})]
 
 
 def _connecting(links, direct) -> set[int]:
@@ -312,14 +376,14 @@ def _lengths(points: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
     return lengths, np.r_[0.0, np.cumsum(lengths)]
 
 
-def _xml(roads, junctions, lane_links, widths, lat0: float, lon0: float) -> str:
+def _xml(roads, junctions, widths, lat0: float, lon0: float) -> str:
     root = ET.Element("OpenDRIVE")
     header = _sub(root, "header", revMajor=1, revMinor=6, name="cmtool lane graph", vendor="cmtool")
     proj = f"+proj=tmerc +lat_0={lat0:.9f} +lon_0={lon0:.9f} +k=1 +x_0=0 +y_0=0 +ellps=WGS84 +units=m +no_defs"
     ET.SubElement(header, "geoReference").text = proj
     signal_ids = iter(range(len(roads) + len(junctions) + 1, 1 << 31))
     for road in roads:
-        _road_xml(root, road, widths, lane_links, signal_ids)
+        _road_xml(root, road, widths, signal_ids)
     for jid, connections in junctions.items():
         junction = _sub(root, "junction", id=jid, name=f"junction {jid}")
         for n, (incoming, connecting, contact, pairs) in enumerate(connections):
@@ -332,7 +396,7 @@ def _xml(roads, junctions, lane_links, widths, lat0: float, lon0: float) -> str:
     return text.replace(f">{proj}<", f"><![CDATA[{proj}]]><", 1) + "\n"
 
 
-def _road_xml(root, road: _Road, widths, lane_links, signal_ids) -> None:
+def _road_xml(root, road: _Road, widths, signal_ids) -> None:
     lengths, s = _lengths(road.points)
     element = _sub(root, "road", name=f"road {road.id}", length=_road_length(s[-2], lengths[-1]), id=road.id,
                    junction=road.junction, rule="LHT" if road.lht else "RHT")
@@ -352,7 +416,7 @@ def _road_xml(root, road: _Road, widths, lane_links, signal_ids) -> None:
         if ids:
             group = _sub(section, tag)
             for lane_id in ids:
-                _lane_xml(group, road, lane_id, widths, lane_links)
+                _lane_xml(group, road, lane_id, widths)
     if road.signals:
         group = _sub(element, "signals")
         for s_at, t, orientation, lane_id, state in road.signals:
@@ -362,7 +426,7 @@ def _road_xml(root, road: _Road, widths, lane_links, signal_ids) -> None:
             _sub(signal, "validity", fromLane=lane_id, toLane=lane_id)
 
 
-def _lane_xml(group, road: _Road, lane_id: int, widths, lane_links) -> None:
+def _lane_xml(group, road: _Road, lane_id: int, widths) -> None:
     if lane_id == 0:
         lane = _sub(group, "lane", id=0, type="none", level="false")
         _sub(lane, "roadMark", sOffset=0.0, type="solid", weight="standard", color="standard", width=0.12)
@@ -370,11 +434,11 @@ def _lane_xml(group, road: _Road, lane_id: int, widths, lane_links) -> None:
     same_side = road.along if road.runs_along(lane_id) else road.against
     k = same_side[abs(lane_id) - 1]
     lane = _sub(group, "lane", id=lane_id, type="driving", level="false")
-    ends = [(tag, end) for tag, end in (("predecessor", START), ("successor", END)) if (k, end) in lane_links]
+    ends = [(tag, end) for tag, end in (("predecessor", START), ("successor", END)) if (k, end) in road.lane_links]
     if ends:
         link = _sub(lane, "link")
         for tag, end in ends:
-            for other in lane_links[(k, end)]:
+            for other in road.lane_links[(k, end)]:
                 _sub(link, tag, id=other)
     _sub(lane, "width", sOffset=0.0, a=widths[k], b=0.0, c=0.0, d=0.0)
     outer = abs(lane_id) == len(same_side)

@@ -9,6 +9,8 @@
   on the right of travel, so the lanelet direction follows from the geometry alone.
 * Successors: B follows A when A's bounds end on the nodes B's bounds start on (the left and the right
   node shared, as Lanelet2 links lanelets; bounds that merely end at one place are not linked).
+  Lanelets with one ``cmtool:lane`` tag are one lane (cmtool's exports write a lane that groups of lanes
+  with different successors flow into once per group).
   Neighbours: A's left bound is B's right bound, the same way
   traversed in the same direction.
 * Intersections (Lanelet2 has no such flag): a lane is marked ``is_intersection`` when it diverges
@@ -59,6 +61,7 @@ class _Lanelet:
     left: _Bound
     right: _Bound
     lane_type: str
+    lane: str = ""  # the id of the lane it is part of: its own, or the first lanelet's with its cmtool:lane tag
 
 
 def import_lanelet2(path: str | os.PathLike, city: str | None = None) -> HDMap:
@@ -80,6 +83,7 @@ def import_lanelet2(path: str | os.PathLike, city: str | None = None) -> HDMap:
                meta={"lat0": lat0, "lon0": lon0})
 
     lanes: list[_Lanelet] = []
+    first_of: dict[str, str] = {}  # cmtool:lane tag -> the first lanelet's id
     for rid, rel in sorted(lanelets.items()):
         subtype = rel.tags.get("subtype", "road")
         if subtype not in ROAD_SUBTYPES and subtype != "crosswalk":
@@ -89,13 +93,16 @@ def import_lanelet2(path: str | os.PathLike, city: str | None = None) -> HDMap:
             hd.crosswalks.append(Crosswalk(str(rid), np.concatenate([left.xy, right.xy[::-1]])))
             continue
         lane_type = ROAD_SUBTYPES[subtype]
-        lanes.append(_Lanelet(str(rid), rid, left, right, lane_type))
+        tag = rel.tags.get("cmtool:lane")
+        lanes.append(_Lanelet(str(rid), rid, left, right, lane_type, first_of.setdefault(tag, str(rid)) if tag else ""))
         if rel.tags.get("one_way", "yes") == "no":
             lanes.append(_Lanelet(f"{rid}-rev", rid, _flip(right), _flip(left), lane_type))
 
     for ll in lanes:
-        centerline, width = centerline_and_width(ll.left.xy, ll.right.xy)
-        hd.add_lane(Lane(id=ll.id, centerline=centerline, width=width, lane_type=ll.lane_type))
+        ll.lane = ll.lane or ll.id
+        if ll.lane == ll.id:
+            centerline, width = centerline_and_width(ll.left.xy, ll.right.xy)
+            hd.add_lane(Lane(id=ll.id, centerline=centerline, width=width, lane_type=ll.lane_type))
     _link(hd, lanes)
     _neighbours(hd, lanes)
     _traffic_lights(hd, osm, xy, lanes, path)
@@ -171,15 +178,17 @@ def _link(hd: HDMap, lanes: list[_Lanelet]) -> None:
         return
     starts, ends = _ends(lanes, 0), _ends(lanes, -1)
     for i, j in _matches(ends, starts):
-        if i != j:
-            hd.link(lanes[i].id, lanes[j].id)
+        if lanes[i].lane != lanes[j].lane:
+            hd.link(lanes[i].lane, lanes[j].lane)
     same_start, same_end = set(_matches(starts, starts)), set(_matches(ends, ends))
-    for i, _ in same_start ^ same_end:  # siblings sharing exactly one end (never a lane with itself)
-        hd.lanes[lanes[i].id].is_intersection = True
+    for i, j in same_start ^ same_end:  # siblings sharing exactly one end (never a lane with itself)
+        if lanes[i].lane != lanes[j].lane:
+            hd.lanes[lanes[i].lane].is_intersection = True
 
 
 def _neighbours(hd: HDMap, lanes: list[_Lanelet]) -> None:
     """Same-direction neighbours: A's left bound is B's right bound, traversed the same way."""
+    lanes = [ll for ll in lanes if ll.lane == ll.id]
     by_right = {}
     for ll in lanes:
         by_right.setdefault((ll.right.way, ll.right.reversed), ll.id)
@@ -196,8 +205,8 @@ def _traffic_lights(hd: HDMap, osm: OsmData, xy: dict, lanes: list[_Lanelet], pa
         if ll.id.endswith("-rev"):
             continue  # a lanelet's regulatory elements apply in its own direction
         for kind, ref, role in osm.relations[ll.relation].members:
-            if kind == "relation" and role == "regulatory_element":
-                controlled.setdefault(ref, []).append(ll.id)
+            if kind == "relation" and role == "regulatory_element" and ll.lane not in controlled.get(ref, []):
+                controlled.setdefault(ref, []).append(ll.lane)
     for rid, rel in sorted(osm.relations.items()):
         if rel.tags.get("type") != "regulatory_element" or rel.tags.get("subtype") != "traffic_light":
             continue
