@@ -31,6 +31,10 @@ Large sets in several processes (CPU or GPUs), the same maps as one process:
 @click.option("--sd", "sd_paths", multiple=True, type=click.Path(path_type=Path),
               help="SD raster / road drawing picture, or a folder of them (repeatable).")
 @map_input_options
+@click.option("--area", help="With --osm or --from-hd: one map of a whole area instead of frames: all (the map's "
+                             "extent) or two opposite corners, LAT0,LON0,LAT1,LON1 (--osm) or X0,Y0,X1,Y1 metres "
+                             "(--from-hd). Written as OUT/NAME_area.json and .png; its tiles start from the area's "
+                             "rule layout (--init rules --strength 0.3) unless --init is given (docs/area.md).")
 @click.option("--num", default=1, show_default=True, type=click.IntRange(min=1), help="Maps per SD input.")
 @click.option("--candidates", default=1, show_default=True, type=click.IntRange(min=1),
               help="Draw this many maps for each one and keep the best: the highest mean of its validity score, "
@@ -64,9 +68,9 @@ Large sets in several processes (CPU or GPUs), the same maps as one process:
 @click.option("--device", help="torch device [default: cuda when available, else cpu].")
 @PRECISION_OPTION
 @click.option("--quiet", is_flag=True, help="No progress line.")
-def sample(ckpt, sd_paths, osm, center, heading, from_hd, pose, num, candidates, seed, steps, sampler, eta, city, cfg, city_cfg,
-           init, strength, encoder_path, smooth, batch, out, rrd, grid, spawn, connect_url, serve, raw, no_log, device,
-           precision, quiet):
+def sample(ckpt, sd_paths, osm, center, heading, from_hd, pose, area, num, candidates, seed, steps, sampler, eta, city,
+           cfg, city_cfg, init, strength, encoder_path, smooth, batch, out, rrd, grid, spawn, connect_url, serve, raw,
+           no_log, device, precision, quiet):
     import shlex
 
     from cmtool.core import dist as D
@@ -80,6 +84,10 @@ def sample(ckpt, sd_paths, osm, center, heading, from_hd, pose, num, candidates,
         raise CmtoolError("--no-log cannot be combined with --rrd, --spawn, --connect or --serve")
     if spawn + bool(connect_url) + serve > 1:
         raise CmtoolError("give one of --spawn, --connect and --serve")
+    if area is not None:
+        return _area(ckpt, osm, center, from_hd, pose, area, num, candidates, seed, steps, sampler, eta, city, cfg,
+                     city_cfg, init, strength, encoder_path, smooth, batch, out, rrd, grid, spawn, connect_url, serve,
+                     raw, device, precision, quiet)
     settings = SampleSettings(num=num, seed=seed, steps=steps, sampler=sampler, eta=eta, cfg=cfg, city=city,
                               city_cfg=city_cfg, batch=batch, init=init, strength=strength if init != "none" else 1.0,
                               guarantee=not raw, candidates=candidates)
@@ -118,3 +126,49 @@ def sample(ckpt, sd_paths, osm, center, heading, from_hd, pose, num, candidates,
         click.echo("serving until Ctrl-C", err=True)
         while True:
             time.sleep(3600)
+
+
+AREA_INIT, AREA_STRENGTH = "rules", 0.3  # where --area's tiles start unless --init is given
+
+
+def _area(ckpt, osm, center, from_hd, pose, area, num, candidates, seed, steps, sampler, eta, city, cfg, city_cfg, init,
+          strength, encoder_path, smooth, batch, out, rrd, grid, spawn, connect_url, serve, raw, device, precision,
+          quiet):
+    """``sample --area``: one map of a whole area (:mod:`cmtool.sample.area`)."""
+    from cmtool.sample import inputs as src
+    from cmtool.sample.area import area_box, run_area
+    from cmtool.sample.run import SampleSettings
+
+    if osm is None and from_hd is None:
+        raise CmtoolError("--area needs --osm FILE or --from-hd MAP (the SD map of the area)")
+    given = [name for name, v in (("--center", center), ("--pose", pose), ("--grid", grid), ("--rrd", rrd),
+                                  ("--spawn", spawn), ("--connect", connect_url), ("--serve", serve)) if v]
+    given += ["--num"] * (num > 1) + ["--candidates"] * (candidates > 1)
+    if given:
+        raise CmtoolError(f"--area makes one map of the whole area (no recording yet): leave out {', '.join(given)}")
+    if click.get_current_context().get_parameter_source("init").name == "DEFAULT":
+        init, strength = AREA_INIT, AREA_STRENGTH
+    settings = SampleSettings(seed=seed, steps=steps, sampler=sampler, eta=eta, cfg=cfg, city=city, city_cfg=city_cfg,
+                              batch=batch, init=init, strength=strength if init != "none" else 1.0, guarantee=not raw)
+    settings.check()
+    if osm is not None:
+        sd_map, name = src.osm_sd_map(osm), Path(osm).name.split(".")[0]
+    else:
+        hd, sd_map = src.hd_sd_map(from_hd)
+        sd_map.meta |= {k: hd.meta[k] for k in ("lat0", "lon0") if k in hd.meta}
+        name = Path(from_hd).name.split(".")[0]
+    box = area_box(sd_map, area, latlon=osm is not None)
+    gen = _generator(ckpt, device, smooth, precision)
+    attach_init(gen, init, encoder_path)
+    made, scores = run_area(gen, sd_map, box, settings, out, name, progress=not quiet)
+    click.echo(f"{name}: {scores['lanes']} lanes, {scores['successors']} successor joins from {scores['tiles']} tiles "
+               f"in {scores['seconds']:.0f} s ({(box[2] - box[0]) * (box[3] - box[1]) / 1e6:.2f} km2 box); open seams "
+               f"{scores['open_seams']} ({scores['open_seams_on_roads']} where an SD road goes on); SD road-end pairs "
+               f"routed {_share(scores['sd_end_pairs_routed'])} of {scores['sd_end_pairs']}; over "
+               f"{scores['windows']} 64 m windows: validity {scores['validity']:.3f}, legal one-way "
+               f"{_share(scores['legal_oneway'])}, SD covered {_share(scores['sd_coverage'])}")
+    click.echo(f"wrote {out / (name + '_area.json')} and {out / (name + '_area.png')}")
+
+
+def _share(value) -> str:
+    return "-" if value is None else f"{value:.3f}"

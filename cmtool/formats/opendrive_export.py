@@ -12,8 +12,8 @@ in LHT). Every lane is ``driving``, of constant width (the lane graph's, else it
 ``lane_width``), with a ``userData`` ``cmtool:lane`` holding its lane graph index. Lane links, like road links, are
 along the reference line; the side of a lane tells its direction.
 
-Links: the road ends that successor edges join (transitively) form joints. A joint of the ends of two roads is a
-direct road link with lane links (a lane may have several successors there). Every other joint belongs to a junction,
+Links: the road ends that successor edges join (transitively) form joints. A joint of the ends of two roads where each
+lane is joined to one lane is a direct road link with lane links. Every other joint belongs to a junction,
 where each link must join a connecting road to a normal road: the roads linked at such joints are 2-coloured, per
 connected group the colouring in which connecting road ends meet fewest other roads, so the roads leaving a fork or
 entering a merge become connecting roads. Connecting roads at one joint or linked to each other share a junction;
@@ -39,7 +39,7 @@ from __future__ import annotations
 import math
 import os
 import xml.etree.ElementTree as ET
-from collections import defaultdict
+from collections import Counter, defaultdict
 from dataclasses import dataclass, field, replace
 from itertools import product
 
@@ -214,7 +214,9 @@ def _link(roads, side, links):
         joints.union(a, b)
     groups = joints.groups()
     looped = {a for a, b, _, _ in links if a == b}
-    direct = {e for g in groups if len(g) == 2 and g[0][0] != g[1][0] and not looped & set(g) for e in g}
+    used = Counter((i, a) for a, _, i, _ in links) + Counter((j, b) for _, b, _, j in links)
+    fanned = {end for (_, end), n in used.items() if n > 1}  # road ends where a lane is joined to two lanes
+    direct = {e for g in groups if len(g) == 2 and g[0][0] != g[1][0] and not (looped | fanned) & set(g) for e in g}
     conn = _connecting(links, direct)
     partners = defaultdict(lambda: defaultdict(list))  # road end -> partner end -> [(lane here, lane there, inflow)]
     for a, b, i, j in links:

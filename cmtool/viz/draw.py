@@ -46,10 +46,10 @@ def graph_panel(graph, size: int = 256) -> np.ndarray:
     return lanes_image(graph.lanes, graph.green_lights, graph.red_lights, graph.successors, graph.frame_m, size)
 
 
-def lanes_image(lines, green, red, edges, frame_m: float = 64.0, size: int = 256) -> np.ndarray:
+def lanes_image(lines, green, red, edges, frame_m: float = 64.0, size: int = 256, ego: bool = True) -> np.ndarray:
     """HD vectors in ego metres: light lines (wide green / red bands, a lamp where each starts)
     under direction-coloured lanes with a dot at each lane start, an arrow head at each end, white
-    successor arrows across joints and the ego as a white triangle."""
+    successor arrows across joints and (``ego``) the ego as a white triangle."""
     img = np.full((size, size, 3), BACKGROUND, np.uint8)
     fm = frame_m
     scale = size / fm
@@ -82,8 +82,9 @@ def lanes_image(lines, green, red, edges, frame_m: float = 64.0, size: int = 256
     for centre, colour in stops:  # a lamp where each light line starts (at its stop line)
         cv2.circle(img, centre, int(1.3 * scale) << CV_SHIFT, (255, 255, 255), -1, cv2.LINE_AA, CV_SHIFT)
         cv2.circle(img, centre, int(0.9 * scale) << CV_SHIFT, colour, -1, cv2.LINE_AA, CV_SHIFT)
-    ego = np.array([[2.5, 0.0], [-1.5, 1.5], [-1.5, -1.5]])
-    cv2.fillPoly(img, [_pix(ego, size, fm).reshape(-1, 1, 2)], (255, 255, 255), cv2.LINE_AA, CV_SHIFT)
+    if ego:
+        triangle = np.array([[2.5, 0.0], [-1.5, 1.5], [-1.5, -1.5]])
+        cv2.fillPoly(img, [_pix(triangle, size, fm).reshape(-1, 1, 2)], (255, 255, 255), cv2.LINE_AA, CV_SHIFT)
     return img
 
 

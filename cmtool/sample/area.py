@@ -1,0 +1,270 @@
+"""``cmtool sample --area``: one HD map of a whole area of an SD map, not one per 64 m frame.
+
+The area's roads are covered with tiles (:func:`cmtool.data.tiles.cover`: frames on the roads, facing along
+them, as the model was trained on); each tile is one sampling input (the SD raster of its frame, the guarantee's
+rule lanes of its frame), generated in batches as ``cmtool sample`` generates any list of inputs; the tiles' lane
+graphs are stitched into one (:func:`cmtool.maps.stitch.stitch`). The result is judged over 64 m windows (the
+tiles' frames: validity, legal one-way share, SD road covered) and by its open seams: lane ends cut between two
+tiles that the other tile's lanes do not continue, counted apart where an SD road goes on through them.
+"""
+
+from __future__ import annotations
+
+import math
+import time
+from collections import defaultdict
+from dataclasses import dataclass, replace
+from pathlib import Path
+
+import cv2
+import numpy as np
+from scipy.spatial import cKDTree
+
+from cmtool.core.errors import CmtoolError
+from cmtool.core.geo import LocalProjection
+from cmtool.core.geometry import CV_SHIFT, ego_to_pixel, to_frame, unit
+from cmtool.core.jsonio import OutputSet, json_text
+from cmtool.data.rules import rule_layout
+from cmtool.data.scene import Pose, SceneCropper
+from cmtool.data.sd_raster import rasterize_sd
+from cmtool.data.tiles import cover
+from cmtool.maps.hdmap import drives_on
+from cmtool.maps.lanegraph import LaneGraph
+from cmtool.maps.neighbours import find_neighbours, lane_widths
+from cmtool.maps.sdmap import SDMap
+from cmtool.maps.stitch import Seam, stitch
+from cmtool.metrics.connectivity import routed_share, sd_end_pairs
+from cmtool.metrics.geometric import legal_oneway, sd_adherence
+from cmtool.metrics.lanes import distance_to_polylines
+from cmtool.metrics.validity import check
+from cmtool.sample.generator import MapGenerator
+from cmtool.sample.inputs import ControlInput
+from cmtool.sample.layouts import NO_INIT
+from cmtool.sample.run import SampleSettings, generate_maps, plan
+from cmtool.viz.draw import lanes_image, legend, sd_panel, title_strip
+from cmtool.viz.show import write_png
+
+ON_ROAD_M = 8.0  # an open seam this close to an SD road is one where the road goes on
+MEET_M, MEET_DEG = 4.0, 45.0  # a rule connector meets a lane whose end (start) lies this near its start (end)
+NEAR_M = 100.0  # roads this near the box take part in the rule layouts (tile frames reach 32 m beyond it)
+CHAIN = 4  # a connection the map makes in at most this many successor joins needs no lent connector
+WINDOWS = 256  # at most this many 64 m windows are scored
+
+
+@dataclass
+class AreaMap:
+    graph: LaneGraph  # area metres east/north of ``centre``, placed by meta.geo
+    seams: list[Seam]
+    tiles: list  # the tiles' poses (area metres)
+    seconds: float  # generating and stitching
+
+
+def area_box(sd_map: SDMap, spec: str, latlon: bool = True) -> tuple[float, float, float, float]:
+    """The area of ``--area SPEC`` in the SD map's metres: "all" (the extent of its roads), or two opposite corners,
+    "LAT0,LON0,LAT1,LON1" (``latlon``) or "X0,Y0,X1,Y1" (metres)."""
+    every = np.concatenate([r.polyline for r in sd_map.roads])
+    if spec == "all":
+        return (*map(float, every.min(axis=0)), *map(float, every.max(axis=0)))
+    want = "LAT0,LON0,LAT1,LON1" if latlon else "X0,Y0,X1,Y1 (metres)"
+    try:
+        a, b, c, d = (float(v) for v in spec.split(","))
+    except ValueError:
+        raise CmtoolError(f"--area {spec!r}: expected all or {want}, two opposite corners") from None
+    if not all(math.isfinite(v) for v in (a, b, c, d)):
+        raise CmtoolError(f"--area {spec!r}: expected finite numbers")
+    if latlon:
+        if not (-90 <= min(a, c) and max(a, c) <= 90 and -180 <= min(b, d) and max(b, d) <= 180):
+            raise CmtoolError(f"--area {spec!r}: latitudes must be in [-90, 90] and longitudes in [-180, 180]")
+        xy = LocalProjection(sd_map.meta["lat0"], sd_map.meta["lon0"]).to_metres(np.array([a, c]), np.array([b, d]))
+        a, b, c, d = xy[0, 0], xy[0, 1], xy[1, 0], xy[1, 1]
+    box = (float(min(a, c)), float(min(b, d)), float(max(a, c)), float(max(b, d)))
+    if box[2] - box[0] < 1.0 or box[3] - box[1] < 1.0:
+        raise CmtoolError(f"--area {spec!r}: the corners must lie at least a metre apart each way")
+    inside = (every[:, 0] >= box[0]) & (every[:, 0] <= box[2]) & (every[:, 1] >= box[1]) & (every[:, 1] <= box[3])
+    if not inside.any():
+        raise CmtoolError(f"--area {spec!r}: no road of the map lies in the area")
+    return box
+
+
+def generate_area(gen: MapGenerator, sd_map: SDMap, box, settings: SampleSettings, name: str,
+                  progress: bool = True) -> AreaMap:
+    """Cover the roads in ``box`` with tiles, generate a map for each and stitch them into one (the SD map's roads
+    farther than ``NEAR_M`` from the box are left out of the rule layouts the tiles start from and borrow from)."""
+    began = time.perf_counter()
+    sd_map = _near(sd_map, box, NEAR_M)
+    tiles = cover(sd_map, box)
+    if not tiles:
+        raise CmtoolError(f"{name}: no road in the area to stand a tile on")
+    inputs = [ControlInput(f"{name}_t{k}", rasterize_sd(sd_map, t.x, t.y, t.yaw), f"tile {k} of {name}",
+                           city=sd_map.city, sd_map=sd_map, pose=(t.x, t.y, t.yaw)) for k, t in enumerate(tiles)]
+    maps = generate_maps(gen, plan(gen, inputs, settings), settings, None, progress)
+    centre = 0.5 * np.array([box[0] + box[2], box[1] + box[3]])
+    graph, seams = stitch([m.graph for m in maps], tiles, box, centre)
+    lent = 0
+    if settings.guarantee:
+        graph, lent = lend_connectors(graph, sd_map, box, centre)
+    graph.meta = {"source": f"area of {sd_map.source or name}", "checkpoint": str(gen.path), "seed": settings.seed,
+                  "cfg": settings.cfg, "steps": settings.steps, "sampler": settings.sampler,
+                  "precision": gen.precision, "guarantee": settings.guarantee, "lent_connectors": lent,
+                  **({"init": settings.init, "strength": settings.strength} if settings.init != NO_INIT else {})}
+    if "lat0" in sd_map.meta:
+        lat, lon = LocalProjection(sd_map.meta["lat0"], sd_map.meta["lon0"]).to_latlon(centre)
+        graph.meta["geo"] = {"lat": round(float(lat), 8), "lon": round(float(lon), 8), "heading": 90.0}
+    return AreaMap(graph, seams, tiles, time.perf_counter() - began)
+
+
+def lend_connectors(graph: LaneGraph, sd_map: SDMap, box, centre) -> tuple[LaneGraph, int]:
+    """The area's guarantee at junctions: each connector lane of the rule layout (:mod:`cmtool.data.rules`) inside
+    ``box`` whose start meets the end of a lane of ``graph`` and whose end meets the start of another (within
+    ``MEET_M``, heading within ``MEET_DEG``), where ``graph`` has no chain of at most ``CHAIN`` successor joins from
+    the one to the other, is lent to it, joined to both; returns the graph and the number lent."""
+    rules = rule_layout(sd_map, drives_on(sd_map.city))
+    lanes = [np.asarray(l, np.float64) for l in graph.lanes]
+    if not lanes:
+        return graph, 0
+    after = defaultdict(set)
+    for i, j in graph.successors:
+        after[int(i)].add(int(j))
+    ends, starts = cKDTree([l[-1] for l in lanes]), cKDTree([l[0] for l in lanes])
+    end_dir = np.array([unit(l[-1] - l[-2]) for l in lanes])
+    start_dir = np.array([unit(l[1] - l[0]) for l in lanes])
+    cos = math.cos(math.radians(MEET_DEG))
+    added, successors = [], set(map(tuple, graph.successors))
+    for lane in rules.lanes.values():
+        c = np.asarray(lane.centerline, np.float64) - centre
+        if not lane.in_intersection or len(c) < 2 or not _in_box(c + centre, box):
+            continue
+        ins = [i for i in ends.query_ball_point(c[0], MEET_M) if end_dir[i] @ unit(c[1] - c[0]) >= cos]
+        outs = {j for j in starts.query_ball_point(c[-1], MEET_M) if start_dir[j] @ unit(c[-1] - c[-2]) >= cos}
+        if not ins or not outs or _reaches(after, ins, outs, CHAIN):
+            continue
+        i = min(ins, key=lambda k: np.linalg.norm(lanes[k][-1] - c[0]))
+        j = min(outs, key=lambda k: np.linalg.norm(lanes[k][0] - c[-1]))
+        c = c + np.linspace(0.0, 1.0, len(c))[:, None] * (lanes[j][0] - c[-1]) + \
+            np.linspace(1.0, 0.0, len(c))[:, None] * (lanes[i][-1] - c[0])  # its ends on theirs
+        k = len(lanes) + len(added)
+        added.append(np.round(c, 3))
+        successors |= {(i, k), (k, j)}
+        after[i].add(k)
+        after[k].add(j)
+    if not added:
+        return graph, 0
+    every = lanes + added
+    left, oncoming = find_neighbours(every)
+    return LaneGraph(lanes=every, successors=sorted(successors), left_neighbors=left, oncoming=oncoming,
+                     widths=lane_widths(every, left).round(2).tolist(), green_lights=graph.green_lights,
+                     red_lights=graph.red_lights, city=graph.city, frame_m=graph.frame_m, meta=graph.meta), len(added)
+
+
+def _near(sd_map: SDMap, box, margin: float) -> SDMap:
+    """``sd_map`` with only the roads that come within ``margin`` of ``box``."""
+    import shapely
+
+    area = shapely.box(box[0] - margin, box[1] - margin, box[2] + margin, box[3] + margin)
+    roads = [r for r in sd_map.roads if shapely.intersects(area, shapely.LineString(r.polyline))]
+    return replace(sd_map, roads=roads) if len(roads) < len(sd_map.roads) else sd_map
+
+
+def _reaches(after, ins, outs, steps: int) -> bool:
+    """Whether a chain of at most ``steps`` joins in ``after`` leads from one of ``ins`` into one of ``outs``."""
+    frontier = set(ins)
+    for _ in range(steps):
+        frontier = {j for i in frontier for j in after[i]}
+        if frontier & outs:
+            return True
+    return False
+
+
+def _in_box(points: np.ndarray, box) -> bool:
+    return bool(np.all((points[:, 0] >= box[0]) & (points[:, 0] <= box[2]) & (points[:, 1] >= box[1])
+                       & (points[:, 1] <= box[3])))
+
+
+def area_scores(area: AreaMap, sd_map: SDMap, box) -> dict:
+    """The area map judged as a whole: lanes, successors, open seams (all, and where an SD road goes on through
+    them), the share of the SD map's connected road-end pairs its lanes route (:mod:`cmtool.metrics.connectivity`)
+    and, over up to ``WINDOWS`` of its tiles' 64 m frames, the mean validity, legal one-way share (weighted by
+    the length judged) and SD road covered (of the SD roads inside ``box``)."""
+    centre = 0.5 * np.array([box[0] + box[2], box[1] + box[3]])
+    graph = area.graph
+    roads = [r.polyline - centre for r in sd_map.roads]
+    points = np.array([s.point for s in area.seams]).reshape(-1, 2)
+    on_road = int((distance_to_polylines(points, roads) <= ON_ROAD_M).sum()) if len(points) else 0
+    cropper = SceneCropper(graph.to_hd())
+    picked = np.unique(np.linspace(0, len(area.tiles) - 1, min(WINDOWS, len(area.tiles))).round().astype(int))
+    validity, legal, judged, covered = [], [], [], []
+    for k in picked:
+        t = area.tiles[k]
+        x, y = t.x - centre[0], t.y - centre[1]
+        window = cropper.extract(Pose(float(x), float(y), t.yaw), num_lines=300, num_lights=50).to_lanegraph()
+        sd = rasterize_sd(sd_map, t.x, t.y, t.yaw) * _inside(box, t)[..., None]
+        validity.append(check(window).score)
+        share, metres = legal_oneway(window.lanes, sd)
+        if not math.isnan(share):
+            legal.append(share * metres)
+            judged.append(metres)
+        c = sd_adherence(window.lanes, sd)["sd_coverage"]
+        if not math.isnan(c):
+            covered.append(c)
+    ends, pairs = sd_end_pairs(sd_map, box)
+    routed = routed_share(graph, ends - centre, pairs)
+    return {"lanes": len(graph.lanes), "successors": len(graph.successors), "tiles": len(area.tiles),
+            "open_seams": len(area.seams), "open_seams_on_roads": on_road, "sd_end_pairs": len(pairs),
+            "sd_end_pairs_routed": None if math.isnan(routed) else round(routed, 4), "windows": len(picked),
+            "validity": round(float(np.mean(validity)), 4),
+            "legal_oneway": round(float(sum(legal) / sum(judged)), 4) if judged else None,
+            "sd_coverage": round(float(np.mean(covered)), 4) if covered else None,
+            "seconds": round(area.seconds, 1)}
+
+
+def run_area(gen: MapGenerator, sd_map: SDMap, box, settings: SampleSettings, out: Path, name: str,
+             progress: bool = True) -> tuple[AreaMap, dict]:
+    """Generate the area map of ``box``, score it and write ``OUT/NAME_area.json`` (the lane graph; its meta holds
+    the scores and the open seams) and ``OUT/NAME_area.png`` (SD map | area map) as one set."""
+    area = generate_area(gen, sd_map, box, settings, name, progress)
+    centre = 0.5 * np.array([box[0] + box[2], box[1] + box[3]])
+    scores = area_scores(area, sd_map, box)
+    area.graph.meta["area"] = {"box_m": [round(v - c, 3) for v, c in zip(box, (*centre, *centre))], **scores,
+                               "seams": [{"point": s.point, "tiles": [s.tile, s.other], "leaving": s.leaving}
+                                         for s in area.seams]}
+    outputs = OutputSet()
+    try:
+        outputs.write_text(out / f"{name}_area.json", json_text(area.graph.to_json()))
+        write_png(out / f"{name}_area.png", area_picture(area, sd_map, box), outputs)
+        outputs.commit()
+    except BaseException:
+        outputs.discard()
+        raise
+    return area, scores
+
+
+def area_picture(area: AreaMap, sd_map: SDMap, box, size: int = 1024) -> np.ndarray:
+    """SD map | area map over ``box``, north up; open seams ringed (magenta where an SD road goes on through them)."""
+    graph = area.graph
+    centre = 0.5 * np.array([box[0] + box[2], box[1] + box[3]])
+    extent = max(box[2] - box[0], box[3] - box[1]) + 8.0
+    north = math.pi / 2.0
+    sd = rasterize_sd(sd_map, float(centre[0]), float(centre[1]), north, frame_m=extent, size=size)
+    up = lambda p: to_frame(np.asarray(p, np.float64), 0.0, 0.0, north)  # noqa: E731
+    img = lanes_image([up(l) for l in graph.lanes], [up(l) for l in graph.green_lights],
+                      [up(l) for l in graph.red_lights], graph.successors, extent, size, ego=False)
+    roads = [r.polyline - centre for r in sd_map.roads]
+    for seam in area.seams:
+        at = tuple(int(v) for v in ego_to_pixel(up(np.array(seam.point)), extent / size, extent))
+        on_road = distance_to_polylines(np.array([seam.point]), roads)[0] <= ON_ROAD_M
+        cv2.circle(img, at, 6 << CV_SHIFT, (255, 0, 255) if on_road else (150, 150, 150), 2, cv2.LINE_AA, CV_SHIFT)
+    titles = ["SD map", f"generated: {len(graph.lanes)} lanes from {len(area.tiles)} tiles, {len(area.seams)} open "
+                        f"seams (ringed)"]
+    panels = [np.concatenate([title_strip(t, size), p], axis=0) for t, p in zip(titles, (sd_panel(sd, size), img))]
+    body = np.concatenate([panels[0], np.full((panels[0].shape[0], 6, 3), 12, np.uint8), panels[1]], axis=1)
+    return np.concatenate([body, legend(body.shape[1])], axis=0)
+
+
+def _inside(box, tile, size: int = 128, frame_m: float = 64.0) -> np.ndarray:
+    """(size, size) bool: which pixels of the tile's raster (the raster convention: row 0 in front, column 0 on the
+    left) lie inside ``box``."""
+    centres = (np.arange(size) + 0.5) * frame_m / size - frame_m / 2.0
+    ahead, left = np.meshgrid(-centres, -centres, indexing="ij")  # row r: x = half - (r + 0.5) px; column c: y
+    c, s = math.cos(tile.yaw), math.sin(tile.yaw)
+    x, y = tile.x + c * ahead - s * left, tile.y + s * ahead + c * left
+    return (x >= box[0]) & (x <= box[2]) & (y >= box[1]) & (y <= box[3])
