@@ -134,3 +134,33 @@ def test_an_area_of_an_hd_map_routes_in_carla(tmp_path, capsys):
     code, out, err = in_process(capsys, "export", "--format", "opendrive", tmp_path / "city_area.json", "--origin",
                                 "36.1,-115.2", "--out", tmp_path / "city.xodr", "--verify")
     assert code == 0 and "and nothing else" in out, err
+
+
+def test_a_killed_area_run_goes_on_where_it_stopped(tmp_path, capsys, monkeypatch):
+    """Finished batches of tiles wait in OUT/.NAME_area.tiles: the same command after a kill makes only the rest,
+    and the map is the one an unbroken run makes; the folder is gone once the map is written."""
+    import cmtool.sample.area as area_module
+
+    args = ("sample", "--osm", TOWN, "--area", BOX, "--steps", 4, "--sampler", "dpm++2m-sde", "--batch", 4, "--raw")
+    code, _, err = in_process(capsys, *args, "--out", tmp_path / "whole")
+    assert code == 0, err
+    real, calls = area_module.batch_maps, []
+
+    def dies_on_the_third_batch(*a, **k):
+        calls.append(1)
+        if len(calls) == 3:
+            raise KeyboardInterrupt
+        return real(*a, **k)
+
+    monkeypatch.setattr(area_module, "batch_maps", dies_on_the_third_batch)
+    code, _, err = in_process(capsys, *args, "--out", tmp_path / "broken")  # Ctrl-C, as the CLI reports it
+    assert code == 130, err
+    cache = tmp_path / "broken" / ".town_bos_area.tiles"
+    assert len(list(cache.glob("b*.jsonl"))) == 2 and not (tmp_path / "broken" / "town_bos_area.json").exists()
+    monkeypatch.setattr(area_module, "batch_maps", real)
+    code, _, err = in_process(capsys, *args, "--out", tmp_path / "broken")
+    assert code == 0 and "resuming: 8 of" in err, err
+    assert not cache.exists()
+    whole = json.loads((tmp_path / "whole" / "town_bos_area.json").read_text())
+    resumed = json.loads((tmp_path / "broken" / "town_bos_area.json").read_text())
+    assert resumed["lanes"] == whole["lanes"] and resumed["successors"] == whole["successors"]

@@ -69,3 +69,18 @@ def test_eval_in_two_processes_makes_the_same_maps_and_scores(sampling_ckpt, tin
     # a cache of other settings is refused by every process, which all stop
     clash = torchrun(*args, "--n", 8, "--cfg", 0.5, "--out", tmp_path / "one")
     assert clash.returncode != 0 and "made with other settings (cfg)" in clash.stderr
+
+
+def test_an_area_in_two_processes_is_the_same_map(tmp_path, capsys):
+    """`sample --area` under torchrun: the processes share the batches of tiles, the main process stitches and
+    writes the map an unbroken single process makes (the shipped weights)."""
+    town, box = REPO / "sample_data" / "town_bos.osm", "42.3560,-71.0640,42.3575,-71.0620"
+    args = ("sample", "--osm", town, "--area", box, "--steps", 3, "--sampler", "dpm++2m-sde", "--batch", 4, "--raw",
+            "--quiet")
+    code, _, err = in_process(capsys, *args, "--out", tmp_path / "one")
+    assert code == 0, err
+    two = torchrun(*args, "--out", tmp_path / "two")
+    assert two.returncode == 0, two.stderr[-2000:]
+    one, other = (json.loads((tmp_path / d / "town_bos_area.json").read_text()) for d in ("one", "two"))
+    assert one["lanes"] == other["lanes"] and one["successors"] == other["successors"]
+    assert two.stdout.count("successor joins from") == 1

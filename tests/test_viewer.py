@@ -16,8 +16,8 @@ SD = REPO / "sample_data" / "sd_bos.png"
 
 @pytest.fixture(scope="module")
 def recordings(tmp_path_factory, tiny_data):
-    """One recording of each kind: data show, train (a few RVAE steps), sample, eval and ablate cfg (the shipped
-    weights)."""
+    """One recording of each kind: data show, train (a few RVAE steps), sample, eval, ablate cfg and sample --area
+    (the shipped weights)."""
     import contextlib
     import io
 
@@ -41,8 +41,11 @@ def recordings(tmp_path_factory, tiny_data):
         root / "eval", "--quiet")
     run("ablate", "cfg", "--data", tiny_data, "--n", 2, "--w", "0,1", "--seeds", 1, "--steps", 2, "--no-features",
         "--out", root / "ablate")
+    run("sample", "--osm", REPO / "sample_data" / "town_bos.osm", "--area", "42.3560,-71.0640,42.3575,-71.0620",
+        "--steps", 4, "--sampler", "dpm++2m-sde", "--out", root / "area", "--quiet")
     return {"data": root / "data.rrd", "train": root / "rvae" / "train.rrd", "sample": root / "sample" / "sample.rrd",
-            "eval": root / "eval" / "eval.rrd", "ablate": root / "ablate" / "ablate_cfg.rrd"}
+            "eval": root / "eval" / "eval.rrd", "ablate": root / "ablate" / "ablate_cfg.rrd",
+            "area": root / "area" / "area.rrd"}
 
 
 def test_each_kind_of_recording_has_its_own_application_id(recordings):
@@ -80,6 +83,7 @@ VIEWS = {
     "ablate": {f"scene {k} {part}": (0.5 * k + 0.02, 0.5 * (k + 1) - 0.02, y0, y1) for k in range(2)
                for part, (y0, y1) in (("at w", (0.07, 0.29)), ("ground truth", (0.34, 0.56)))}
     | {f"score plot {k}": (0.25 * k + 0.02, 0.25 * (k + 1) - 0.02, 0.61, 0.73) for k in range(2)},
+    "area": {"area map": (0.15, 0.7, 0.1, 0.7), "info": (0.85, 0.98, 0.1, 0.5)},
 }
 
 
@@ -135,6 +139,7 @@ LAYOUT_VIEWS = {
     "sample": {"SD control", "x0 lanes over diffusion steps", "latent x_t, one channel", "noise prediction norms"},
     "eval": {"SD input", "unguided DiT", "ControlMap", "ground truth", "scores of this scene"},
     "ablate": {"scene 0: at this w", "scene 1: at this w"},
+    "area": {"area: tiles, then the stitched map"},
 }
 
 
@@ -153,7 +158,7 @@ def test_recordings_opened_one_after_another_keep_their_own_layouts(recordings, 
         port = s.getsockname()[1]
     viewer = ViewerClient.spawn(headless=True, port=port, hide_welcome_screen=True)
     try:
-        for kind in ["data", "sample", "eval", "train", "ablate", "data"]:
+        for kind in ["data", "sample", "eval", "train", "ablate", "area", "data"]:
             viewer.open(str(recordings[kind]))
             state = viewer.get_state()
             names = {"#" if view.name.startswith("#") else view.name for view in state.views}

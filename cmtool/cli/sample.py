@@ -87,7 +87,7 @@ def sample(ckpt, sd_paths, osm, center, heading, from_hd, pose, area, num, candi
     if area is not None:
         return _area(ckpt, osm, center, from_hd, pose, area, num, candidates, seed, steps, sampler, eta, city, cfg,
                      city_cfg, init, strength, encoder_path, smooth, batch, out, rrd, grid, spawn, connect_url, serve,
-                     raw, device, precision, quiet)
+                     raw, no_log, device, precision, quiet)
     settings = SampleSettings(num=num, seed=seed, steps=steps, sampler=sampler, eta=eta, cfg=cfg, city=city,
                               city_cfg=city_cfg, batch=batch, init=init, strength=strength if init != "none" else 1.0,
                               guarantee=not raw, candidates=candidates)
@@ -132,20 +132,25 @@ AREA_INIT, AREA_STRENGTH = "rules", 0.3  # where --area's tiles start unless --i
 
 
 def _area(ckpt, osm, center, from_hd, pose, area, num, candidates, seed, steps, sampler, eta, city, cfg, city_cfg, init,
-          strength, encoder_path, smooth, batch, out, rrd, grid, spawn, connect_url, serve, raw, device, precision,
-          quiet):
+          strength, encoder_path, smooth, batch, out, rrd, grid, spawn, connect_url, serve, raw, no_log, device,
+          precision, quiet):
     """``sample --area``: one map of a whole area (:mod:`cmtool.sample.area`)."""
+    import shlex
+
+    from cmtool.core import dist as D
     from cmtool.sample import inputs as src
     from cmtool.sample.area import area_box, run_area
     from cmtool.sample.run import SampleSettings
 
     if osm is None and from_hd is None:
         raise CmtoolError("--area needs --osm FILE or --from-hd MAP (the SD map of the area)")
-    given = [name for name, v in (("--center", center), ("--pose", pose), ("--grid", grid), ("--rrd", rrd),
-                                  ("--spawn", spawn), ("--connect", connect_url), ("--serve", serve)) if v]
+    given = [name for name, v in (("--center", center), ("--pose", pose), ("--grid", grid), ("--spawn", spawn),
+                                  ("--connect", connect_url), ("--serve", serve)) if v]
     given += ["--num"] * (num > 1) + ["--candidates"] * (candidates > 1)
     if given:
-        raise CmtoolError(f"--area makes one map of the whole area (no recording yet): leave out {', '.join(given)}")
+        raise CmtoolError(f"--area makes one map of the whole area, recorded to a file: leave out {', '.join(given)}")
+    if no_log and rrd:
+        raise CmtoolError("--no-log cannot be combined with --rrd")
     if click.get_current_context().get_parameter_source("init").name == "DEFAULT":
         init, strength = AREA_INIT, AREA_STRENGTH
     settings = SampleSettings(seed=seed, steps=steps, sampler=sampler, eta=eta, cfg=cfg, city=city, city_cfg=city_cfg,
@@ -158,16 +163,25 @@ def _area(ckpt, osm, center, from_hd, pose, area, num, candidates, seed, steps, 
         sd_map.meta |= {k: hd.meta[k] for k in ("lat0", "lon0") if k in hd.meta}
         name = Path(from_hd).name.split(".")[0]
     box = area_box(sd_map, area, latlon=osm is not None)
-    gen = _generator(ckpt, device, smooth, precision)
+    info = D.setup(str(_device(device)))
+    gen = _generator(ckpt, str(info.device), smooth, precision)
     attach_init(gen, init, encoder_path)
-    made, scores = run_area(gen, sd_map, box, settings, out, name, progress=not quiet)
+    try:
+        done = run_area(gen, sd_map, box, settings, out, name, progress=not quiet, info=info,
+                        rrd=None if no_log else rrd or out / "area.rrd", command=shlex.join(["cmtool", *sys.argv[1:]]))
+    finally:
+        D.cleanup()
+    if done is None:
+        return
+    scores = done[1]
     click.echo(f"{name}: {scores['lanes']} lanes, {scores['successors']} successor joins from {scores['tiles']} tiles "
                f"in {scores['seconds']:.0f} s ({(box[2] - box[0]) * (box[3] - box[1]) / 1e6:.2f} km2 box); open seams "
                f"{scores['open_seams']} ({scores['open_seams_on_roads']} where an SD road goes on); SD road-end pairs "
                f"routed {_share(scores['sd_end_pairs_routed'])} of {scores['sd_end_pairs']}; over "
                f"{scores['windows']} 64 m windows: validity {scores['validity']:.3f}, legal one-way "
                f"{_share(scores['legal_oneway'])}, SD covered {_share(scores['sd_coverage'])}")
-    click.echo(f"wrote {out / (name + '_area.json')} and {out / (name + '_area.png')}")
+    recorded = "" if no_log else f"; recording {rrd or out / 'area.rrd'}"
+    click.echo(f"wrote {out / (name + '_area.json')} and {out / (name + '_area.png')}{recorded}")
 
 
 def _share(value) -> str:

@@ -10,26 +10,34 @@ tiles that the other tile's lanes do not continue, counted apart where an SD roa
 
 from __future__ import annotations
 
+import hashlib
+import json
 import math
+import shutil
+import sys
 import time
 from collections import defaultdict
-from dataclasses import dataclass, replace
+from dataclasses import asdict, dataclass, replace
 from pathlib import Path
 
 import cv2
 import numpy as np
+import rerun as rr
+import shapely
 from scipy.spatial import cKDTree
 
+from cmtool.core import dist as D
 from cmtool.core.errors import CmtoolError
 from cmtool.core.geo import LocalProjection
 from cmtool.core.geometry import CV_SHIFT, ego_to_pixel, to_frame, unit
-from cmtool.core.jsonio import OutputSet, json_text
+from cmtool.core.jsonio import OutputSet, json_text, write_text_atomic
+from cmtool.core.progress import Progress
 from cmtool.data.rules import rule_layout
 from cmtool.data.scene import Pose, SceneCropper
 from cmtool.data.sd_raster import rasterize_sd
 from cmtool.data.tiles import cover
 from cmtool.maps.hdmap import drives_on
-from cmtool.maps.lanegraph import LaneGraph
+from cmtool.maps.lanegraph import LaneGraph, read_jsonl, write_jsonl
 from cmtool.maps.neighbours import find_neighbours, lane_widths
 from cmtool.maps.sdmap import SDMap
 from cmtool.maps.stitch import Seam, stitch
@@ -40,12 +48,15 @@ from cmtool.metrics.validity import check
 from cmtool.sample.generator import MapGenerator
 from cmtool.sample.inputs import ControlInput
 from cmtool.sample.layouts import NO_INIT
-from cmtool.sample.run import SampleSettings, generate_maps, plan
+from cmtool.sample.run import SampleSettings, batch_maps, plan
+from cmtool.viz.area import area_blueprint, log_area
 from cmtool.viz.draw import lanes_image, legend, sd_panel, title_strip
+from cmtool.viz.recording import close_recording, open_recording
 from cmtool.viz.show import write_png
 
 ON_ROAD_M = 8.0  # an open seam this close to an SD road is one where the road goes on
 MEET_M, MEET_DEG = 4.0, 45.0  # a rule connector meets a lane whose end (start) lies this near its start (end)
+ON_SCREEN_M = 40.0  # the recording shows the SD roads this far around the box
 NEAR_M = 100.0  # roads this near the box take part in the rule layouts (tile frames reach 32 m beyond it)
 CHAIN = 4  # a connection the map makes in at most this many successor joins needs no lent connector
 WINDOWS = 256  # at most this many 64 m windows are scored
@@ -55,7 +66,8 @@ WINDOWS = 256  # at most this many 64 m windows are scored
 class AreaMap:
     graph: LaneGraph  # area metres east/north of ``centre``, placed by meta.geo
     seams: list[Seam]
-    tiles: list  # the tiles' poses (area metres)
+    tiles: list  # the tiles' poses (the SD map's metres)
+    tile_maps: list[LaneGraph]  # each tile's map, in its frame
     seconds: float  # generating and stitching
 
 
@@ -87,9 +99,11 @@ def area_box(sd_map: SDMap, spec: str, latlon: bool = True) -> tuple[float, floa
 
 
 def generate_area(gen: MapGenerator, sd_map: SDMap, box, settings: SampleSettings, name: str,
-                  progress: bool = True) -> AreaMap:
+                  progress: bool = True, cache: Path | None = None, info: D.DistInfo = D.SINGLE) -> AreaMap | None:
     """Cover the roads in ``box`` with tiles, generate a map for each and stitch them into one (the SD map's roads
-    farther than ``NEAR_M`` from the box are left out of the rule layouts the tiles start from and borrow from)."""
+    farther than ``NEAR_M`` from the box are left out of the rule layouts the tiles start from and borrow from).
+    ``cache``: a folder that keeps finished batches of tiles, so that a killed run goes on where it stopped; under
+    ``torchrun`` (``info``) the processes share the batches and the main process stitches (the others get None)."""
     began = time.perf_counter()
     sd_map = _near(sd_map, box, NEAR_M)
     tiles = cover(sd_map, box)
@@ -97,9 +111,11 @@ def generate_area(gen: MapGenerator, sd_map: SDMap, box, settings: SampleSetting
         raise CmtoolError(f"{name}: no road in the area to stand a tile on")
     inputs = [ControlInput(f"{name}_t{k}", rasterize_sd(sd_map, t.x, t.y, t.yaw), f"tile {k} of {name}",
                            city=sd_map.city, sd_map=sd_map, pose=(t.x, t.y, t.yaw)) for k, t in enumerate(tiles)]
-    maps = generate_maps(gen, plan(gen, inputs, settings), settings, None, progress)
+    maps = _tile_maps(gen, plan(gen, inputs, settings), settings, tiles, cache, progress, info)
+    if maps is None:
+        return None
     centre = 0.5 * np.array([box[0] + box[2], box[1] + box[3]])
-    graph, seams = stitch([m.graph for m in maps], tiles, box, centre)
+    graph, seams = stitch(maps, tiles, box, centre)
     lent = 0
     if settings.guarantee:
         graph, lent = lend_connectors(graph, sd_map, box, centre)
@@ -110,7 +126,54 @@ def generate_area(gen: MapGenerator, sd_map: SDMap, box, settings: SampleSetting
     if "lat0" in sd_map.meta:
         lat, lon = LocalProjection(sd_map.meta["lat0"], sd_map.meta["lon0"]).to_latlon(centre)
         graph.meta["geo"] = {"lat": round(float(lat), 8), "lon": round(float(lon), 8), "heading": 90.0}
-    return AreaMap(graph, seams, tiles, time.perf_counter() - began)
+    return AreaMap(graph, seams, tiles, maps, time.perf_counter() - began)
+
+
+def _tile_maps(gen: MapGenerator, jobs, settings: SampleSettings, tiles, cache: Path | None, progress: bool,
+               info: D.DistInfo) -> list[LaneGraph] | None:
+    """The tiles' lane graphs, ``settings.batch`` at a time (a batch's noise depends on the seed and its first tile
+    alone): batches that ``cache`` holds from a run with the same tiles and settings are read back, the others
+    generated, dealt among the processes of a torchrun, and written there as they finish (by the main process,
+    which returns them all; the others return None)."""
+    starts = list(range(0, len(jobs), settings.batch))
+    done = {}
+    if cache is not None and info.main:
+        done = _cached_batches(cache, starts, _run_key(gen, settings, tiles))
+        if done and progress:
+            print(f"resuming: {sum(map(len, done.values()))} of {len(jobs)} tiles already made ({cache})",
+                  file=sys.stderr)
+    todo = D.broadcast([b for b in starts if b not in done], info)  # the main process read the cache
+    with Progress(sum(len(jobs[b:b + settings.batch]) for b in todo), "area", "tiles",
+                  enabled=progress and info.main) as bar:
+        for mine in D.rounds(todo, info):
+            made = [(b, [g for g, _ in batch_maps(gen, jobs[b:b + settings.batch], b, settings, None)]) for b in mine]
+            for part in D.gather(made, info) or []:
+                for b, graphs in part:
+                    done[b] = graphs
+                    if cache is not None:
+                        write_jsonl(cache / f"b{b:07d}.jsonl", graphs)
+                    bar.update(len(graphs))
+    return [g for b in starts for g in done[b]] if info.main else None
+
+
+def _run_key(gen: MapGenerator, settings: SampleSettings, tiles) -> str:
+    """What makes a cached batch reusable: the checkpoint, the settings and the tiles."""
+    what = json.dumps({"checkpoint": str(gen.path), "precision": gen.precision, "smooth": gen.smooth,
+                       "encoder": str(gen.encoder_path), "settings": asdict(settings),
+                       "tiles": [[round(t.x, 3), round(t.y, 3), round(t.yaw, 6)] for t in tiles]}, sort_keys=True)
+    return hashlib.sha256(what.encode()).hexdigest()
+
+
+def _cached_batches(cache: Path, starts: list[int], key: str) -> dict[int, list[LaneGraph]]:
+    """The batches a killed run with ``key`` left in ``cache``; a cache of another run is emptied."""
+    cache.mkdir(parents=True, exist_ok=True)
+    stamp = cache / "run.key"
+    if not stamp.is_file() or stamp.read_text().strip() != key:
+        for old in cache.glob("b*.jsonl"):
+            old.unlink()
+        write_text_atomic(stamp, key + "\n")
+        return {}
+    return {b: read_jsonl(cache / f"b{b:07d}.jsonl") for b in starts if (cache / f"b{b:07d}.jsonl").is_file()}
 
 
 def lend_connectors(graph: LaneGraph, sd_map: SDMap, box, centre) -> tuple[LaneGraph, int]:
@@ -158,11 +221,17 @@ def lend_connectors(graph: LaneGraph, sd_map: SDMap, box, centre) -> tuple[LaneG
 
 def _near(sd_map: SDMap, box, margin: float) -> SDMap:
     """``sd_map`` with only the roads that come within ``margin`` of ``box``."""
-    import shapely
-
     area = shapely.box(box[0] - margin, box[1] - margin, box[2] + margin, box[3] + margin)
     roads = [r for r in sd_map.roads if shapely.intersects(area, shapely.LineString(r.polyline))]
     return replace(sd_map, roads=roads) if len(roads) < len(sd_map.roads) else sd_map
+
+
+def _clipped_roads(sd_map: SDMap, box, margin: float, centre) -> list[np.ndarray]:
+    """The SD roads' pieces within ``margin`` of ``box``, in area metres."""
+    area = shapely.box(box[0] - margin, box[1] - margin, box[2] + margin, box[3] + margin)
+    pieces = shapely.intersection(np.array([shapely.LineString(r.polyline) for r in sd_map.roads]), area)
+    return [shapely.get_coordinates(p) - centre for piece in pieces for p in getattr(piece, "geoms", [piece])
+            if not p.is_empty and isinstance(p, shapely.LineString)]
 
 
 def _reaches(after, ins, outs, steps: int) -> bool:
@@ -218,10 +287,17 @@ def area_scores(area: AreaMap, sd_map: SDMap, box) -> dict:
 
 
 def run_area(gen: MapGenerator, sd_map: SDMap, box, settings: SampleSettings, out: Path, name: str,
-             progress: bool = True) -> tuple[AreaMap, dict]:
+             progress: bool = True, info: D.DistInfo = D.SINGLE, rrd: Path | None = None,
+             command: str = "") -> tuple[AreaMap, dict] | None:
     """Generate the area map of ``box``, score it and write ``OUT/NAME_area.json`` (the lane graph; its meta holds
-    the scores and the open seams) and ``OUT/NAME_area.png`` (SD map | area map) as one set."""
-    area = generate_area(gen, sd_map, box, settings, name, progress)
+    the scores and the open seams), ``OUT/NAME_area.png`` (SD map | area map) and, unless ``rrd`` is None, the
+    recording of its assembly (:mod:`cmtool.viz.area`) as one set. Finished batches of tiles wait in
+    ``OUT/.NAME_area.tiles`` until then: run the same command again after a kill to go on. Under ``torchrun`` only
+    the main process returns (the others None)."""
+    cache = out / f".{name}_area.tiles"
+    area = generate_area(gen, sd_map, box, settings, name, progress, cache, info)
+    if area is None:
+        return None
     centre = 0.5 * np.array([box[0] + box[2], box[1] + box[3]])
     scores = area_scores(area, sd_map, box)
     area.graph.meta["area"] = {"box_m": [round(v - c, 3) for v, c in zip(box, (*centre, *centre))], **scores,
@@ -231,11 +307,26 @@ def run_area(gen: MapGenerator, sd_map: SDMap, box, settings: SampleSettings, ou
     try:
         outputs.write_text(out / f"{name}_area.json", json_text(area.graph.to_json()))
         write_png(out / f"{name}_area.png", area_picture(area, sd_map, box), outputs)
+        if rrd is not None:
+            rec = open_recording("area")
+            rec.send_blueprint(area_blueprint())
+            rec.log("info", rr.TextDocument(_info(command, name, scores), media_type="text/markdown"), static=True)
+            roads = _clipped_roads(sd_map, box, ON_SCREEN_M, centre)
+            points = np.array([s.point for s in area.seams]).reshape(-1, 2)
+            on_road = distance_to_polylines(points, roads) <= ON_ROAD_M if len(points) else []
+            log_area(rec, roads, area.tiles, area.tile_maps, area.graph, area.seams, on_road, centre)
+            close_recording(rec, rrd, outputs)
         outputs.commit()
     except BaseException:
         outputs.discard()
         raise
+    shutil.rmtree(cache, ignore_errors=True)
     return area, scores
+
+
+def _info(command: str, name: str, scores: dict) -> str:
+    lines = [f"# {name}: one map of an area\n", f"`{command}`\n" if command else "", "| score | value |", "|---|---|"]
+    return "\n".join(lines + [f"| {k} | {v} |" for k, v in scores.items()])
 
 
 def area_picture(area: AreaMap, sd_map: SDMap, box, size: int = 1024) -> np.ndarray:

@@ -189,7 +189,7 @@ def generate_maps(gen: MapGenerator, jobs: list[Job], settings: SampleSettings, 
     maps = []
     with Progress(len(jobs), "sample", "maps", enabled=progress and len(jobs) > 1 and info.main) as bar:
         for mine in D.rounds(list(range(0, len(jobs), settings.batch)), info):
-            made = [(start, _batch_maps(gen, jobs[start:start + settings.batch], start, settings, rec))
+            made = [(start, batch_maps(gen, jobs[start:start + settings.batch], start, settings, rec))
                     for start in mine]
             for part in D.gather(made, info) or []:
                 for start, batch in part:
@@ -198,8 +198,8 @@ def generate_maps(gen: MapGenerator, jobs: list[Job], settings: SampleSettings, 
     return maps if info.main else None
 
 
-def _batch_maps(gen: MapGenerator, batch: list[Job], start: int, settings: SampleSettings,
-                rec) -> list[tuple[LaneGraph, float]]:
+def batch_maps(gen: MapGenerator, batch: list[Job], start: int, settings: SampleSettings,
+               rec) -> list[tuple[LaneGraph, float]]:
     """The lane graphs of the jobs ``batch`` (jobs ``start``, ``start + 1``, ...) with each map's share of the
     time; the batch's noise depends on the seed and ``start`` alone, as in ``cmtool eval``."""
     logger = None

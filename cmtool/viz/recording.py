@@ -24,7 +24,7 @@ from cmtool.viz.draw import GREEN, RED, heading_colours, sd_panel
 _EGO_TO_SCREEN = [[0.0, -1.0, 0.0], [-1.0, 0.0, 0.0], [0.0, 0.0, 1.0]]
 # one application id per kind of recording: a viewer keeps a layout per application id, so a second kind of
 # recording opened in a running viewer shows its own layout, not the first one's
-APP_IDS = {kind: f"cmtool_{kind}" for kind in ("data", "train", "sample", "eval", "ablate")}
+APP_IDS = {kind: f"cmtool_{kind}" for kind in ("data", "train", "sample", "eval", "ablate", "area")}
 LANE_RADIUS_M, LIGHT_RADIUS_M = 0.2, 0.3  # thin enough to see the junction through
 GRPC_PORT, WEB_PORT = 9876, 9090  # where --serve serves a recording and Rerun's web viewer
 

@@ -1,0 +1,51 @@
+"""``area.rrd`` (``cmtool sample --area``): a whole area as it is assembled. On the ``tile`` timeline the tiles
+appear one by one, each with its frame and the lanes it drew (area metres, north up, over the SD roads); at the
+end they give way to the stitched map, its open seams ringed (magenta where an SD road goes on through them)."""
+
+from __future__ import annotations
+
+import numpy as np
+import rerun as rr
+import rerun.blueprint as rrb
+
+from cmtool.core.geometry import from_frame
+from cmtool.viz.recording import LANE_RADIUS_M, lane_colours
+
+NORTH_UP = [[1.0, 0.0, 0.0], [0.0, -1.0, 0.0], [0.0, 0.0, 1.0]]  # x east, y north on a screen whose y points down
+SQUARE = np.array([[1.0, 1.0], [-1.0, 1.0], [-1.0, -1.0], [1.0, -1.0], [1.0, 1.0]])
+SEAM_ON_ROAD, SEAM_OFF_ROAD = [255, 0, 255], [150, 150, 150]
+
+
+def log_area(rec: rr.RecordingStream, roads, tiles, tile_maps, graph, seams, on_road, centre,
+             frame_m: float = 64.0) -> None:
+    """Log the SD ``roads`` (area metres), each tile (a pose in the SD map's metres) with its lane graph
+    ``tile_maps[k]`` (in its frame) at ``tile`` = k, and at the end the stitched ``graph`` (area metres) with its
+    ``seams`` (``on_road``: whether an SD road goes on through each); ``centre``: the SD map point at the area's
+    origin."""
+    rec.log("area", rr.Transform3D(mat3x3=NORTH_UP), static=True)
+    rec.log("area/sd", rr.LineStrips2D([np.asarray(r) for r in roads], radii=2.0, colors=[80, 80, 92],
+                                       draw_order=-10.0), static=True)
+    for k, (tile, lanes) in enumerate(zip(tiles, tile_maps)):
+        rec.set_time("tile", sequence=k)
+        rec.log(f"area/tiles/{k}/frame", rr.LineStrips2D([from_frame(SQUARE * frame_m / 2, tile.x, tile.y, tile.yaw)
+                                                           - centre], radii=0.3, colors=[70, 110, 160]))
+        lines = [from_frame(np.asarray(l, np.float64), tile.x, tile.y, tile.yaw) - centre for l in lanes.lanes]
+        rec.log(f"area/tiles/{k}/lanes", rr.LineStrips2D(lines, radii=LANE_RADIUS_M, colors=lane_colours(lines)))
+    rec.set_time("tile", sequence=len(tiles))
+    rec.log("area/tiles", rr.Clear(recursive=True))
+    lines = [np.asarray(l) for l in graph.lanes]
+    rec.log("area/map/lanes", rr.LineStrips2D(lines, radii=LANE_RADIUS_M, colors=lane_colours(lines)))
+    origins = np.array([lines[i][max(-3, -len(lines[i]))] for i, _ in graph.successors]).reshape(-1, 2)
+    targets = np.array([lines[j][min(2, len(lines[j]) - 1)] for _, j in graph.successors]).reshape(-1, 2)
+    rec.log("area/map/successors", rr.Arrows2D(origins=origins, vectors=targets - origins, radii=0.15,
+                                               colors=[255, 255, 255]))
+    rec.log("area/map/seams", rr.Points2D(np.array([s.point for s in seams]).reshape(-1, 2), radii=3.0,
+                                          colors=[SEAM_ON_ROAD if r else SEAM_OFF_ROAD for r in on_road]))
+
+
+def area_blueprint() -> rrb.Blueprint:
+    """The area's view beside the run's info, the ``tile`` timeline open at its end (the stitched map)."""
+    return rrb.Blueprint(rrb.Horizontal(rrb.Spatial2DView(origin="/area", name="area: tiles, then the stitched map"),
+                                        rrb.TextDocumentView(origin="/info", name="info"), column_shares=[5, 1]),
+                         rrb.BlueprintPanel(expanded=False), rrb.SelectionPanel(expanded=False),
+                         rrb.TimePanel(expanded=True, timeline="tile", play_state="following"))
