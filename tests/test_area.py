@@ -7,9 +7,10 @@ import math
 import numpy as np
 import pytest
 import shapely
+from scipy.spatial import cKDTree
 
 from cmtool.data.scene import Pose
-from cmtool.data.tiles import CORE_M, cover, owners
+from cmtool.data.tiles import cover
 from cmtool.formats.osm import read_osm
 from cmtool.maps.lanegraph import LaneGraph
 from cmtool.maps.stitch import JOIN_M, stitch
@@ -25,9 +26,9 @@ def test_tiles_cover_every_road_point_with_a_core_and_stand_on_roads():
     assert 20 < len(tiles) < 200
     roads = shapely.MultiLineString([r.polyline for r in sd.roads])
     assert max(shapely.distance(shapely.Point(t.x, t.y), roads) for t in tiles) < 8.0  # on a road or a junction
-    points = np.concatenate([shapely.get_coordinates(shapely.line_interpolate_point(line, np.arange(0, line.length, 1.0)))
-                             for line in roads.geoms])
-    nearest = owners(tiles, points)
+    every_metre = [shapely.line_interpolate_point(line, np.arange(0.0, line.length, 1.0)) for line in roads.geoms]
+    points = np.concatenate([shapely.get_coordinates(p) for p in every_metre])
+    nearest = cKDTree([(t.x, t.y) for t in tiles]).query(points)[1]
     for p, t in zip(points, nearest):  # the nearest tile's frame holds every road point, 9 m inside its edge
         pose = tiles[t]
         c, s = math.cos(pose.yaw), math.sin(pose.yaw)
@@ -61,8 +62,8 @@ def test_stitch_joins_a_lane_two_tiles_drew_alike_and_reports_one_they_disagree_
 
 
 def test_sample_area_makes_one_map_that_exports_and_routes(tmp_path, capsys):
-    code, out, err = in_process(capsys, "sample", "--osm", TOWN, "--area", BOX, "--steps", 8, "--sampler", "dpm++2m-sde",
-                                "--quiet", "--out", tmp_path)
+    code, out, err = in_process(capsys, "sample", "--osm", TOWN, "--area", BOX, "--steps", 8, "--sampler",
+                                "dpm++2m-sde", "--quiet", "--out", tmp_path)
     assert code == 0, err
     assert "successor joins from" in out and "open seams" in out
     doc = json.loads((tmp_path / "town_bos_area.json").read_text())

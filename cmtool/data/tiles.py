@@ -1,9 +1,10 @@
 """Tiles that cover an area's roads: scene frames (the model's 64 m squares) standing on roads and facing along them,
 as training frames do, placed so that every road point of the area lies in the middle ``core_m`` square of one.
 
-Each point of the area belongs to the tile whose centre is nearest (:func:`owners`). A road point lies in some
-tile's core, so its nearest centre is at most ``core_m / sqrt(2)`` away and the point lies inside that tile's
-frame with a margin of ``frame_m / 2 - core_m / sqrt(2)`` (9 m for the defaults), room for the lanes beside it.
+Each point of the area belongs to the tile whose centre is nearest (:mod:`cmtool.maps.stitch`). A road point lies
+in some tile's core, so its nearest centre is at most ``core_m / sqrt(2)`` away and the point lies inside that
+tile's frame with a margin of ``frame_m / 2 - core_m / sqrt(2)`` (9 m for the defaults), room for the lanes beside
+it.
 """
 
 from __future__ import annotations
@@ -12,7 +13,6 @@ import math
 
 import numpy as np
 import shapely
-from scipy.spatial import cKDTree
 
 from cmtool.core.errors import CmtoolError
 from cmtool.data.scene import Pose
@@ -57,11 +57,6 @@ def cover(sd: SDMap, box: tuple[float, float, float, float] | None = None, core_
             if not tiles.covers(p):  # the road turns: stand one on the point itself
                 tiles.add(p, _heading(line, at))
     return tiles.poses
-
-
-def owners(tiles: list[Pose], points: np.ndarray) -> np.ndarray:
-    """The index of the tile whose centre is nearest each of ``points`` (N, 2)."""
-    return cKDTree(np.array([(t.x, t.y) for t in tiles])).query(np.asarray(points, np.float64).reshape(-1, 2))[1]
 
 
 class _Tiles:

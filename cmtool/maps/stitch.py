@@ -8,6 +8,7 @@ within ``JOIN_M`` and ``JOIN_DEG`` (nearest pairs first), both moved to their mi
 each), and the two pieces become one lane where nothing else joins there. An end left over merges into (or a start
 diverges from) the nearest other lane passing within ``JOIN_M`` and ``JOIN_DEG``, split there. A cut end still left
 is a :class:`Seam`: the tiles disagree there. Lanes are cut off at the edge of the area's box too (no seams).
+Last, lane ends that meet lane starts (by endpoint proximity, as each tile's map finds its successors) are joined.
 """
 
 from __future__ import annotations
@@ -21,7 +22,7 @@ import shapely.ops
 from scipy.spatial import cKDTree
 
 from cmtool.core.geometry import from_frame, polyline_length, resample_step, unit
-from cmtool.maps.lanegraph import LaneGraph
+from cmtool.maps.lanegraph import LaneGraph, infer_successors
 from cmtool.maps.neighbours import find_neighbours, lane_widths
 
 JOIN_M = 3.0  # a lane cut at a seam is continued by a lane of the other tile that starts within this distance
@@ -84,6 +85,7 @@ def stitch(graphs: list[LaneGraph], tiles: list, box: tuple[float, float, float,
     seams = [Seam(tuple(map(float, pieces[k].points[-1 if leaving else 0])), pieces[k].tile,
                   pieces[k].leaves if leaving else pieces[k].enters, leaving) for k, leaving in open_ends]
     lanes, successors = _merge(pieces, successors, joins)
+    successors |= set(infer_successors(lanes))  # ends that meet across tiles, found as each tile's own map finds them
     shift = np.zeros(2) if centre is None else np.asarray(centre, np.float64)
     lanes = [np.round(l - shift, 3) for l in lanes]
     left, oncoming = find_neighbours(lanes)
