@@ -9,12 +9,10 @@ import os
 import xml.etree.ElementTree as ET
 from dataclasses import dataclass
 from importlib.metadata import PackageNotFoundError, version
-
-import numpy as np
-from scipy.sparse import coo_matrix
-from scipy.sparse.csgraph import breadth_first_order
+from pathlib import Path
 
 from cmtool.core.errors import CmtoolError
+from cmtool.core.reach import Reach
 
 READERS = {"opendrive": ("carla", "CARLA"), "lanelet2": ("lanelet2", "Lanelet2")}  # format -> (wheel, reader)
 
@@ -52,7 +50,7 @@ def verify(fmt: str, graph, path: str | os.PathLike, lat0: float, lon0: float) -
                           f"where it exists: Linux x86_64, Python 3.10 to 3.12): {e}") from None
     try:
         if fmt == "opendrive":
-            edges, seen = _carla(reader, open(path, encoding="utf-8").read())
+            edges, seen = _carla(reader, Path(path).read_text(encoding="utf-8"))
         else:
             edges, seen = _lanelet2(reader, path, lat0, lon0)
     except (RuntimeError, ValueError) as e:
@@ -65,16 +63,8 @@ def verify(fmt: str, graph, path: str | os.PathLike, lat0: float, lon0: float) -
 
 def unreached(n: int, edges, paths) -> list[tuple[int, int]]:
     """The ``edges`` (i, j) between ``n`` lanes where no chain of ``paths`` leads from i to j."""
-    edges = sorted(set(edges))
-    p = np.array(sorted(set(paths)), dtype=np.int64).reshape(-1, 2)
-    graph = coo_matrix((np.ones(len(p)), (p[:, 0], p[:, 1])), shape=(n, n)).tocsr()
-    reach, out = {}, []
-    for i, j in edges:
-        if i not in reach:
-            reach[i] = set(breadth_first_order(graph, i, return_predecessors=False).tolist())
-        if j not in reach[i]:
-            out.append((i, j))
-    return out
+    reach = Reach(n, set(paths))
+    return [(i, j) for i, j in sorted(set(edges)) if j not in reach(i)]
 
 
 def _carla(carla, xodr: str) -> tuple[list, set]:

@@ -290,13 +290,14 @@ def _copies(road: _Road, r: int, partners, named) -> list[tuple[dict, dict]]:
             ends, lanes = fit
             for end, q, there in wants:
                 ends[end], lanes[(k, end)] = q, [there]
-    for ends, lanes in copies or [({}, {})]:
+    copies = copies or [({}, {})]
+    for ends, lanes in copies:
         for end in (START, END):
             if (r, end) in named:
                 q = ends.setdefault(end, named[(r, end)])
                 for here, there, _ in partners[(r, end)][q]:
                     lanes.setdefault((here, end), [there])
-    return copies or [({}, {})]
+    return copies
 
 
 def _connecting(links, direct) -> set[int]:

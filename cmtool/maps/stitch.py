@@ -157,9 +157,9 @@ def _own_pieces(line: np.ndarray, t: int, owners: _Owners) -> list[_Piece]:
     return pieces
 
 
-def _join_seams(pieces: list[_Piece]) -> tuple[list[tuple[int, int]], list[Seam]]:
+def _join_seams(pieces: list[_Piece]) -> tuple[list[tuple[int, int]], list[tuple[int, bool]]]:
     """Pairs (piece that leaves, piece that enters) joined across seams, their ends moved to their middle; the cut
-    ends left open."""
+    ends left open, as (piece, whether it leaves there)."""
     out = [i for i, p in enumerate(pieces) if p.leaves is not None and p.leaves >= 0]
     into = [j for j, p in enumerate(pieces) if p.enters is not None and p.enters >= 0]
     joins = []

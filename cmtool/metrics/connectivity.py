@@ -12,10 +12,9 @@ from collections import defaultdict
 
 import numpy as np
 import shapely
-from scipy.sparse import coo_matrix
-from scipy.sparse.csgraph import breadth_first_order
 from scipy.spatial import cKDTree
 
+from cmtool.core.reach import Reach
 from cmtool.maps.sdmap import SDMap
 
 END_M = 15.0  # a lane end this close to an SD road end serves it
@@ -56,13 +55,12 @@ def sd_end_pairs(sd: SDMap, box) -> tuple[np.ndarray, list[tuple[int, int]]]:
     for n, (a, b) in enumerate(edges):
         leaving[a].append(n)
     turns = [(n, m) for n, (a, b) in enumerate(edges) for m in leaving[b] if edges[m][1] != a]  # no U-turns
-    t = np.array(turns, np.int64).reshape(-1, 2)
-    graph = coo_matrix((np.ones(len(t)), (t[:, 0], t[:, 1])), shape=(len(edges),) * 2).tocsr()
+    reach = Reach(len(edges), turns)
     position = {k: n for n, k in enumerate(ends)}
     pairs = set()
     for a in ends:
         for first in leaving[a]:
-            for n in breadth_first_order(graph, first, return_predecessors=False):
+            for n in reach(first):
                 b = edges[n][1]
                 if b in position and b != a:
                     pairs.add((position[a], position[b]))
@@ -83,15 +81,6 @@ def routed_share(graph, ends: np.ndarray, pairs: list[tuple[int, int]], max_pair
     joins = [(int(i), int(j)) for i, j in graph.successors]
     for i, j in graph.left_neighbors or []:
         joins += [(int(i), int(j)), (int(j), int(i))]
-    n = len(lanes)
-    e = np.array(joins, np.int64).reshape(-1, 2)
-    moves = coo_matrix((np.ones(len(e)), (e[:, 0], e[:, 1])), shape=(n, n)).tocsr()
-    reach: dict[int, set] = {}
-    routed = 0
-    for a, b in pairs:
-        for lane in starts[a]:
-            if lane not in reach:
-                reach[lane] = set(breadth_first_order(moves, lane, return_predecessors=False).tolist())
-        if any(reach[lane] & set(stops[b]) for lane in starts[a]):
-            routed += 1
+    reach = Reach(len(lanes), joins)
+    routed = sum(any(reach(lane) & set(stops[b]) for lane in starts[a]) for a, b in pairs)
     return routed / len(pairs)
