@@ -20,6 +20,11 @@ SD input (at most one kind; none: maps from the city label alone):
   --from-hd MAP.json [--pose X,Y,YAW]   (the ground truth is shown beside the map)
 --center and --pose also take a .jsonl file of points for many inputs at once.
 
+One map of a whole area, tiled, generated and stitched (docs/area.md):
+  --osm FILE --area all|LAT0,LON0,LAT1,LON1
+  --from-hd MAP.json --area all|X0,Y0,X1,Y1
+  --sd PICTURE --area all|X0,Y0,X1,Y1 [--px-m 0.5]   (a road drawing or SD raster, north up)
+
 Large sets in several processes (CPU or GPUs), the same maps as one process:
   torchrun --nproc_per_node 2 -m cmtool -- sample ... --no-log
 """
@@ -31,10 +36,13 @@ Large sets in several processes (CPU or GPUs), the same maps as one process:
 @click.option("--sd", "sd_paths", multiple=True, type=click.Path(path_type=Path),
               help="SD raster / road drawing picture, or a folder of them (repeatable).")
 @map_input_options
-@click.option("--area", help="With --osm or --from-hd: one map of a whole area instead of frames: all (the map's "
-                             "extent) or two opposite corners, LAT0,LON0,LAT1,LON1 (--osm) or X0,Y0,X1,Y1 metres "
-                             "(--from-hd). Written as OUT/NAME_area.json and .png; its tiles start from the area's "
-                             "rule layout (--init rules --strength 0.3) unless --init is given (docs/area.md).")
+@click.option("--area", help="With --osm, --from-hd or one --sd picture: one map of a whole area instead of frames: "
+                             "all (the map's extent) or two opposite corners, LAT0,LON0,LAT1,LON1 (--osm) or "
+                             "X0,Y0,X1,Y1 metres (--from-hd, --sd). Written as OUT/NAME_area.json and .png; its "
+                             "tiles start from the area's rule layout (--init rules --strength 0.3) unless --init is "
+                             "given (docs/area.md).")
+@click.option("--px-m", default=0.5, show_default=True, type=Finite(min=0, min_open=True),
+              help="With --sd PICTURE --area: metres per pixel of the picture (north up).")
 @click.option("--num", default=1, show_default=True, type=click.IntRange(min=1), help="Maps per SD input.")
 @click.option("--candidates", default=1, show_default=True, type=click.IntRange(min=1),
               help="Draw this many maps for each one and keep the best: the highest mean of its validity score, "
@@ -68,7 +76,7 @@ Large sets in several processes (CPU or GPUs), the same maps as one process:
 @click.option("--device", help="torch device [default: cuda when available, else cpu].")
 @PRECISION_OPTION
 @click.option("--quiet", is_flag=True, help="No progress line.")
-def sample(ckpt, sd_paths, osm, center, heading, from_hd, pose, area, num, candidates, seed, steps, sampler, eta, city,
+def sample(ckpt, sd_paths, osm, center, heading, from_hd, pose, area, px_m, num, candidates, seed, steps, sampler, eta, city,
            cfg, city_cfg, init, strength, encoder_path, smooth, batch, out, rrd, grid, spawn, connect_url, serve, raw,
            no_log, device, precision, quiet):
     import shlex
@@ -85,7 +93,7 @@ def sample(ckpt, sd_paths, osm, center, heading, from_hd, pose, area, num, candi
     if spawn + bool(connect_url) + serve > 1:
         raise CmtoolError("give one of --spawn, --connect and --serve")
     if area is not None:
-        return _area(ckpt, osm, center, from_hd, pose, area, num, candidates, seed, steps, sampler, eta, city, cfg,
+        return _area(ckpt, sd_paths, px_m, osm, center, from_hd, pose, area, num, candidates, seed, steps, sampler, eta, city, cfg,
                      city_cfg, init, strength, encoder_path, smooth, batch, out, rrd, grid, spawn, connect_url, serve,
                      raw, no_log, device, precision, quiet)
     settings = SampleSettings(num=num, seed=seed, steps=steps, sampler=sampler, eta=eta, cfg=cfg, city=city,
@@ -131,9 +139,9 @@ def sample(ckpt, sd_paths, osm, center, heading, from_hd, pose, area, num, candi
 AREA_INIT, AREA_STRENGTH = "rules", 0.3  # where --area's tiles start unless --init is given
 
 
-def _area(ckpt, osm, center, from_hd, pose, area, num, candidates, seed, steps, sampler, eta, city, cfg, city_cfg, init,
-          strength, encoder_path, smooth, batch, out, rrd, grid, spawn, connect_url, serve, raw, no_log, device,
-          precision, quiet):
+def _area(ckpt, sd_paths, px_m, osm, center, from_hd, pose, area, num, candidates, seed, steps, sampler, eta, city,
+          cfg, city_cfg, init, strength, encoder_path, smooth, batch, out, rrd, grid, spawn, connect_url, serve, raw,
+          no_log, device, precision, quiet):
     """``sample --area``: one map of a whole area (:mod:`cmtool.sample.area`)."""
     import shlex
 
@@ -142,8 +150,10 @@ def _area(ckpt, osm, center, from_hd, pose, area, num, candidates, seed, steps, 
     from cmtool.sample.area import area_box, run_area
     from cmtool.sample.run import SampleSettings
 
-    if osm is None and from_hd is None:
-        raise CmtoolError("--area needs --osm FILE or --from-hd MAP (the SD map of the area)")
+    if osm is None and from_hd is None and not sd_paths:
+        raise CmtoolError("--area needs --osm FILE, --from-hd MAP or --sd PICTURE (the SD map of the area)")
+    if len(sd_paths) > 1 or (sd_paths and sd_paths[0].is_dir()):
+        raise CmtoolError("--area makes one map of one SD picture: give one --sd file, not several or a folder")
     given = [name for name, v in (("--center", center), ("--pose", pose), ("--grid", grid), ("--spawn", spawn),
                                   ("--connect", connect_url), ("--serve", serve)) if v]
     given += ["--num"] * (num > 1) + ["--candidates"] * (candidates > 1)
@@ -158,6 +168,10 @@ def _area(ckpt, osm, center, from_hd, pose, area, num, candidates, seed, steps, 
     settings.check()
     if osm is not None:
         sd_map, name = src.osm_sd_map(osm), Path(osm).name.split(".")[0]
+    elif sd_paths:
+        from cmtool.data.sd_trace import trace_sd
+
+        sd_map, name = trace_sd(sd_paths[0], px_m, None if city in ("auto", "none") else city), sd_paths[0].stem
     else:
         hd, sd_map = src.hd_sd_map(from_hd)
         sd_map.meta |= {k: hd.meta[k] for k in ("lat0", "lon0") if k in hd.meta}
@@ -175,8 +189,9 @@ def _area(ckpt, osm, center, from_hd, pose, area, num, candidates, seed, steps, 
         return
     scores = done[1]
     click.echo(f"{name}: {scores['lanes']} lanes, {scores['successors']} successor joins from {scores['tiles']} tiles "
-               f"in {scores['seconds']:.0f} s ({(box[2] - box[0]) * (box[3] - box[1]) / 1e6:.2f} km2 box); open seams "
-               f"{scores['open_seams']} ({scores['open_seams_on_roads']} where an SD road goes on); SD road-end pairs "
+               f"in {scores['seconds']:.0f} s ({(box[2] - box[0]) * (box[3] - box[1]) / 1e6:.2f} km2 box); seams where "
+               f"tiles disagreed {scores['seams_disagreed']}, left open {scores['open_seams']} "
+               f"({scores['open_seams_on_roads']} where an SD road goes on); SD road-end pairs "
                f"routed {_share(scores['sd_end_pairs_routed'])} of {scores['sd_end_pairs']}; over "
                f"{scores['windows']} 64 m windows: validity {scores['validity']:.3f}, legal one-way "
                f"{_share(scores['legal_oneway'])}, SD covered {_share(scores['sd_coverage'])}")

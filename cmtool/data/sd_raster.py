@@ -123,7 +123,31 @@ def read_sd_image(path) -> tuple[np.ndarray, str | None]:
 
 def convert_sd_image(image) -> tuple[np.ndarray, str | None]:
     """:func:`sd_raster_from_image` plus a one-line note saying what was converted (None: nothing)."""
-    img = _read_picture(image) if isinstance(image, (str, os.PathLike)) else np.asarray(image)
+    img = _page(_read_picture(image) if isinstance(image, (str, os.PathLike)) else np.asarray(image))
+    if is_sd_raster(img):
+        if img.shape[:2] == (SIZE, SIZE):
+            return img.copy(), None
+        note = f"resampled the {img.shape[1]} x {img.shape[0]} SD raster to {SIZE} x {SIZE} (nearest pixel)"
+        return cv2.resize(img, (SIZE, SIZE), interpolation=cv2.INTER_NEAREST), note
+    out = np.zeros((SIZE, SIZE, 3), dtype=np.uint8)
+    mask = drawing_roads(img)
+    if mask is None:
+        return out, "a blank picture: no roads"
+    coverage = cv2.resize(mask.astype(np.float32), (SIZE, SIZE), interpolation=cv2.INTER_AREA)
+    out[..., 0] = np.where(coverage >= 0.2, ROAD_VALUE, 0)
+    return out, (f"converted a {img.shape[1]} x {img.shape[0]} road drawing to an SD raster "
+                 "(road presence only; lane counts and directions unknown)")
+
+
+def picture(path) -> tuple[np.ndarray, bool]:
+    """A picture file as an RGB or grey uint8 array (see :func:`_page`), and whether it follows the SD raster
+    convention (:func:`is_sd_raster`)."""
+    img = _page(_read_picture(path))
+    return img, is_sd_raster(img)
+
+
+def _page(img: np.ndarray) -> np.ndarray:
+    """A picture as uint8 grey or RGB: a transparent page's opaque strokes as grey, RGBA's colour otherwise."""
     img = _as_uint8(img)
     if img.ndim == 3 and img.shape[2] == 4:
         alpha = img[..., 3]
@@ -131,23 +155,18 @@ def convert_sd_image(image) -> tuple[np.ndarray, str | None]:
     if img.ndim not in (2, 3) or (img.ndim == 3 and img.shape[2] != 3) or min(img.shape[:2]) < 1:
         raise CmtoolError(f"SD image: expected a grey (H, W), RGB (H, W, 3) or RGBA (H, W, 4) picture, "
                           f"got shape {img.shape}")
-    if is_sd_raster(img):
-        if img.shape[:2] == (SIZE, SIZE):
-            return img.copy(), None
-        note = f"resampled the {img.shape[1]} x {img.shape[0]} SD raster to {SIZE} x {SIZE} (nearest pixel)"
-        return cv2.resize(img, (SIZE, SIZE), interpolation=cv2.INTER_NEAREST), note
+    return img
+
+
+def drawing_roads(img: np.ndarray) -> np.ndarray | None:
+    """The road pixels of a road drawing (grey or RGB; light roads on dark or dark on light, roads being the
+    minority of pixels) as a 0/1 uint8 mask, split by Otsu's threshold; None for a blank picture."""
     if img.ndim == 3:
         img = cv2.cvtColor(np.ascontiguousarray(img), cv2.COLOR_RGB2GRAY)
-    out = np.zeros((SIZE, SIZE, 3), dtype=np.uint8)
     if img.min() == img.max():
-        return out, "a blank picture: no roads"
+        return None
     _, mask = cv2.threshold(np.ascontiguousarray(img), 0, 1, cv2.THRESH_BINARY + cv2.THRESH_OTSU)
-    if mask.mean() > 0.5:
-        mask = 1 - mask
-    coverage = cv2.resize(mask.astype(np.float32), (SIZE, SIZE), interpolation=cv2.INTER_AREA)
-    out[..., 0] = np.where(coverage >= 0.2, ROAD_VALUE, 0)
-    return out, (f"converted a {img.shape[1]} x {img.shape[0]} road drawing to an SD raster "
-                 "(road presence only; lane counts and directions unknown)")
+    return 1 - mask if mask.mean() > 0.5 else mask
 
 
 def _read_picture(path) -> np.ndarray:

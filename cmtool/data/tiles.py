@@ -1,15 +1,18 @@
 """Tiles that cover an area's roads: scene frames (the model's 64 m squares) standing on roads and facing along them,
 as training frames do, placed so that every road point of the area lies in the middle ``core_m`` square of one.
 
-Each point of the area belongs to the tile whose centre is nearest (:mod:`cmtool.maps.stitch`). A road point lies
-in some tile's core, so its nearest centre is at most ``core_m / sqrt(2)`` away and the point lies inside that
-tile's frame with a margin of ``frame_m / 2 - core_m / sqrt(2)`` (9 m for the defaults), room for the lanes beside
-it.
+Each point of the area belongs to the tile whose centre is nearest (:mod:`cmtool.maps.stitch`), except that a tile
+standing on a junction owns every point within its ``reach`` (``HUB_M``): the junction is drawn by one tile, and
+no seam between two tiles runs through it. A road point lies in some tile's core, so its nearest centre is at most
+``core_m / sqrt(2)`` away and the point lies inside that tile's frame with a margin of ``frame_m / 2 - core_m /
+sqrt(2)`` (9 m for the defaults), room for the lanes beside it; a point a junction tile owns lies ``frame_m / 2 -
+HUB_M`` (12 m) inside its frame.
 """
 
 from __future__ import annotations
 
 import math
+from dataclasses import dataclass
 
 import numpy as np
 import shapely
@@ -22,12 +25,19 @@ from cmtool.maps.sdmap import SDMap
 
 CORE_M = 32.0  # every road point lies in the middle square of this side of some tile
 STEP_M = 2.0  # road points are tried this far apart
+HUB_M = 20.0  # a tile on a junction owns every point this near its centre (for the model's 64 m frames)
+
+
+@dataclass
+class Tile(Pose):
+    reach: float = 0.0  # the tile owns every point this near its centre (a junction's tile), else only the nearest
 
 
 def cover(sd: SDMap, box: tuple[float, float, float, float] | None = None, core_m: float = CORE_M,
-          step_m: float = STEP_M, frame_m: float = FRAME_M) -> list[Pose]:
+          step_m: float = STEP_M, frame_m: float = FRAME_M) -> list[Tile]:
     """Tiles covering the roads of ``sd`` (their parts inside ``box``, (x0, y0, x1, y1) metres, when given): first
-    one centred on each junction (so that no tile border cuts through it), then, walking each road (longest first)
+    one centred on each junction (owning the points within ``HUB_M`` of it, so that no tile border cuts through
+    it), then, walking each road (longest first)
     in steps of ``step_m``, a point outside the core of every tile so far gets a tile half a core further on, its
     core starting about where the last one's ends. Tiles face the road's travel direction (along the polyline on
     two-way roads)."""
@@ -46,7 +56,7 @@ def cover(sd: SDMap, box: tuple[float, float, float, float] | None = None, core_
         for centre in road_graph(sd).centres:
             if area is None or area.contains(shapely.Point(centre)):
                 nearest = pieces[int(np.argmin(shapely.distance(shapely.Point(centre), pieces)))]
-                tiles.add(centre, _heading(nearest, nearest.project(shapely.Point(centre))))
+                tiles.add(centre, _heading(nearest, nearest.project(shapely.Point(centre))), HUB_M * frame_m / FRAME_M)
     for line in pieces:
         for at in np.linspace(0.0, line.length, max(2, int(math.ceil(line.length / step_m)) + 1)):
             p = _point(line, at)
@@ -65,9 +75,9 @@ class _Tiles:
     def __init__(self, core_m: float):
         self.core, self.poses, self.grid = core_m, [], {}
 
-    def add(self, p: np.ndarray, yaw: float) -> None:
+    def add(self, p: np.ndarray, yaw: float, reach: float = 0.0) -> None:
         self.grid.setdefault(self._cell(p), []).append(len(self.poses))
-        self.poses.append(Pose(float(p[0]), float(p[1]), float(yaw)))
+        self.poses.append(Tile(float(p[0]), float(p[1]), float(yaw), reach))
 
     def covers(self, p: np.ndarray) -> bool:
         """Whether ``p`` lies in the core square of a tile."""

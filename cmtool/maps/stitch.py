@@ -28,9 +28,10 @@ from cmtool.maps.neighbours import find_neighbours, lane_widths
 JOIN_M = 3.0  # a lane cut at a seam is continued by a lane of the other tile that starts within this distance
 JOIN_DEG = 45.0  # ... heading within this angle of it
 FADE_M = 10.0  # the ends joined at a seam move to their middle, the move fading out over this length of each lane
-MIN_PIECE_M = 1.0  # shorter pieces of a cut lane are dropped
+MIN_PIECE_M = 2.0  # shorter pieces of a cut lane are dropped
 SAMPLE_M = 0.5  # lanes are cut between samples this far apart
-SPLIT_M = 0.5  # an open end joins a lane this near its start (a merge) or end (a diverge) there, else splits it
+SPLIT_M = 2.0  # an open end joins a lane this near its start (a merge) or end (a diverge) there, else splits it
+CUT_STEPS = 24  # halvings that find where a lane crosses from one tile's part into another's (0.5 m / 2^24)
 
 
 @dataclass
@@ -57,7 +58,7 @@ def stitch(graphs: list[LaneGraph], tiles: list, box: tuple[float, float, float,
     tile's lane graph ``graphs[t]`` in the frame of ``tiles[t]`` (a pose: x, y, yaw), cut off at the edge of ``box``
     (x0, y0, x1, y1) when given, and the seams left open."""
     centres = np.array([(t.x, t.y) for t in tiles], np.float64).reshape(-1, 2)
-    owners = _Owners(centres, box)
+    owners = _Owners(centres, np.array([getattr(t, "reach", 0.0) for t in tiles], np.float64), box)
     pieces: list[_Piece] = []
     first: dict[tuple[int, int], int] = {}  # (tile, lane) -> its first piece, when that holds the lane's start
     last: dict[tuple[int, int], int] = {}  # (tile, lane) -> its last piece, when that holds the lane's end
@@ -101,15 +102,23 @@ def stitch(graphs: list[LaneGraph], tiles: list, box: tuple[float, float, float,
 
 
 class _Owners:
-    """The tile whose centre is nearest a point (-1 outside the box)."""
+    """The tile a point belongs to: the junction tile whose ``reach`` holds it (the nearest, if several do), else the
+    tile whose centre is nearest; -1 outside the box."""
 
-    def __init__(self, centres: np.ndarray, box):
-        self.centres, self.box, self.tree = centres, box, cKDTree(centres)
+    def __init__(self, centres: np.ndarray, reach: np.ndarray, box):
+        self.centres, self.reach, self.box, self.tree = centres, reach, box, cKDTree(centres)
+        self.hubs = np.flatnonzero(reach > 0)
+        self.hub_tree = cKDTree(centres[self.hubs]) if len(self.hubs) else None
 
     def query(self, points: np.ndarray) -> np.ndarray:
+        points = np.asarray(points, np.float64).reshape(-1, 2)
         owner = self.tree.query(points)[1]
+        if self.hub_tree is not None:
+            d, k = self.hub_tree.query(points)
+            hub = self.hubs[k]
+            owner = np.where(d <= self.reach[hub], hub, owner)
         if self.box is not None:
-            x, y = np.asarray(points).T
+            x, y = points.T
             owner = np.where((x >= self.box[0]) & (x <= self.box[2]) & (y >= self.box[1]) & (y <= self.box[3]),
                              owner, -1)
         return owner
@@ -117,15 +126,23 @@ class _Owners:
     def cut(self, p: np.ndarray, q: np.ndarray, a: int, b: int) -> np.ndarray:
         """Where the segment p-q goes from tile a's part into tile b's (either may be -1: outside the box)."""
         if a >= 0 and b >= 0:
-            n, mid = self.centres[b] - self.centres[a], 0.5 * (self.centres[a] + self.centres[b])
-            dp, dq = (p - mid) @ n, (q - mid) @ n
-            return p + (0.0 if dq == dp else float(np.clip(dp / (dp - dq), 0.0, 1.0))) * (q - p)
+            lo, hi = 0.0, 1.0  # the border of two tiles' parts, a line or a junction tile's circle, by bisection
+            for _ in range(CUT_STEPS):
+                mid = 0.5 * (lo + hi)
+                lo, hi = (mid, hi) if self._nearer(p + mid * (q - p), a, b) else (lo, mid)
+            return p + 0.5 * (lo + hi) * (q - p)
         lo, hi = np.array(self.box[:2]), np.array(self.box[2:])
         inside, outside = (p, q) if a >= 0 else (q, p)
         d = outside - inside
         with np.errstate(divide="ignore", invalid="ignore"):
             t = np.where(d > 0, (hi - inside) / d, np.where(d < 0, (lo - inside) / d, np.inf))
         return inside + float(np.clip(t.min(), 0.0, 1.0)) * d
+
+    def _nearer(self, x: np.ndarray, a: int, b: int) -> bool:
+        """Whether ``x`` belongs to tile a rather than tile b."""
+        da, db = (float(np.linalg.norm(x - self.centres[t])) for t in (a, b))
+        held_a, held_b = da <= self.reach[a], db <= self.reach[b]
+        return held_a and (not held_b or da <= db) if held_a or held_b else da <= db
 
 
 def _own_pieces(line: np.ndarray, t: int, owners: _Owners) -> list[_Piece]:

@@ -16,7 +16,6 @@ import math
 import shutil
 import sys
 import time
-from collections import defaultdict
 from dataclasses import asdict, dataclass, replace
 from pathlib import Path
 
@@ -24,12 +23,11 @@ import cv2
 import numpy as np
 import rerun as rr
 import shapely
-from scipy.spatial import cKDTree
 
 from cmtool.core import dist as D
 from cmtool.core.errors import CmtoolError
 from cmtool.core.geo import LocalProjection
-from cmtool.core.geometry import CV_SHIFT, ego_to_pixel, to_frame, unit
+from cmtool.core.geometry import CV_SHIFT, ego_to_pixel, to_frame
 from cmtool.core.jsonio import OutputSet, json_text, write_text_atomic
 from cmtool.core.progress import Progress
 from cmtool.data.rules import rule_layout
@@ -38,7 +36,7 @@ from cmtool.data.sd_raster import rasterize_sd
 from cmtool.data.tiles import cover
 from cmtool.maps.hdmap import drives_on
 from cmtool.maps.lanegraph import LaneGraph, read_jsonl, write_jsonl
-from cmtool.maps.neighbours import find_neighbours, lane_widths
+from cmtool.maps.patch import complete, open_ends, prune, trim
 from cmtool.maps.sdmap import SDMap
 from cmtool.maps.stitch import Seam, stitch
 from cmtool.metrics.connectivity import routed_share, sd_end_pairs
@@ -49,23 +47,25 @@ from cmtool.sample.generator import MapGenerator
 from cmtool.sample.inputs import ControlInput
 from cmtool.sample.layouts import NO_INIT
 from cmtool.sample.run import SampleSettings, batch_maps, plan
-from cmtool.viz.area import area_blueprint, log_area
+from cmtool.viz.area import area_blueprint, log_area, place_tile
 from cmtool.viz.draw import lanes_image, legend, sd_panel, title_strip
 from cmtool.viz.recording import close_recording, open_recording
 from cmtool.viz.show import write_png
 
 ON_ROAD_M = 8.0  # an open seam this close to an SD road is one where the road goes on
-MEET_M, MEET_DEG = 4.0, 45.0  # a rule connector meets a lane whose end (start) lies this near its start (end)
 ON_SCREEN_M = 40.0  # the recording shows the SD roads this far around the box
 NEAR_M = 100.0  # roads this near the box take part in the rule layouts (tile frames reach 32 m beyond it)
-CHAIN = 4  # a connection the map makes in at most this many successor joins needs no lent connector
 WINDOWS = 256  # at most this many 64 m windows are scored
+PASSES = 3  # at most this many passes of the rule layout over the stitched map
+RECORDED_TILES = 128  # area.rrd records the denoising of the batches of tiles that start before this one
 
 
 @dataclass
 class AreaMap:
     graph: LaneGraph  # area metres east/north of ``centre``, placed by meta.geo
-    seams: list[Seam]
+    seams: list[Seam]  # lane ends cut between two tiles that the map still leaves open
+    disagreed: int  # the seams the stitching left open, where neighbouring tiles drew different lanes
+    recorded: int  # tiles whose denoising is recorded
     tiles: list  # the tiles' poses (the SD map's metres)
     tile_maps: list[LaneGraph]  # each tile's map, in its frame
     seconds: float  # generating and stitching
@@ -99,11 +99,14 @@ def area_box(sd_map: SDMap, spec: str, latlon: bool = True) -> tuple[float, floa
 
 
 def generate_area(gen: MapGenerator, sd_map: SDMap, box, settings: SampleSettings, name: str,
-                  progress: bool = True, cache: Path | None = None, info: D.DistInfo = D.SINGLE) -> AreaMap | None:
+                  progress: bool = True, cache: Path | None = None, info: D.DistInfo = D.SINGLE,
+                  rec: rr.RecordingStream | None = None) -> AreaMap | None:
     """Cover the roads in ``box`` with tiles, generate a map for each and stitch them into one (the SD map's roads
     farther than ``NEAR_M`` from the box are left out of the rule layouts the tiles start from and borrow from).
     ``cache``: a folder that keeps finished batches of tiles, so that a killed run goes on where it stopped; under
-    ``torchrun`` (``info``) the processes share the batches and the main process stitches (the others get None)."""
+    ``torchrun`` (``info``) the processes share the batches and the main process stitches (the others get None).
+    ``rec``: records the denoising of the tiles of the batches that start before ``RECORDED_TILES`` and that this
+    process generates, each tile in its place in the area (:func:`cmtool.viz.area.place_tile`)."""
     began = time.perf_counter()
     sd_map = _near(sd_map, box, NEAR_M)
     tiles = cover(sd_map, box)
@@ -111,32 +114,40 @@ def generate_area(gen: MapGenerator, sd_map: SDMap, box, settings: SampleSetting
         raise CmtoolError(f"{name}: no road in the area to stand a tile on")
     inputs = [ControlInput(f"{name}_t{k}", rasterize_sd(sd_map, t.x, t.y, t.yaw), f"tile {k} of {name}",
                            city=sd_map.city, sd_map=sd_map, pose=(t.x, t.y, t.yaw)) for k, t in enumerate(tiles)]
-    maps = _tile_maps(gen, plan(gen, inputs, settings), settings, tiles, cache, progress, info)
+    centre = 0.5 * np.array([box[0] + box[2], box[1] + box[3]])
+    jobs = plan(gen, inputs, settings)
+    if rec is not None:  # the batches that start before RECORDED_TILES
+        upto = next((b for b in range(0, len(jobs), settings.batch) if b >= RECORDED_TILES), len(jobs))
+        for k, job in enumerate(jobs[:upto]):
+            job.prefix = place_tile(rec, k, tiles[k], centre)
+    maps, recorded = _tile_maps(gen, jobs, settings, tiles, cache, progress, info, rec)
     if maps is None:
         return None
-    centre = 0.5 * np.array([box[0] + box[2], box[1] + box[3]])
-    graph, seams = stitch(maps, tiles, box, centre)
-    lent = 0
+    graph, disagreed = stitch(maps, tiles, box, centre)
+    seams, changed = disagreed, {}
     if settings.guarantee:
-        graph, lent = lend_connectors(graph, sd_map, box, centre)
+        graph, changed = area_guarantee(graph, sd_map, box, centre, disagreed)
+        still = open_ends(graph, np.array([s.point for s in disagreed]).reshape(-1, 2))
+        seams = [s for s in disagreed if len(still) and np.min(np.linalg.norm(still - s.point, axis=1)) < 0.01]
     graph.meta = {"source": f"area of {sd_map.source or name}", "checkpoint": str(gen.path), "seed": settings.seed,
                   "cfg": settings.cfg, "steps": settings.steps, "sampler": settings.sampler,
-                  "precision": gen.precision, "guarantee": settings.guarantee, "lent_connectors": lent,
+                  "precision": gen.precision, "guarantee": settings.guarantee, "area_guarantee": changed,
                   **({"init": settings.init, "strength": settings.strength} if settings.init != NO_INIT else {})}
     if "lat0" in sd_map.meta:
         lat, lon = LocalProjection(sd_map.meta["lat0"], sd_map.meta["lon0"]).to_latlon(centre)
         graph.meta["geo"] = {"lat": round(float(lat), 8), "lon": round(float(lon), 8), "heading": 90.0}
-    return AreaMap(graph, seams, tiles, maps, time.perf_counter() - began)
+    return AreaMap(graph, seams, len(disagreed), recorded, tiles, maps, time.perf_counter() - began)
 
 
 def _tile_maps(gen: MapGenerator, jobs, settings: SampleSettings, tiles, cache: Path | None, progress: bool,
-               info: D.DistInfo) -> list[LaneGraph] | None:
+               info: D.DistInfo, rec: rr.RecordingStream | None = None) -> tuple[list[LaneGraph] | None, int]:
     """The tiles' lane graphs, ``settings.batch`` at a time (a batch's noise depends on the seed and its first tile
     alone): batches that ``cache`` holds from a run with the same tiles and settings are read back, the others
-    generated, dealt among the processes of a torchrun, and written there as they finish (by the main process,
-    which returns them all; the others return None)."""
+    generated (their steps recorded to ``rec`` up to ``RECORDED_TILES``), dealt among the processes of a torchrun,
+    and written there as they finish (by the main process, which returns them all; the others return None); and how
+    many tiles' steps were recorded."""
     starts = list(range(0, len(jobs), settings.batch))
-    done = {}
+    done, recorded = {}, 0
     if cache is not None and info.main:
         done = _cached_batches(cache, starts, _run_key(gen, settings, tiles))
         if done and progress:
@@ -146,14 +157,16 @@ def _tile_maps(gen: MapGenerator, jobs, settings: SampleSettings, tiles, cache: 
     with Progress(sum(len(jobs[b:b + settings.batch]) for b in todo), "area", "tiles",
                   enabled=progress and info.main) as bar:
         for mine in D.rounds(todo, info):
-            made = [(b, [g for g, _ in batch_maps(gen, jobs[b:b + settings.batch], b, settings, None)]) for b in mine]
+            made = [(b, [g for g, _ in batch_maps(gen, jobs[b:b + settings.batch], b, settings,
+                                                  rec if b < RECORDED_TILES else None, placed=True)]) for b in mine]
+            recorded += sum(len(graphs) for b, graphs in made if b < RECORDED_TILES) if rec is not None else 0
             for part in D.gather(made, info) or []:
                 for b, graphs in part:
                     done[b] = graphs
                     if cache is not None:
                         write_jsonl(cache / f"b{b:07d}.jsonl", graphs)
                     bar.update(len(graphs))
-    return [g for b in starts for g in done[b]] if info.main else None
+    return ([g for b in starts for g in done[b]] if info.main else None), recorded
 
 
 def _run_key(gen: MapGenerator, settings: SampleSettings, tiles) -> str:
@@ -176,47 +189,20 @@ def _cached_batches(cache: Path, starts: list[int], key: str) -> dict[int, list[
     return {b: read_jsonl(cache / f"b{b:07d}.jsonl") for b in starts if (cache / f"b{b:07d}.jsonl").is_file()}
 
 
-def lend_connectors(graph: LaneGraph, sd_map: SDMap, box, centre) -> tuple[LaneGraph, int]:
-    """The area's guarantee at junctions: each connector lane of the rule layout (:mod:`cmtool.data.rules`) inside
-    ``box`` whose start meets the end of a lane of ``graph`` and whose end meets the start of another (within
-    ``MEET_M``, heading within ``MEET_DEG``), where ``graph`` has no chain of at most ``CHAIN`` successor joins from
-    the one to the other, is lent to it, joined to both; returns the graph and the number lent."""
-    rules = rule_layout(sd_map, drives_on(sd_map.city))
-    lanes = [np.asarray(l, np.float64) for l in graph.lanes]
-    if not lanes:
-        return graph, 0
-    after = defaultdict(set)
-    for i, j in graph.successors:
-        after[int(i)].add(int(j))
-    ends, starts = cKDTree([l[-1] for l in lanes]), cKDTree([l[0] for l in lanes])
-    end_dir = np.array([unit(l[-1] - l[-2]) for l in lanes])
-    start_dir = np.array([unit(l[1] - l[0]) for l in lanes])
-    cos = math.cos(math.radians(MEET_DEG))
-    added, successors = [], set(map(tuple, graph.successors))
-    for lane in rules.lanes.values():
-        c = np.asarray(lane.centerline, np.float64) - centre
-        if not lane.in_intersection or len(c) < 2 or not _in_box(c + centre, box):
-            continue
-        ins = [i for i in ends.query_ball_point(c[0], MEET_M) if end_dir[i] @ unit(c[1] - c[0]) >= cos]
-        outs = {j for j in starts.query_ball_point(c[-1], MEET_M) if start_dir[j] @ unit(c[-1] - c[-2]) >= cos}
-        if not ins or not outs or _reaches(after, ins, outs, CHAIN):
-            continue
-        i = min(ins, key=lambda k: np.linalg.norm(lanes[k][-1] - c[0]))
-        j = min(outs, key=lambda k: np.linalg.norm(lanes[k][0] - c[-1]))
-        c = c + np.linspace(0.0, 1.0, len(c))[:, None] * (lanes[j][0] - c[-1]) + \
-            np.linspace(1.0, 0.0, len(c))[:, None] * (lanes[i][-1] - c[0])  # its ends on theirs
-        k = len(lanes) + len(added)
-        added.append(np.round(c, 3))
-        successors |= {(i, k), (k, j)}
-        after[i].add(k)
-        after[k].add(j)
-    if not added:
-        return graph, 0
-    every = lanes + added
-    left, oncoming = find_neighbours(every)
-    return LaneGraph(lanes=every, successors=sorted(successors), left_neighbors=left, oncoming=oncoming,
-                     widths=lane_widths(every, left).round(2).tolist(), green_lights=graph.green_lights,
-                     red_lights=graph.red_lights, city=graph.city, frame_m=graph.frame_m, meta=graph.meta), len(added)
+def area_guarantee(graph: LaneGraph, sd_map: SDMap, box, centre, seams: list[Seam]) -> tuple[LaneGraph, dict]:
+    """The stitched map made to agree with its SD map as a whole (:mod:`cmtool.maps.patch`): lanes cut where they run
+    on past the SD map's dead ends; lanes dropped whose every way on (or in) ends at an open seam, where the tiles
+    disagree; then, wherever the rule layout of the SD map lets traffic go on and the map does not, the rule layout's
+    lanes lent and joined to the map's. Returns the map and how many lanes each step changed."""
+    graph, trimmed = trim(graph, sd_map, centre)
+    graph, pruned = prune(graph, np.array([s.point for s in seams]).reshape(-1, 2))
+    rules, lent = rule_layout(sd_map, drives_on(sd_map.city)), 0
+    for _ in range(PASSES):  # a lane split by a lent piece may lose the lane changes beside it: look again
+        graph, more = complete(graph, rules, box, centre)
+        lent += more
+        if not more:
+            break
+    return graph, {"trimmed": trimmed, "pruned": pruned, "lent": lent}
 
 
 def _near(sd_map: SDMap, box, margin: float) -> SDMap:
@@ -232,21 +218,6 @@ def _clipped_roads(sd_map: SDMap, box, margin: float, centre) -> list[np.ndarray
     pieces = shapely.intersection(np.array([shapely.LineString(r.polyline) for r in sd_map.roads]), area)
     return [shapely.get_coordinates(p) - centre for piece in pieces for p in getattr(piece, "geoms", [piece])
             if not p.is_empty and isinstance(p, shapely.LineString)]
-
-
-def _reaches(after, ins, outs, steps: int) -> bool:
-    """Whether a chain of at most ``steps`` joins in ``after`` leads from one of ``ins`` into one of ``outs``."""
-    frontier = set(ins)
-    for _ in range(steps):
-        frontier = {j for i in frontier for j in after[i]}
-        if frontier & outs:
-            return True
-    return False
-
-
-def _in_box(points: np.ndarray, box) -> bool:
-    return bool(np.all((points[:, 0] >= box[0]) & (points[:, 0] <= box[2]) & (points[:, 1] >= box[1])
-                       & (points[:, 1] <= box[3])))
 
 
 def area_scores(area: AreaMap, sd_map: SDMap, box) -> dict:
@@ -278,8 +249,9 @@ def area_scores(area: AreaMap, sd_map: SDMap, box) -> dict:
     ends, pairs = sd_end_pairs(sd_map, box)
     routed = routed_share(graph, ends - centre, pairs)
     return {"lanes": len(graph.lanes), "successors": len(graph.successors), "tiles": len(area.tiles),
-            "open_seams": len(area.seams), "open_seams_on_roads": on_road, "sd_end_pairs": len(pairs),
-            "sd_end_pairs_routed": None if math.isnan(routed) else round(routed, 4), "windows": len(picked),
+            "seams_disagreed": area.disagreed, "open_seams": len(area.seams), "open_seams_on_roads": on_road,
+            "sd_end_pairs": len(pairs), "sd_end_pairs_routed": None if math.isnan(routed) else round(routed, 4),
+            "windows": len(picked),
             "validity": round(float(np.mean(validity)), 4),
             "legal_oneway": round(float(sum(legal) / sum(judged)), 4) if judged else None,
             "sd_coverage": round(float(np.mean(covered)), 4) if covered else None,
@@ -295,7 +267,8 @@ def run_area(gen: MapGenerator, sd_map: SDMap, box, settings: SampleSettings, ou
     ``OUT/.NAME_area.tiles`` until then: run the same command again after a kill to go on. Under ``torchrun`` only
     the main process returns (the others None)."""
     cache = out / f".{name}_area.tiles"
-    area = generate_area(gen, sd_map, box, settings, name, progress, cache, info)
+    rec = open_recording("area") if rrd is not None and info.main else None
+    area = generate_area(gen, sd_map, box, settings, name, progress, cache, info, rec)
     if area is None:
         return None
     centre = 0.5 * np.array([box[0] + box[2], box[1] + box[3]])
@@ -307,10 +280,9 @@ def run_area(gen: MapGenerator, sd_map: SDMap, box, settings: SampleSettings, ou
     try:
         outputs.write_text(out / f"{name}_area.json", json_text(area.graph.to_json()))
         write_png(out / f"{name}_area.png", area_picture(area, sd_map, box), outputs)
-        if rrd is not None:
-            rec = open_recording("area")
+        if rec is not None:
             rec.send_blueprint(area_blueprint())
-            rec.log("info", rr.TextDocument(_info(command, name, scores), media_type="text/markdown"), static=True)
+            rec.log("info", rr.TextDocument(_info(command, name, scores, area.recorded), media_type="text/markdown"), static=True)
             roads = _clipped_roads(sd_map, box, ON_SCREEN_M, centre)
             points = np.array([s.point for s in area.seams]).reshape(-1, 2)
             on_road = distance_to_polylines(points, roads) <= ON_ROAD_M if len(points) else []
@@ -324,8 +296,10 @@ def run_area(gen: MapGenerator, sd_map: SDMap, box, settings: SampleSettings, ou
     return area, scores
 
 
-def _info(command: str, name: str, scores: dict) -> str:
-    lines = [f"# {name}: one map of an area\n", f"`{command}`\n" if command else "", "| score | value |", "|---|---|"]
+def _info(command: str, name: str, scores: dict, recorded: int) -> str:
+    lines = [f"# {name}: one map of an area\n", f"`{command}`\n" if command else "",
+             f"Timeline `tile`: the tiles appear, then the stitched map. Timeline `diffusion_step`: {recorded} tiles "
+             "denoise in their places (`area/denoising/k`).\n" if recorded else "", "| score | value |", "|---|---|"]
     return "\n".join(lines + [f"| {k} | {v} |" for k, v in scores.items()])
 
 

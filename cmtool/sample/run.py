@@ -199,12 +199,15 @@ def generate_maps(gen: MapGenerator, jobs: list[Job], settings: SampleSettings, 
 
 
 def batch_maps(gen: MapGenerator, batch: list[Job], start: int, settings: SampleSettings,
-               rec) -> list[tuple[LaneGraph, float]]:
+               rec, placed: bool = False) -> list[tuple[LaneGraph, float]]:
     """The lane graphs of the jobs ``batch`` (jobs ``start``, ``start + 1``, ...) with each map's share of the
-    time; the batch's noise depends on the seed and ``start`` alone, as in ``cmtool eval``."""
+    time; the batch's noise depends on the seed and ``start`` alone, as in ``cmtool eval``. ``rec``: records every
+    step of each map under its job's prefix, and the map; ``placed``: only the steps, the caller placing each prefix
+    (:class:`~cmtool.viz.trajectory.TrajectoryLogger`'s ``ego``)."""
     logger = None
     if rec is not None:
-        logger = TrajectoryLogger(rec, [j.prefix for j in batch], partial(gen.decode, preview=True), settings.cfg)
+        logger = TrajectoryLogger(rec, [j.prefix for j in batch], partial(gen.decode, preview=True), settings.cfg,
+                                  ego=not placed)
     sds = [j.source.sd for j in batch]
     sd = None if all(s is None for s in sds) else np.stack(sds)
     began = time.perf_counter()
@@ -222,7 +225,7 @@ def batch_maps(gen: MapGenerator, batch: list[Job], start: int, settings: Sample
             graph.meta.setdefault("guarantee", {"turned": 0, "added": 0})
     if logger is not None:
         logger.flush()
-        for job, graph in zip(batch, graphs):
+        for job, graph in zip(batch, graphs) if not placed else ():
             log_lanes(rec, job.prefix, graph.lanes, graph.green_lights, graph.red_lights, graph.successors,
                       static=True)
     seconds = (time.perf_counter() - began) / len(batch)

@@ -1,6 +1,8 @@
 """``area.rrd`` (``cmtool sample --area``): a whole area as it is assembled. On the ``tile`` timeline the tiles
 appear one by one, each with its frame and the lanes it drew (area metres, north up, over the SD roads); at the
-end they give way to the stitched map, its open seams ringed (magenta where an SD road goes on through them)."""
+end they give way to the stitched map, its open seams ringed (magenta where an SD road goes on through them). On
+the ``diffusion_step`` timeline the recorded tiles denoise in their places (``area/denoising/{k}``: each step's
+predicted map, latent, noise norms and control residuals, as ``sample.rrd`` records a map's)."""
 
 from __future__ import annotations
 
@@ -14,6 +16,16 @@ from cmtool.viz.recording import LANE_RADIUS_M, lane_colours
 NORTH_UP = [[1.0, 0.0, 0.0], [0.0, -1.0, 0.0], [0.0, 0.0, 1.0]]  # x east, y north on a screen whose y points down
 SQUARE = np.array([[1.0, 1.0], [-1.0, 1.0], [-1.0, -1.0], [1.0, -1.0], [1.0, 1.0]])
 SEAM_ON_ROAD, SEAM_OFF_ROAD = [255, 0, 255], [150, 150, 150]
+
+
+def place_tile(rec: rr.RecordingStream, k: int, tile, centre) -> str:
+    """Place tile ``k`` (a pose in the SD map's metres) in the area (``centre``: the SD map point at the area's
+    origin): its frame's metres, as a tile's map and the steps of its denoising are logged, map into the area's.
+    Returns the recording prefix of its denoising."""
+    c, s = np.cos(tile.yaw), np.sin(tile.yaw)
+    rec.log(f"area/denoising/{k}", rr.Transform3D(translation=[tile.x - centre[0], tile.y - centre[1], 0.0],
+                                                  mat3x3=[[c, -s, 0.0], [s, c, 0.0], [0.0, 0.0, 1.0]]), static=True)
+    return f"area/denoising/{k}/"
 
 
 def log_area(rec: rr.RecordingStream, roads, tiles, tile_maps, graph, seams, on_road, centre,

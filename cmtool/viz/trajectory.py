@@ -107,16 +107,17 @@ def _norms(x) -> np.ndarray:
 class TrajectoryLogger:
     """Sampler callback that records every step of a batch of maps, one ``prefix`` per map. ``flush_s``: seconds
     between flushes [default: 0.5 for a live viewer; none before the last step for a recording kept in memory,
-    so that all steps' latents are decoded in one batch]."""
+    so that all steps' latents are decoded in one batch]; ``ego``: make each map's ``diffusion/x0`` an ego-frame
+    space shown forward-up (else the caller places each prefix, as ``area.rrd`` places its tiles)."""
 
     def __init__(self, rec: rr.RecordingStream, prefixes: list[str], decode: Callable, cfg: float,
-                 flush_s: float | None = None):
+                 flush_s: float | None = None, ego: bool = True):
         if flush_s is None:
             flush_s = math.inf if in_memory(rec) else 0.5
         self.rec, self.prefixes, self.decode, self.cfg, self.flush_s = rec, prefixes, decode, cfg, flush_s
         self.pending: list[dict] = []
         self.last_flush = time.perf_counter()
-        for prefix in prefixes:
+        for prefix in prefixes if ego else ():
             log_ego_frame(rec, f"{prefix}diffusion/x0")
 
     def __call__(self, info: StepInfo) -> None:
