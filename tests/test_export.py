@@ -509,3 +509,21 @@ def test_export_verify_holds_each_export_against_its_reader(tmp_path, capsys, mo
     code, _, err = in_process(capsys, "export", "--format", "geojson", tmp_path / "fork.jsonl", "--origin", "49,8.4",
                               "--out", tmp_path / "fork.geojson", "--verify")
     assert code == 1 and "--verify checks opendrive and lanelet2 exports, not geojson" in err
+
+
+def test_lanelet2_routes_two_lanes_that_meet_into_a_short_one(tmp_path, capsys):
+    """Found on a stitched area map: two lane-change neighbours end at one point and go on into a 4 m lane, beside two
+    lanes that start at one point. Sharing the neighbours' bound made the short lanelet's start corner its end corner,
+    and Lanelet2 routed none of its joins; such a join of corners is refused."""
+    pytest.importorskip("lanelet2")
+    lanes = [[[-11.89, 5.73], [-7.04, 2.68], [-2.13, -0.29], [2.89, -3.07], [7.92, -5.83], [12.97, -8.56]],
+             [[-11.89, 5.73], [-7.07, 2.81], [-2.18, -0.03], [2.81, -2.67], [7.9, -5.1], [13.04, -7.44]],
+             [[-8.97, 8.85], [-4.9, 6.29], [-0.76, 3.86], [3.42, 1.49], [7.4, -1.2], [11.42, -3.83]],
+             [[-9.74, 8.03], [-5.57, 5.54], [-1.37, 3.11], [2.86, 0.74], [7.13, -1.57], [11.42, -3.83]],
+             [[11.42, -3.83], [11.75, -4.55], [12.07, -5.27], [12.39, -6.0], [12.72, -6.72], [13.04, -7.44]],
+             [[13.04, -7.44], [32.89, -18.09], [52.19, -29.75], [71.73, -40.99], [91.25, -52.28], [110.51, -63.96]]]
+    graph = LaneGraph(lanes=[np.array(l) for l in lanes], successors=[(0, 5), (1, 5), (2, 4), (3, 4), (4, 5)])
+    (tmp_path / "meet.json").write_text(json.dumps(graph.to_json()))
+    code, out, err = in_process(capsys, "export", "--format", "lanelet2", tmp_path / "meet.json", "--origin",
+                                "60.53,26.95", "--out", tmp_path / "meet.osm", "--verify")
+    assert code == 0 and "routes the lane graph's 5 successor joins and nothing else" in out, err

@@ -172,8 +172,9 @@ class _Corners:
     """The four corners of every lanelet's bounds, ``(lanelet, side, end)``, joined into shared nodes:
     lanelet ends with their successors' starts, neighbours' shared bound ends. Lanelet2 reads lanelet a as
     flowing into lanelet b where a's end corners are b's start corners, so a join is refused where it would
-    make one lanelet's left and right corner at the same end one node (a lanelet of no width), or make a
-    lanelet flow into one it may not (``allowed``: pairs of lanelets)."""
+    make one lanelet's left and right corner at the same end one node (a lanelet of no width), or a corner at its
+    start one node with a corner at its end (a lanelet of no length), or make a lanelet flow into one it may not
+    (``allowed``: pairs of lanelets)."""
 
     def __init__(self, n: int, allowed: set[tuple[int, int]]):
         keys = [(i, side, end) for i in range(n) for side in (LEFT, RIGHT) for end in (START, END)]
@@ -187,7 +188,8 @@ class _Corners:
         for a, b in pairs:
             trial.union(self.sets.find(a), self.sets.find(b))
         groups = [set().union(*(self.members[r] for r in group)) for group in trial.groups()]
-        if any((i, 1 - side, end) in merged for merged in groups for i, side, end in merged):
+        if any((i, 1 - side, end) in merged or (i, LEFT, 1 - end) in merged or (i, RIGHT, 1 - end) in merged
+               for merged in groups for i, side, end in merged):
             return False
         new = {k: ("joined", n) for n, merged in enumerate(groups) for k in merged}
 
