@@ -20,11 +20,11 @@ from cmtool.data.sd_trace import trace_sd
 from cmtool.data.tiles import Tile, cover
 from cmtool.formats.osm import read_osm
 from cmtool.maps.lanegraph import LaneGraph
-from cmtool.maps.patch import complete, open_ends, prune, trim
+from cmtool.maps.patch import complete, open_ends, prune, stranded, trim
 from cmtool.maps.roadgraph import road_graph
 from cmtool.maps.sdmap import Road, SDMap
 from cmtool.maps.stitch import JOIN_M, stitch
-from cmtool.metrics.connectivity import routed_share, sd_end_pairs
+from cmtool.metrics.connectivity import routed_share, sd_end_pairs, unrouted
 from cmtool.metrics.validity import check
 from tests.conftest import REPO, in_process
 
@@ -173,6 +173,23 @@ def test_the_rule_layout_bridges_a_gap_between_lanes_that_do_not_meet():
     assert lent == 1 and len(done.lanes) == 4 and done.successors == [(0, 3), (1, 2), (3, 2)]
     assert done.lanes[2][0, 0] == pytest.approx(8.0) and done.lanes[1][-1, 0] == pytest.approx(8.0)
     assert routed_share(done, ends, pairs) == 1.0 and check(done).score == 1.0
+
+
+def test_traffic_stuck_on_the_way_between_two_road_ends_gets_the_rule_lane_there():
+    """A one-way road whose two halves two tiles drew 5 m apart, unjoined: the pair of its ends is not routed;
+    followed from its first end along the rule layout, the traffic is on the first half up to 2 m past its end and
+    cannot reach the rule lane's end; the rule lane lent from there (leaving the first half's end) routes the
+    pair."""
+    sd = SDMap(roads=[Road("a", np.array([[-60.0, 0.0], [60.0, 0.0]]), oneway=1)])
+    box, rules = (-50.0, -20.0, 50.0, 20.0), rule_layout(sd, "right")
+    graph = LaneGraph(lanes=[straight(0.0, -50.0, 0.0), straight(5.0, 5.0, 50.0)], successors=[])
+    ends, pairs = sd_end_pairs(sd, box)
+    assert unrouted(graph, ends, pairs) == [(0, 1)]
+    stuck = stranded(graph, rules, ends[[0]], 15.0, box)
+    assert stuck == {0: (26, {0})}  # rule lane 0 (the road's only one) at x = 2 m (sample 26), on graph lane 0
+    done, lent = complete(graph, rules, box, entries=(ends[[0]], 15.0))
+    assert lent == 1 and not unrouted(done, ends, pairs) and (0, 2) in done.successors
+    assert stranded(done, rules, ends[[0]], 15.0, box) == {}
 
 
 def test_lanes_stop_at_the_sd_maps_dead_ends_and_branches_into_open_seams_go():

@@ -144,3 +144,13 @@ def insert_vertex(line: np.ndarray, point: np.ndarray, snap: float = 1e-6) -> tu
         if np.linalg.norm(line[v] - p) <= snap:
             return line, line[v].copy()
     return np.concatenate([line[:k + 1], p[None], line[k + 1:]]), p
+
+
+def moved_start(points: np.ndarray, to: np.ndarray, fade_m: float) -> np.ndarray:
+    """``points`` with its first point moved to ``to``, the move fading linearly to none ``fade_m`` along it, or at
+    its other end if that comes first (so a join bends a lane without a kink and leaves its other end in place)."""
+    along = np.r_[0.0, np.cumsum(np.linalg.norm(np.diff(points, axis=0), axis=1))]
+    weight = np.clip(1.0 - along / max(min(fade_m, along[-1]), 1e-9), 0.0, 1.0)[:, None]
+    moved = points + weight * (to - points[0])
+    moved[0] = to
+    return moved

@@ -36,11 +36,10 @@ class Tile(Pose):
 def cover(sd: SDMap, box: tuple[float, float, float, float] | None = None, core_m: float = CORE_M,
           step_m: float = STEP_M, frame_m: float = FRAME_M) -> list[Tile]:
     """Tiles covering the roads of ``sd`` (their parts inside ``box``, (x0, y0, x1, y1) metres, when given): first
-    one centred on each junction (owning the points within ``HUB_M`` of it, so that no tile border cuts through
-    it), then, walking each road (longest first)
-    in steps of ``step_m``, a point outside the core of every tile so far gets a tile half a core further on, its
-    core starting about where the last one's ends. Tiles face the road's travel direction (along the polyline on
-    two-way roads)."""
+    one centred on each junction (owning the points within ``HUB_M`` of it, so that no tile border cuts through it),
+    then, walking each road (longest first) in steps of ``step_m``, a point outside the core of every tile so far
+    gets a tile half a core further on, its core starting about where the last one's ends. Tiles face the road's
+    travel direction (along the polyline on two-way roads)."""
     if not 0 < core_m <= frame_m:
         raise CmtoolError(f"tile core {core_m} m: must be in (0, {frame_m:g}] m")
     area = shapely.box(*box) if box is not None else None

@@ -9,14 +9,20 @@ road, are cut off.
 
 **Completing.** Each reference lane is followed in samples ``SAMPLE_M`` apart. A sample's *image* is the set of the
 graph's lanes passing within ``NEAR_M`` of it at a heading within ``NEAR_DEG``. Traffic that follows the reference
-starts on the image of its first sample (or on the lanes where the traffic of the reference lanes before it
-arrived) and goes on from sample to sample: into the next image's lanes that its lanes lead into in at most
+starts on the image of its first sample (or where the traffic of a reference lane before it arrived, followed once
+from each) and goes on from sample to sample: into the next image's lanes that its lanes lead into in at most
 ``CHAIN`` successor joins and lane changes, or on along a lane it is on while that passes within ``KEEP_M``; through
-a connector (a junction's lane), from its start to its end at once. Where it finds no such lane, the graph does not serve the reference there: the
-stretch is lent, from the last sample served to the next one with an image (the whole connector). A lent end on a
-lane of the graph joins it (the lane is split there, the piece diverging from it or merging into it, its end moved
-onto the lane with the move fading out over ``FADE_M``); a lent end at the reference lane's own start (end) joins
-the lent pieces of the reference lanes before (after) it instead, where there are any.
+a connector (a junction's lane), from its start to its end at once. Where it finds no such lane, the graph does not
+serve the reference there: the stretch is lent, from the last sample served to the next one with an image (the
+whole connector). A lent end on a lane of the graph joins it (the lane is split there, the piece diverging from it
+or merging into it, its end moved onto the lane with the move fading out over ``FADE_M``); a lent end at the
+reference lane's own start (end) joins the lent pieces of the reference lanes before (after) it instead, where
+there are any.
+
+**Stranded traffic.** Followed lane by lane, traffic can be taken to follow a reference lane where it cannot (a turn
+lane passing close to the straight-on reference lane). :func:`stranded` follows the traffic that enters the graph
+at given points through the lanes it really reaches, and names the reference lanes where it gets stuck, for
+:func:`complete` to lend.
 """
 
 from __future__ import annotations
@@ -29,7 +35,7 @@ import shapely
 import shapely.ops
 from scipy.spatial import cKDTree
 
-from cmtool.core.geometry import polyline_length, unit
+from cmtool.core.geometry import moved_start, polyline_length, unit
 from cmtool.core.reach import Reach
 from cmtool.maps.hdmap import HDMap
 from cmtool.maps.lanegraph import LaneGraph
@@ -42,7 +48,7 @@ NEAR_M = 3.0  # a graph lane this near a sample, ...
 NEAR_DEG = 35.0  # ... at a heading within this angle of the reference lane's, is in the sample's image
 KEEP_M = 4.5  # traffic on a graph lane stays on it while it passes this near the samples
 ROUNDS = 4  # at most this many rounds over the reference lanes, until the lanes traffic reaches settle
-CHAIN = 4  # a graph that leads from one image into the next in at most this many successor joins serves the step
+CHAIN = 4  # traffic goes on into lanes its lanes lead into in at most this many successor joins and lane changes
 FADE_M = 10.0  # a lent end moved onto a graph lane: the move fades out over this length of the piece
 SPLIT_M = 2.0  # a lent end this near a graph lane's start or end, or a split, joins it there (no part is shorter)
 BEYOND_M = 2.0  # lanes stop this far past a dead end of the SD map at most
@@ -69,45 +75,105 @@ class _Lent:
     end_on: tuple[int, float] | None  # ... merges into
 
 
-def complete(graph: LaneGraph, reference: HDMap, box=None, shift=None) -> tuple[LaneGraph, int]:
+def complete(graph: LaneGraph, reference: HDMap, box=None, shift=None,
+             entries: tuple[np.ndarray, float] | None = None) -> tuple[LaneGraph, int]:
     """``graph`` with the pieces of ``reference`` it lacks (module doc), and how many pieces were lent. ``box``
     (x0, y0, x1, y1, the reference's metres): only the reference's lanes inside it count, cut at its edge;
-    ``shift``: subtracted from the reference's points to put them in the graph's metres."""
-    refs = _references(reference, box, np.zeros(2) if shift is None else np.asarray(shift, np.float64))
-    lanes = [np.asarray(l, np.float64) for l in graph.lanes]
-    if not refs or not lanes:
+    ``shift``: subtracted from the reference's points to put them in the graph's metres. ``entries`` (points, a
+    radius): lend only where the traffic that enters at those points is stranded (:func:`stranded`), each reference
+    lane from the last sample that traffic reaches on to its end, leaving from the lane it is on there."""
+    view = _View(graph, reference, box, shift)
+    if not view.refs or not view.lanes:
         return graph, 0
-    lines = [shapely.LineString(l) for l in lanes]
-    tree = shapely.STRtree(lines)
-    after = defaultdict(set)  # successor joins and lane changes
-    for i, j in graph.successors:
-        after[int(i)].add(int(j))
-    for i, j in graph.left_neighbors if graph.left_neighbors is not None else find_neighbours(lanes)[0]:
-        after[int(i)].add(int(j))
-        after[int(j)].add(int(i))
-    samples = [_samples(r.line) for r in refs]
-    images = _images(tree, lines, samples)  # per reference lane and sample: lane -> its distance
-    reached: dict[int, tuple[frozenset, bool]] = {}  # reference lane -> the graph lanes its traffic is on at its
-    # end, and whether it ends on a lent piece that joins no graph lane there
-    order = _order(refs)
-    for _ in range(ROUNDS):  # joins around loops: the lanes before come round again
-        lent, before = [], dict(reached)
-        for k in order:
-            lent += _follow(k, refs[k], images[k], samples[k][0], reached, after, lines)
-        if reached == before:
-            break
+    if entries is not None:
+        lent = []
+        for k, (first, leaving) in sorted(_stranded(view, *entries).items()):
+            points, near = view.samples[k][0][first:], view.near(k)
+            lent.append(_Lent(k, first, len(near) - 1, points, _onto(view.lines, leaving, points[0]),
+                              _onto(view.lines, near[-1], points[-1])))
+    else:
+        reached: dict[int, tuple[frozenset, bool]] = {}  # reference lane -> the graph lanes its traffic is on at its
+        # end, and whether it ends on a lent piece that joins no graph lane there
+        order = _order(view.refs)
+        for _ in range(ROUNDS):  # joins around loops: the lanes before come round again
+            lent, before = [], dict(reached)
+            for k in order:
+                lent += _follow(view, k, reached)
+            if reached == before:
+                break
     if not lent:
         return graph, 0
-    return _lend(graph, lanes, lines, refs, images, lent), len(lent)
+    return _lend(graph, view.lanes, view.lines, view.refs, view.images, lent), len(lent)
 
 
-def _follow(k: int, ref: _Ref, image: list[dict[int, float]], points: np.ndarray, reached: dict, after,
-            lines) -> list[_Lent]:
+def stranded(graph: LaneGraph, reference: HDMap, points: np.ndarray, radius: float, box=None,
+             shift=None) -> dict[int, tuple[int, set[int]]]:
+    """Where traffic that enters ``graph`` on a lane starting within ``radius`` of one of ``points`` cannot follow
+    the reference: following the reference's lanes from those that start there, the first of each way whose start
+    the traffic reaches but whose end it does not, with its last sample the traffic reaches (a connector's first;
+    its start, where traffic arrives at it but reaches none of its samples) and the graph lanes it is on there."""
+    view = _View(graph, reference, box, shift)
+    return _stranded(view, points, radius) if view.refs and view.lanes else {}
+
+
+def _stranded(view: _View, points: np.ndarray, radius: float) -> dict[int, tuple[int, set[int]]]:
+    out: dict[int, tuple[int, set[int]]] = {}
+    edges = [(i, j) for i in view.after for j in view.after[i]]
+    for point in np.asarray(points, np.float64).reshape(-1, 2):
+        starts = [k for k, line in enumerate(view.lanes) if np.linalg.norm(line[0] - point) <= radius]
+        reached = _reached(edges, starts, len(view.lanes))
+        queue = [(k, set(starts)) for k, r in enumerate(view.refs) if np.linalg.norm(r.line[0] - point) <= radius]
+        seen = {k for k, _ in queue}
+        while queue:
+            k, arriving = queue.pop()  # arriving: the lanes traffic is on where reference lane k starts
+            near = view.near(k)
+            if near[-1] & reached:
+                for j in view.refs[k].after:
+                    if j not in seen:
+                        seen.add(j)
+                        queue.append((j, near[-1] & reached))
+                continue
+            on = [n for n, lanes in enumerate(near) if lanes & reached]
+            first = (on[0] if view.refs[k].connector else on[-1]) if on else 0
+            lanes = near[first] & reached if on else arriving
+            if lanes:
+                out[k] = (first, out[k][1] | lanes if k in out and out[k][0] == first else lanes)
+    return out
+
+
+class _View:
+    """A graph seen along a reference: the reference's lanes, the graph's lanes, their successor joins and lane
+    changes (``after``), the reference lanes' samples and their images."""
+
+    def __init__(self, graph: LaneGraph, reference: HDMap, box, shift):
+        self.refs = _references(reference, box, np.zeros(2) if shift is None else np.asarray(shift, np.float64))
+        self.lanes = [np.asarray(l, np.float64) for l in graph.lanes]
+        self.lines = [shapely.LineString(l) for l in self.lanes]
+        self.after = defaultdict(set)
+        for i, j in graph.successors:
+            self.after[int(i)].add(int(j))
+        for i, j in graph.left_neighbors if graph.left_neighbors is not None else find_neighbours(self.lanes)[0]:
+            self.after[int(i)].add(int(j))
+            self.after[int(j)].add(int(i))
+        self.samples = [_samples(r.line) for r in self.refs]
+        self._near: dict[int, list[set[int]]] = {}
+        self.images = _images(shapely.STRtree(self.lines), self.lines, self.samples) if self.refs and self.lanes \
+            else []  # per reference lane and sample: lane -> its distance
+
+    def near(self, k: int) -> list[set[int]]:
+        """The image of each sample of reference lane ``k``: the lanes within ``NEAR_M``."""
+        if k not in self._near:
+            self._near[k] = [{j for j, d in lanes.items() if d <= NEAR_M} for lanes in self.images[k]]
+        return self._near[k]
+
+
+def _follow(view: _View, k: int, reached: dict) -> list[_Lent]:
     """Follow reference lane ``k`` through the graph, once from where the traffic of each reference lane before it
     is (``reached``, which gets this lane's), so that traffic from one is not taken for traffic from another: the
     pieces to lend where the graph does not lead on. Where traffic before it comes on a lent piece that joins no
     graph lane, the lent stretch starts at this lane's start, so that it goes on from that piece."""
-    near = [{j for j, d in lanes.items() if d <= NEAR_M} for lanes in image]
+    ref, image, points, after, lines = view.refs[k], view.images[k], view.samples[k][0], view.after, view.lines
+    near = view.near(k)
     steps = [len(image) - 1] if ref.connector else list(range(1, len(image)))
     sources = {reached[r] for r in ref.before if r in reached} or {(frozenset(near[0]), False)}
     lent, ends = {}, []
@@ -265,11 +331,11 @@ def _lend(graph: LaneGraph, lanes, lines, refs, images, lent: list[_Lent]) -> La
         points = piece.points
         if piece.start_on is not None:
             at, froms = _attach(parts, lines, successors, *piece.start_on, diverge=True)
-            points = _moved_end(points, at)
+            points = moved_start(points, at, FADE_M)
             successors |= {(f, base + n) for f in froms}
         if piece.end_on is not None:
             at, intos = _attach(parts, lines, successors, *piece.end_on, diverge=False)
-            points = _moved_end(points[::-1], at)[::-1]
+            points = moved_start(points[::-1], at, FADE_M)[::-1]
             successors |= {(base + n, t) for t in intos}
         out.append(points)
     successors |= {(base + a, base + b) for a, b in joins}
@@ -324,17 +390,6 @@ def _attach(parts, lines, successors, j: int, at: float, diverge: bool) -> tuple
         if not diverge and abs(lo - cut) < 1e-6:
             return point(lo), [index]
     raise AssertionError(f"lane {j} was not split at {cut}")
-
-
-def _moved_end(points: np.ndarray, to: np.ndarray) -> np.ndarray:
-    """``points`` with its first point moved to ``to``, the move fading linearly to none ``FADE_M`` along it (or at
-    its other end, if that comes first)."""
-    along = np.r_[0.0, np.cumsum(np.linalg.norm(np.diff(points, axis=0), axis=1))]
-    weight = np.clip(1.0 - along / max(min(FADE_M, along[-1]), 1e-9), 0.0, 1.0)[:, None]
-    moved = points + weight * (to - points[0])
-    moved[0] = to
-    return moved
-
 
 
 def trim(graph: LaneGraph, sd: SDMap, shift=None) -> tuple[LaneGraph, int]:

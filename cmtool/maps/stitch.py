@@ -1,14 +1,16 @@
 """One lane graph of an area from the lane graphs of overlapping tiles (scene frames placed in the area,
-:mod:`cmtool.data.tiles`): each tile keeps the parts of its lanes and lights that lie nearer its centre than any
-other tile's, and a lane cut where two tiles' parts meet is joined to the lane of the other tile that continues it.
+:mod:`cmtool.data.tiles`): each tile keeps the parts of its lanes and lights that belong to it (those within the
+reach of a junction tile belong to that tile, the others to the tile whose centre is nearest), and a lane cut where
+two tiles' parts meet is joined to the lane of the other tile that continues it.
 
-A lane is cut exactly where it crosses the line halfway between the two tiles' centres, so two tiles that drew one
-lane alike cut it at nearly one point: an end that leaves a tile's part is joined to a start that enters the other
-within ``JOIN_M`` and ``JOIN_DEG`` (nearest pairs first), both moved to their middle (the move fading out along
-each), and the two pieces become one lane where nothing else joins there. An end left over merges into (or a start
-diverges from) the nearest other lane passing within ``JOIN_M`` and ``JOIN_DEG``, split there. A cut end still left
-is a :class:`Seam`: the tiles disagree there. Lanes are cut off at the edge of the area's box too (no seams).
-Last, lane ends that meet lane starts (by endpoint proximity, as each tile's map finds its successors) are joined.
+A lane is cut exactly where it crosses the border of two tiles' parts (found by bisection), so two tiles that drew
+one lane alike cut it at nearly one point: an end that leaves a tile's part is joined to a start that enters the
+other within ``JOIN_M`` and ``JOIN_DEG`` (nearest pairs first), both moved to their middle (the move fading out
+along each), and the two pieces become one lane where nothing else joins there. An end left over merges into (or a
+start diverges from) the nearest other lane passing within ``JOIN_M`` and ``JOIN_DEG``, split there. A cut end
+still left is a :class:`Seam`: the tiles disagree there. Lanes are cut off at the edge of the area's box too (no
+seams). Last, lane ends that meet lane starts (by endpoint proximity, as each tile's map finds its successors) are
+joined.
 """
 
 from __future__ import annotations
@@ -21,7 +23,7 @@ import shapely
 import shapely.ops
 from scipy.spatial import cKDTree
 
-from cmtool.core.geometry import from_frame, polyline_length, resample_step, unit
+from cmtool.core.geometry import from_frame, moved_start, polyline_length, resample_step, unit
 from cmtool.maps.lanegraph import LaneGraph, infer_successors
 from cmtool.maps.neighbours import find_neighbours, lane_widths
 
@@ -198,8 +200,8 @@ def _join_seams(pieces: list[_Piece]) -> tuple[list[tuple[int, int]], list[tuple
                 used_in.add(j)
                 joins.append((i, j))
                 middle = 0.5 * (pieces[i].points[-1] + pieces[j].points[0])
-                pieces[i].points = _moved_end(pieces[i].points[::-1], middle)[::-1]
-                pieces[j].points = _moved_end(pieces[j].points, middle)
+                pieces[i].points = moved_start(pieces[i].points[::-1], middle, FADE_M)[::-1]
+                pieces[j].points = moved_start(pieces[j].points, middle, FADE_M)
     joined_out, joined_in = {i for i, _ in joins}, {j for _, j in joins}
     return joins, [(i, True) for i in out if i not in joined_out] + [(j, False) for j in into if j not in joined_in]
 
@@ -255,10 +257,10 @@ def _join_nearby(pieces: list[_Piece], open_ends: list[tuple[int, bool]], succes
                 here = parts[j][0] if leaving else parts[j][-1]
             if leaving:
                 k = parts.get(k, [k])[-1]
-                pieces[k].points = _moved_end(pieces[k].points[::-1], pieces[here].points[0])[::-1]
+                pieces[k].points = moved_start(pieces[k].points[::-1], pieces[here].points[0], FADE_M)[::-1]
                 successors.add((k, here))
             else:
-                pieces[k].points = _moved_end(pieces[k].points, pieces[here].points[-1])
+                pieces[k].points = moved_start(pieces[k].points, pieces[here].points[-1], FADE_M)
                 successors.add((here, k))
     return [(parts.get(k, [k])[-1] if leaving else k, leaving) for k, leaving in open_ends if k not in done]
 
@@ -269,16 +271,6 @@ def _move_tail(successors: set, joins: list, old: int, new: int) -> None:
         successors.discard(edge)
         successors.add((new, edge[1]))
     joins[:] = [(new if a == old else a, b) for a, b in joins]
-
-
-def _moved_end(points: np.ndarray, to: np.ndarray) -> np.ndarray:
-    """``points`` with its first point moved to ``to``, the move fading linearly to none ``FADE_M`` along it, or at its
-    other end if that comes first (so a join bends the lane without a kink and leaves its other end in place)."""
-    along = np.r_[0.0, np.cumsum(np.linalg.norm(np.diff(points, axis=0), axis=1))]
-    weight = np.clip(1.0 - along / max(min(FADE_M, along[-1]), 1e-9), 0.0, 1.0)[:, None]
-    moved = points + weight * (to - points[0])
-    moved[0] = to
-    return moved
 
 
 def _merge(pieces: list[_Piece], successors: set, joins: list) -> tuple[list[np.ndarray], set]:

@@ -73,14 +73,18 @@ def routed_share(graph, ends: np.ndarray, pairs: list[tuple[int, int]], max_pair
         return float("nan")
     if len(pairs) > max_pairs:
         pairs = [pairs[k] for k in np.linspace(0, len(pairs) - 1, max_pairs).round().astype(int)]
+    return 1.0 - len(unrouted(graph, ends, pairs)) / len(pairs)
+
+
+def unrouted(graph, ends: np.ndarray, pairs: list[tuple[int, int]]) -> list[tuple[int, int]]:
+    """The ``pairs`` of SD road ``ends`` that the lane graph does not route (module doc)."""
     lanes = [np.asarray(l, np.float64) for l in graph.lanes]
     if not lanes:
-        return 0.0
+        return list(pairs)
     starts = cKDTree(np.array([l[0] for l in lanes])).query_ball_point(ends, END_M)
     stops = cKDTree(np.array([l[-1] for l in lanes])).query_ball_point(ends, END_M)
     joins = [(int(i), int(j)) for i, j in graph.successors]
     for i, j in graph.left_neighbors or []:
         joins += [(int(i), int(j)), (int(j), int(i))]
     reach = Reach(len(lanes), joins)
-    routed = sum(any(reach(lane) & set(stops[b]) for lane in starts[a]) for a, b in pairs)
-    return routed / len(pairs)
+    return [(a, b) for a, b in pairs if not any(reach(lane) & set(stops[b]) for lane in starts[a])]

@@ -39,7 +39,7 @@ from cmtool.maps.lanegraph import LaneGraph, read_jsonl, write_jsonl
 from cmtool.maps.patch import complete, open_ends, prune, trim
 from cmtool.maps.sdmap import SDMap
 from cmtool.maps.stitch import Seam, stitch
-from cmtool.metrics.connectivity import routed_share, sd_end_pairs
+from cmtool.metrics.connectivity import END_M, routed_share, sd_end_pairs, unrouted
 from cmtool.metrics.geometric import legal_oneway, sd_adherence
 from cmtool.metrics.lanes import distance_to_polylines
 from cmtool.metrics.validity import check
@@ -56,7 +56,7 @@ ON_ROAD_M = 8.0  # an open seam this close to an SD road is one where the road g
 ON_SCREEN_M = 40.0  # the recording shows the SD roads this far around the box
 NEAR_M = 100.0  # roads this near the box take part in the rule layouts (tile frames reach 32 m beyond it)
 WINDOWS = 256  # at most this many 64 m windows are scored
-PASSES = 3  # at most this many passes of the rule layout over the stitched map
+CHECKS = 2  # at most this many times the unrouted SD road-end pairs are followed and their stuck traffic lent lanes
 RECORDED_TILES = 128  # area.rrd records the denoising of the batches of tiles that start before this one
 
 
@@ -68,7 +68,7 @@ class AreaMap:
     recorded: int  # tiles whose denoising is recorded
     tiles: list  # the tiles' poses (the SD map's metres)
     tile_maps: list[LaneGraph]  # each tile's map, in its frame
-    seconds: float  # generating and stitching
+    seconds: float  # generating, stitching and the guarantee
 
 
 def area_box(sd_map: SDMap, spec: str, latlon: bool = True) -> tuple[float, float, float, float]:
@@ -193,16 +193,28 @@ def area_guarantee(graph: LaneGraph, sd_map: SDMap, box, centre, seams: list[Sea
     """The stitched map made to agree with its SD map as a whole (:mod:`cmtool.maps.patch`): lanes cut where they run
     on past the SD map's dead ends; lanes dropped whose every way on (or in) ends at an open seam, where the tiles
     disagree; then, wherever the rule layout of the SD map lets traffic go on and the map does not, the rule layout's
-    lanes lent and joined to the map's. Returns the map and how many lanes each step changed."""
+    lanes lent and joined to the map's. Last, the SD road-end pairs (:mod:`cmtool.metrics.connectivity`) the map
+    still does not route are followed along the rule layout from their first end, and each rule lane where that
+    traffic gets stuck is lent from there on (:func:`cmtool.maps.patch.stranded`). Returns the map and what each
+    step changed, with the pairs left unrouted before that last step."""
     graph, trimmed = trim(graph, sd_map, centre)
     graph, pruned = prune(graph, np.array([s.point for s in seams]).reshape(-1, 2))
-    rules, lent = rule_layout(sd_map, drives_on(sd_map.city)), 0
-    for _ in range(PASSES):  # a lane split by a lent piece may lose the lane changes beside it: look again
-        graph, more = complete(graph, rules, box, centre)
-        lent += more
+    rules, checked = rule_layout(sd_map, drives_on(sd_map.city)), 0
+    graph, lent = complete(graph, rules, box, centre)
+    ends, pairs = sd_end_pairs(sd_map, box)
+    unrouted_before = None
+    for _ in range(CHECKS):
+        missing = unrouted(graph, ends - centre, pairs)
+        unrouted_before = len(missing) if unrouted_before is None else unrouted_before
+        if not missing:
+            break
+        graph, more = complete(graph, rules, box, centre, entries=(ends[sorted({a for a, _ in missing})] - centre,
+                                                                   END_M))
+        checked += more
         if not more:
             break
-    return graph, {"trimmed": trimmed, "pruned": pruned, "lent": lent}
+    return graph, {"trimmed": trimmed, "pruned": pruned, "lent": lent, "pairs": len(pairs),
+                   "unrouted_before_check": unrouted_before, "lent_where_traffic_was_stuck": checked}
 
 
 def _near(sd_map: SDMap, box, margin: float) -> SDMap:
@@ -282,7 +294,8 @@ def run_area(gen: MapGenerator, sd_map: SDMap, box, settings: SampleSettings, ou
         write_png(out / f"{name}_area.png", area_picture(area, sd_map, box), outputs)
         if rec is not None:
             rec.send_blueprint(area_blueprint())
-            rec.log("info", rr.TextDocument(_info(command, name, scores, area.recorded), media_type="text/markdown"), static=True)
+            rec.log("info", rr.TextDocument(_info(command, name, scores, area.recorded), media_type="text/markdown"),
+                    static=True)
             roads = _clipped_roads(sd_map, box, ON_SCREEN_M, centre)
             points = np.array([s.point for s in area.seams]).reshape(-1, 2)
             on_road = distance_to_polylines(points, roads) <= ON_ROAD_M if len(points) else []
