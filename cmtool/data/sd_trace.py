@@ -38,7 +38,7 @@ def trace_sd(path, px_m: float = 0.5, city: str | None = None) -> SDMap:
     h, w = mask.shape
     for k, line in enumerate(lines):
         simple = shapely.get_coordinates(shapely.LineString(line[:, ::-1]).simplify(SIMPLIFY_PX))  # (col, row)
-        if len(simple) < 2:
+        if len(simple) < 2 or shapely.length(shapely.LineString(simple)) < 1.0:  # a link of two touching nodes
             continue
         metres = np.stack([(simple[:, 0] + 0.5 - w / 2.0) * px_m, (h / 2.0 - simple[:, 1] - 0.5) * px_m], axis=1)
         lanes, oneway = _attributes(img, line) if coloured else (None, 0)

@@ -64,7 +64,7 @@ RECORDED_TILES = 128  # area.rrd records the denoising of the batches of tiles t
 class AreaMap:
     graph: LaneGraph  # area metres east/north of ``centre``, placed by meta.geo
     seams: list[Seam]  # lane ends cut between two tiles that the map still leaves open
-    disagreed: int  # the seams the stitching left open, where neighbouring tiles drew different lanes
+    disagreed: list[Seam]  # the seams the stitching left open, where neighbouring tiles drew different lanes
     recorded: int  # tiles whose denoising is recorded
     tiles: list  # the tiles' poses (the SD map's metres)
     tile_maps: list[LaneGraph]  # each tile's map, in its frame
@@ -136,7 +136,7 @@ def generate_area(gen: MapGenerator, sd_map: SDMap, box, settings: SampleSetting
     if "lat0" in sd_map.meta:
         lat, lon = LocalProjection(sd_map.meta["lat0"], sd_map.meta["lon0"]).to_latlon(centre)
         graph.meta["geo"] = {"lat": round(float(lat), 8), "lon": round(float(lon), 8), "heading": 90.0}
-    return AreaMap(graph, seams, len(disagreed), recorded, tiles, maps, time.perf_counter() - began)
+    return AreaMap(graph, seams, disagreed, recorded, tiles, maps, time.perf_counter() - began)
 
 
 def _tile_maps(gen: MapGenerator, jobs, settings: SampleSettings, tiles, cache: Path | None, progress: bool,
@@ -261,7 +261,7 @@ def area_scores(area: AreaMap, sd_map: SDMap, box) -> dict:
     ends, pairs = sd_end_pairs(sd_map, box)
     routed = routed_share(graph, ends - centre, pairs)
     return {"lanes": len(graph.lanes), "successors": len(graph.successors), "tiles": len(area.tiles),
-            "seams_disagreed": area.disagreed, "open_seams": len(area.seams), "open_seams_on_roads": on_road,
+            "seams_disagreed": len(area.disagreed), "open_seams": len(area.seams), "open_seams_on_roads": on_road,
             "sd_end_pairs": len(pairs), "sd_end_pairs_routed": None if math.isnan(routed) else round(routed, 4),
             "windows": len(picked),
             "validity": round(float(np.mean(validity)), 4),
@@ -287,7 +287,8 @@ def run_area(gen: MapGenerator, sd_map: SDMap, box, settings: SampleSettings, ou
     scores = area_scores(area, sd_map, box)
     area.graph.meta["area"] = {"box_m": [round(v - c, 3) for v, c in zip(box, (*centre, *centre))], **scores,
                                "seams": [{"point": s.point, "tiles": [s.tile, s.other], "leaving": s.leaving}
-                                         for s in area.seams]}
+                                         for s in area.seams],
+                               "seams_disagreed_at": [s.point for s in area.disagreed]}
     outputs = OutputSet()
     try:
         outputs.write_text(out / f"{name}_area.json", json_text(area.graph.to_json()))
