@@ -21,3 +21,9 @@ class Reach:
         if node not in self.found:
             self.found[node] = set(breadth_first_order(self.graph, node, return_predecessors=False).tolist())
         return self.found[node]
+
+
+def reachable_from(n: int, edges, sources) -> set[int]:
+    """The nodes that ``edges`` lead to from any of ``sources`` (themselves included), in a graph of ``n`` nodes: one
+    search from a node added before them all."""
+    return Reach(n + 1, list(edges) + [(n, k) for k in sources])(n) - {n}

@@ -14,6 +14,8 @@ from __future__ import annotations
 import numpy as np
 import shapely
 
+from cmtool.maps.lanegraph import LaneGraph
+
 LANE_WIDTH_M = 3.5
 SAMPLES = 9  # points along each lane (at 10%, 20%, ..., 90% of its length) that look for the other
 MIN_SHARE = 0.6  # of each lane's samples that must find the other beside them
@@ -32,6 +34,16 @@ def find_neighbours(lanes, widths=None, recorded=None) -> tuple[list[tuple[int, 
     if recorded is not None:
         left = infer_neighbours(lanes, widths, candidates=recorded)
     return [(i, j) for i, j in left if same_direction(lanes, i, j)], oncoming
+
+
+def relaned(graph, lanes, successors, meta: dict | None = None):
+    """A copy of lane graph ``graph`` with other ``lanes`` and ``successors`` (and ``meta``, when given): its
+    neighbours and widths found anew from the geometry, its lights, city and frame kept."""
+    left, oncoming = find_neighbours(lanes)
+    return LaneGraph(lanes=lanes, successors=sorted(set(successors)), left_neighbors=left, oncoming=oncoming,
+                     widths=lane_widths(lanes, left).round(2).tolist(), green_lights=graph.green_lights,
+                     red_lights=graph.red_lights, city=graph.city, frame_m=graph.frame_m,
+                     meta=graph.meta if meta is None else meta)
 
 
 def graph_neighbours(graph) -> tuple[list[tuple[int, int]], list[tuple[int, int]]]:

@@ -36,10 +36,10 @@ import shapely.ops
 from scipy.spatial import cKDTree
 
 from cmtool.core.geometry import moved_start, polyline_length, unit
-from cmtool.core.reach import Reach
+from cmtool.core.reach import reachable_from
 from cmtool.maps.hdmap import HDMap
 from cmtool.maps.lanegraph import LaneGraph
-from cmtool.maps.neighbours import find_neighbours, lane_widths
+from cmtool.maps.neighbours import find_neighbours, relaned
 from cmtool.maps.roadgraph import road_graph
 from cmtool.maps.sdmap import SDMap
 
@@ -121,21 +121,21 @@ def _stranded(view: _View, points: np.ndarray, radius: float) -> dict[int, tuple
     edges = [(i, j) for i in view.after for j in view.after[i]]
     for point in np.asarray(points, np.float64).reshape(-1, 2):
         starts = [k for k, line in enumerate(view.lanes) if np.linalg.norm(line[0] - point) <= radius]
-        reached = _reached(edges, starts, len(view.lanes))
+        on_way = reachable_from(len(view.lanes), edges, starts)  # the lanes traffic from there reaches
         queue = [(k, set(starts)) for k, r in enumerate(view.refs) if np.linalg.norm(r.line[0] - point) <= radius]
         seen = {k for k, _ in queue}
         while queue:
             k, arriving = queue.pop()  # arriving: the lanes traffic is on where reference lane k starts
             near = view.near(k)
-            if near[-1] & reached:
+            if near[-1] & on_way:
                 for j in view.refs[k].after:
                     if j not in seen:
                         seen.add(j)
-                        queue.append((j, near[-1] & reached))
+                        queue.append((j, near[-1] & on_way))
                 continue
-            on = [n for n, lanes in enumerate(near) if lanes & reached]
+            on = [n for n, lanes in enumerate(near) if lanes & on_way]
             first = (on[0] if view.refs[k].connector else on[-1]) if on else 0
-            lanes = near[first] & reached if on else arriving
+            lanes = near[first] & on_way if on else arriving
             if lanes:
                 out[k] = (first, out[k][1] | lanes if k in out and out[k][0] == first else lanes)
     return out
@@ -339,11 +339,7 @@ def _lend(graph: LaneGraph, lanes, lines, refs, images, lent: list[_Lent]) -> La
             successors |= {(base + n, t) for t in intos}
         out.append(points)
     successors |= {(base + a, base + b) for a, b in joins}
-    out, successors = _bypass([np.round(l, 3) for l in out], successors, base)
-    left, oncoming = find_neighbours(out)
-    return LaneGraph(lanes=out, successors=sorted(successors), left_neighbors=left, oncoming=oncoming,
-                     widths=lane_widths(out, left).round(2).tolist(), green_lights=graph.green_lights,
-                     red_lights=graph.red_lights, city=graph.city, frame_m=graph.frame_m, meta=graph.meta)
+    return relaned(graph, *_bypass([np.round(l, 3) for l in out], successors, base))
 
 
 def _bypass(lanes: list[np.ndarray], successors: set, first: int) -> tuple[list[np.ndarray], list]:
@@ -441,11 +437,7 @@ def trim(graph: LaneGraph, sd: SDMap, shift=None) -> tuple[LaneGraph, int]:
             a, b = index[int(i)][1], index[int(j)][0]
             if np.linalg.norm(lanes[a][-1] - lanes[b][0]) <= 2.0:  # still meeting where they joined
                 successors.add((a, b))
-    lanes = [np.round(l, 3) for l in lanes]
-    left, oncoming = find_neighbours(lanes)
-    return LaneGraph(lanes=lanes, successors=sorted(successors), left_neighbors=left, oncoming=oncoming,
-                     widths=lane_widths(lanes, left).round(2).tolist(), green_lights=graph.green_lights,
-                     red_lights=graph.red_lights, city=graph.city, frame_m=graph.frame_m, meta=graph.meta), cut
+    return relaned(graph, [np.round(l, 3) for l in lanes], successors), cut
 
 
 def prune(graph: LaneGraph, ends: np.ndarray) -> tuple[LaneGraph, int]:
@@ -464,18 +456,14 @@ def prune(graph: LaneGraph, ends: np.ndarray) -> tuple[LaneGraph, int]:
     back = [(j, i) for i, j in edges]
     exits = [i for i in range(len(lanes)) if i not in has_succ and i not in at_end]
     entries = [i for i in range(len(lanes)) if i not in has_pred and i not in at_start]
-    gone = (_reached(back, at_end, len(lanes)) - _reached(back, exits, len(lanes))) | \
-        (_reached(edges, at_start, len(lanes)) - _reached(edges, entries, len(lanes)))
+    gone = (reachable_from(len(lanes), back, at_end) - reachable_from(len(lanes), back, exits)) | \
+        (reachable_from(len(lanes), edges, at_start) - reachable_from(len(lanes), edges, entries))
     if not gone:
         return graph, 0
     keep = [i for i in range(len(lanes)) if i not in gone]
     new = {i: k for k, i in enumerate(keep)}
-    lanes = [np.round(lanes[i], 3) for i in keep]
-    successors = sorted((new[i], new[j]) for i, j in edges if i in new and j in new)
-    left, oncoming = find_neighbours(lanes)
-    return LaneGraph(lanes=lanes, successors=successors, left_neighbors=left, oncoming=oncoming,
-                     widths=lane_widths(lanes, left).round(2).tolist(), green_lights=graph.green_lights,
-                     red_lights=graph.red_lights, city=graph.city, frame_m=graph.frame_m, meta=graph.meta), len(gone)
+    return relaned(graph, [np.round(lanes[i], 3) for i in keep],
+                   [(new[i], new[j]) for i, j in edges if i in new and j in new]), len(gone)
 
 
 def open_ends(graph: LaneGraph, ends: np.ndarray) -> np.ndarray:
@@ -491,7 +479,3 @@ def open_ends(graph: LaneGraph, ends: np.ndarray) -> np.ndarray:
     near = cKDTree(np.asarray(loose, np.float64)).query(ends)[0] < 0.01
     return ends[near]
 
-
-def _reached(edges, sources, n: int) -> set[int]:
-    """The nodes that ``edges`` lead to from any of ``sources`` (themselves included), in a graph of ``n`` nodes."""
-    return Reach(n + 1, list(edges) + [(n, k) for k in sources])(n) - {n}

@@ -22,7 +22,7 @@ import numpy as np
 
 from cmtool.core.geometry import resample_step
 from cmtool.maps.lanegraph import LaneGraph, infer_successors
-from cmtool.maps.neighbours import find_neighbours, lane_widths
+from cmtool.maps.neighbours import relaned
 from cmtool.metrics.geometric import legal_oneway_by_lane
 from cmtool.metrics.lanes import distance_to_polylines
 
@@ -53,11 +53,8 @@ def guarantee(graph: LaneGraph, sd: np.ndarray | None, rules: LaneGraph | None =
     successors = [(i, j) for i, j in successors if i not in changed and j not in changed]
     successors += [(index[i], index[j]) for i, j in (rules.successors if added else []) if i in index and j in index]
     successors += [(i, j) for i, j in infer_successors(lanes) if (i in changed or j in changed)]
-    left, oncoming = find_neighbours(lanes)
-    meta = dict(graph.meta) | {"guarantee": {"turned": len(turned), "added": len(added)}}
-    return LaneGraph(lanes=lanes, successors=sorted(set(successors)), left_neighbors=left, oncoming=oncoming,
-                     widths=lane_widths(lanes, left).round(2).tolist(), green_lights=graph.green_lights,
-                     red_lights=graph.red_lights, city=graph.city, frame_m=graph.frame_m, meta=meta)
+    return relaned(graph, lanes, successors, dict(graph.meta) | {"guarantee": {"turned": len(turned),
+                                                                             "added": len(added)}})
 
 
 def raw_scores(graph: LaneGraph) -> dict:
