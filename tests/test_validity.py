@@ -169,11 +169,11 @@ def test_routability_equals_an_all_pairs_path_search():
     for _ in range(300):
         n = int(rng.integers(2, 60))
         succ = [(int(i), int(j)) for i, j in rng.integers(0, n, (int(rng.integers(0, 2 * n)), 2))]  # cycles, loops
-        pairs, largest = _routability(n, succ)
-        assert pairs == pytest.approx(reference(n, succ), abs=1e-12) and 1 <= largest <= n
+        pairs, largest, sampled = _routability(n, succ)
+        assert pairs == pytest.approx(reference(n, succ), abs=1e-12) and 1 <= largest <= n and not sampled
     chain = [(i, i + 1) for i in range(9999)]  # 10,000 lanes in a row: half of all ordered pairs
-    assert _routability(10000, chain) == (pytest.approx(0.5), 1)
-    assert _routability(10000, chain + [(9999, 0)]) == (1.0, 10000)
+    assert _routability(10000, chain) == (pytest.approx(0.5), 1, False)
+    assert _routability(10000, chain + [(9999, 0)]) == (1.0, 10000, False)
 
 
 def test_duplicate_search_finds_what_comparing_every_pair_finds():

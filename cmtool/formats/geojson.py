@@ -39,9 +39,10 @@ def to_geojson(graph, lat0: float, lon0: float, heading: float = 0.0, lane_width
         lines += [np.asarray(line, np.float64) for line in lights]
         props += [{"kind": "light", "state": state} for _ in lights]
     if lines:  # one projection of all points: a scene of 10,000 lanes takes about a second
-        lonlat = np.round(scene_to_latlon(np.concatenate(lines), lat0, lon0, heading)[:, ::-1], 9)
-        coords = np.split(lonlat, np.cumsum([len(line) for line in lines])[:-1])
-    features = [{"type": "Feature", "geometry": {"type": "LineString", "coordinates": c.tolist()},
+        lonlat = np.round(scene_to_latlon(np.concatenate(lines), lat0, lon0, heading)[:, ::-1], 9).tolist()
+        ends = np.cumsum([len(line) for line in lines]).tolist()  # one tolist, sliced: not one call per feature
+        coords = [lonlat[a:b] for a, b in zip([0] + ends[:-1], ends)]
+    features = [{"type": "Feature", "geometry": {"type": "LineString", "coordinates": c},
                  "properties": p} for c, p in zip(coords, props)] if lines else []
     return {"type": "FeatureCollection", "features": features,
             "properties": {"city": graph.city, "frame_m": graph.frame_m, "origin": [lat0, lon0], "heading": heading,

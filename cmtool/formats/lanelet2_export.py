@@ -136,13 +136,18 @@ def _way_lines(bounds, shared, corners, count: int) -> dict:
             twin = resample(bounds[partner[0]], len(line))
             line = 0.5 * (line + (twin[::-1] if partner[1] else twin))
         lines[key] = _pin_ends(line, corners.position(bounds, (*key, START)), corners.position(bounds, (*key, END)))
-    for u in range(count):
-        keys = [(key, False) if key in lines else shared[key] for key in ((u, LEFT), (u, RIGHT))]  # (way, against)
-        bound = [lines[k][::-1] if against else lines[k] for k, against in keys]
-        for pair in chain([bound], _plain_bounds(bound[0][[0, -1]], bound[1][[0, -1]])):
+    keys = [[(key, False) if key in lines else shared[key] for key in ((u, LEFT), (u, RIGHT))] for u in range(count)]
+    bounds_of = [[lines[k][::-1] if against else lines[k] for k, against in pair] for pair in keys]
+    reversed_, changed = _reads_reversed(bounds_of), set()  # changed: the ways redrawn plainer
+    for u in range(count):  # a lanelet whose ways an earlier one redrew is judged again
+        if not reversed_[u] and not any(k in changed for k, _ in keys[u]):
+            continue
+        bound = [lines[k][::-1] if against else lines[k] for k, against in keys[u]]
+        for n, pair in enumerate(chain([bound], _plain_bounds(bound[0][[0, -1]], bound[1][[0, -1]]))):
             if not _read_reversed(*pair):
-                for (k, against), line in zip(keys, pair):
+                for (k, against), line in zip(keys[u], pair):
                     lines[k] = line[::-1] if against else line
+                    changed.update([k] if n else [])
                 break
     return lines
 
@@ -226,6 +231,37 @@ def _read_reversed(left: np.ndarray, right: np.ndarray) -> bool:
     return bool((_sides(left, _middle(right)) >= 0.0).any() or (_sides(right, _middle(left)) <= 0.0).any())
 
 
+def _reads_reversed(bounds: list[list[np.ndarray]]) -> np.ndarray:
+    """:func:`_read_reversed` of each lanelet's [left, right] bounds, the same numbers in padded arrays: bounds of
+    like vertex counts in batches, so 100,000 lanelets take a loop over batches, not over lanelets."""
+    out = np.zeros(len(bounds), bool)
+    order = sorted(range(len(bounds)), key=lambda u: (len(bounds[u][0]), len(bounds[u][1])))
+    for start in range(0, len(order), 4096):
+        batch = order[start:start + 4096]
+        left, right = ([bounds[u][side] for u in batch] for side in (LEFT, RIGHT))
+        value, near = _sides_padded(left, np.array([_middle(r) for r in right]))
+        wrong = ((value >= 0.0) & near).any(axis=1)
+        value, near = _sides_padded(right, np.array([_middle(l) for l in left]))
+        out[batch] = wrong | ((value <= 0.0) & near).any(axis=1)
+    return out
+
+
+def _sides_padded(lines: list[np.ndarray], p: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """:func:`_sides` of each line and point ``p[k]`` at once: (m, S) side values at every segment and whether the
+    segment is one :func:`_sides` reports (nearest within 1 mm; padding never)."""
+    count = np.array([len(line) for line in lines])
+    padded = np.repeat(np.array([line[-1] for line in lines])[:, None], count.max(), axis=1)
+    for k, line in enumerate(lines):
+        padded[k, :len(line)] = line
+    a, ab, q = padded[:, :-1], np.diff(padded, axis=1), p[:, None, :]
+    t = np.clip(np.sum((q - a) * ab, axis=2) / np.maximum(np.sum(ab * ab, axis=2), 1e-18), 0.0, 1.0)
+    distance = np.linalg.norm(a + t[:, :, None] * ab - q, axis=2)
+    real = np.arange(ab.shape[1])[None, :] < (count - 1)[:, None]
+    distance[~real] = np.inf
+    near = real & (distance <= distance.min(axis=1, keepdims=True) + 1e-3)
+    return ab[..., 0] * (q - a)[..., 1] - ab[..., 1] * (q - a)[..., 0], near
+
+
 def _plain_bounds(left: np.ndarray, right: np.ndarray):
     """Simpler (left, right) bounds between the same end points (``left``, ``right``: each bound's two ends):
     straight lines; then three-point lines whose middles lie half a lane either side of one point, along a direction
@@ -269,18 +305,35 @@ def _pin_ends(line: np.ndarray, start: np.ndarray, end: np.ndarray) -> np.ndarra
 
 def _xml(ways: _Ways, relations, lat0: float, lon0: float, heading: float) -> str:
     latlon = scene_to_latlon(np.array(ways.nodes).reshape(-1, 2), lat0, lon0, heading)
-    out = ['<?xml version="1.0" encoding="UTF-8"?>', '<osm version="0.6" generator="cmtool">']
-    out += [f'  <node id="{i}" lat="{lat:.10f}" lon="{lon:.10f}" version="1"/>'
-            for i, (lat, lon) in enumerate(latlon, start=1)]
+    quoted: dict[str, str] = {}  # tag keys and values are few but for the lane numbers: quote each once
+
+    def quote(text: str) -> str:
+        if text not in quoted:
+            quoted[text] = quoteattr(text)
+        return quoted[text]
+
+    def tag_lines(tags: dict) -> str:
+        return "".join(f"    <tag k={quote(t)} v={quote(v)}/>\n" for t, v in tags.items())
+
+    out = ['<?xml version="1.0" encoding="UTF-8"?>\n<osm version="0.6" generator="cmtool">\n']
+    node = '  <node id="%d" lat="%.10f" lon="%.10f" version="1"/>\n'
+    for start in range(0, len(latlon), 65536):  # one formatting call per batch of nodes ("%.10f" is f"{:.10f}")
+        part = latlon[start:start + 65536]
+        ids = np.arange(start + 1, start + 1 + len(part))
+        out.append((node * len(part)) % tuple(_interleave(ids, part)))
     for k, (refs, tags) in enumerate(ways.ways, start=1):
-        out.append(f'  <way id="{k}" version="1">')
-        out += [f'    <nd ref="{r}"/>' for r in refs]
-        out += [f"    <tag k={quoteattr(t)} v={quoteattr(v)}/>" for t, v in tags.items()]
-        out.append("  </way>")
+        out.append(f'  <way id="{k}" version="1">\n' + ('    <nd ref="%d"/>\n' * len(refs)) % tuple(refs)
+                   + tag_lines(tags) + "  </way>\n")
     for k, (members, tags) in enumerate(relations, start=1):
-        out.append(f'  <relation id="{k}" version="1">')
-        out += [f'    <member type="{kind}" ref="{ref}" role="{role}"/>' for kind, ref, role in members]
-        out += [f"    <tag k={quoteattr(t)} v={quoteattr(v)}/>" for t, v in tags.items()]
-        out.append("  </relation>")
-    out.append("</osm>")
-    return "\n".join(out) + "\n"
+        out.append(f'  <relation id="{k}" version="1">\n'
+                   + "".join(f'    <member type="{kind}" ref="{ref}" role="{role}"/>\n' for kind, ref, role in members)
+                   + tag_lines(tags) + "  </relation>\n")
+    out.append("</osm>\n")
+    return "".join(out)
+
+
+def _interleave(ids: np.ndarray, latlon: np.ndarray) -> list:
+    """[id, lat, lon, id, lat, lon, ...] as Python ints and floats."""
+    out: list = [None] * (3 * len(ids))
+    out[0::3], out[1::3], out[2::3] = ids.tolist(), latlon[:, 0].tolist(), latlon[:, 1].tolist()
+    return out

@@ -308,9 +308,10 @@ def _connecting(links, direct) -> set[int]:
         if a not in direct:
             adjacent[a[0]].add(b[0])
             adjacent[b[0]].add(a[0])
+    cost = _Cost(links)
     conn: set[int] = set()
     for colours in _two_colourings(adjacent):
-        conn |= min(colours, key=lambda c: _cost(conn | c, links))
+        conn |= min(colours, key=lambda c: cost(conn, c, colours[0] | colours[1]))
     return conn | {b[0] for a, b, _, _ in links if a not in direct and a[0] not in conn and b[0] not in conn}
 
 
@@ -329,17 +330,34 @@ def _two_colourings(adjacent):
         yield [{r for r in queue if colour[r] == c} for c in (0, 1)]
 
 
-def _cost(conn: set[int], links) -> int:
-    """How badly ``conn`` as the connecting roads fits OpenDRIVE: each connecting road end that meets several roads
-    costs 1 (10 more when it leads into them), each link between two connecting roads 100."""
-    meets, leads = defaultdict(set), defaultdict(set)
-    for a, b, _, _ in links:
-        meets[a].add(b[0])
-        meets[b].add(a[0])
-        leads[a].add(b[0])
-    crowded = sum(len(m) > 1 for e, m in meets.items() if e[0] in conn)
-    forks = sum(len(m) > 1 for e, m in leads.items() if e[0] in conn)
-    return crowded + 10 * forks + 100 * sum(a[0] in conn and b[0] in conn for a, b, _, _ in links)
+class _Cost:
+    """How badly a choice of connecting roads fits OpenDRIVE: each connecting road end that meets several roads
+    costs 1 (10 more when it leads into them), each link between two connecting roads 100. Called with the roads
+    whose choice is open, it counts only their ends and links: the rest costs every choice alike, so the better
+    choice is the same, and a map of many junctions is not scored whole once per junction."""
+
+    def __init__(self, links):
+        meets, leads = defaultdict(set), defaultdict(set)
+        self.roads = [(a[0], b[0]) for a, b, _, _ in links]  # the roads each link joins
+        self.links_of = defaultdict(set)  # road -> the links at its ends
+        for k, (a, b, _, _) in enumerate(links):
+            meets[a].add(b[0])
+            meets[b].add(a[0])
+            leads[a].add(b[0])
+            self.links_of[a[0]].add(k)
+            self.links_of[b[0]].add(k)
+        self.end_cost = defaultdict(int)  # road -> what its ends cost when it connects
+        for e, m in meets.items():
+            self.end_cost[e[0]] += (len(m) > 1) + 10 * (len(leads.get(e, ())) > 1)
+
+    def __call__(self, conn: set[int], more: set[int], roads: set[int]) -> int:
+        """The cost of ``conn`` and ``more`` as the connecting roads, counted over the ends and links of ``roads``."""
+        def connecting(r):
+            return r in more or r in conn
+
+        touching = {k for r in roads for k in self.links_of[r]}
+        return (sum(self.end_cost[r] for r in roads if connecting(r))
+                + 100 * sum(connecting(a) and connecting(b) for a, b in (self.roads[k] for k in touching)))
 
 
 def _junction_ids(conn: set[int], joints, first: int) -> dict[int, int]:

@@ -11,6 +11,8 @@ neighbours their source records and add the oncoming pairs, which no source reco
 
 from __future__ import annotations
 
+import hashlib
+
 import numpy as np
 import shapely
 
@@ -30,10 +32,11 @@ def find_neighbours(lanes, widths=None, recorded=None) -> tuple[list[tuple[int, 
     pairs (an imported map's neighbours, in either order), the left neighbours are those of them that
     run beside each other; without, all that the geometry finds."""
     left, right = infer_neighbours(lanes, widths), infer_neighbours(lanes, widths, side=-1)
-    oncoming = sorted({(min(i, j), max(i, j)) for i, j in left + right if not same_direction(lanes, i, j)})
+    both = left + right
+    oncoming = sorted({(min(i, j), max(i, j)) for (i, j), same in zip(both, same_directions(lanes, both)) if not same})
     if recorded is not None:
         left = infer_neighbours(lanes, widths, candidates=recorded)
-    return [(i, j) for i, j in left if same_direction(lanes, i, j)], oncoming
+    return [(i, j) for (i, j), same in zip(left, same_directions(lanes, left)) if same], oncoming
 
 
 def relaned(graph, lanes, successors, meta: dict | None = None):
@@ -64,33 +67,98 @@ def infer_neighbours(lanes, widths=None, candidates=None, side: int = 1) -> list
     n = len(lanes)
     if n < 2:
         return []
+    key = None
+    if candidates is None and n >= CACHE_MIN_LANES:  # a huge map's export and checks ask several times
+        key = _content_key(lanes, widths, side)
+        if key in _FOUND:
+            return list(_FOUND[key])
+    found = _infer(lanes, widths, candidates, side)
+    if key is not None:
+        _FOUND.clear() if len(_FOUND) >= 4 else None
+        _FOUND[key] = list(found)
+    return found
+
+
+CACHE_MIN_LANES = 5_000  # maps from this many lanes keep their last few neighbour searches, keyed by content
+_FOUND: dict[bytes, list[tuple[int, int]]] = {}
+
+
+def _content_key(lanes, widths, side: int) -> bytes:
+    """A digest of the lanes' coordinates (and vertex counts), the widths and the side: equal only for the same
+    search."""
+    digest = hashlib.blake2b(digest_size=32)
+    digest.update(np.array([len(l) for l in lanes], np.int64).tobytes())
+    digest.update(np.ascontiguousarray(np.concatenate([np.asarray(l, np.float64) for l in lanes])).tobytes())
+    digest.update(b"none" if widths is None else np.asarray(widths, np.float64).tobytes())
+    digest.update(str(side).encode())
+    return digest.digest()
+
+
+def _infer(lanes, widths, candidates, side: int) -> list[tuple[int, int]]:
+    n = len(lanes)
     geoms = _lines(lanes)
     points, tangents = _samples(geoms)
+    spots = shapely.points(points)  # the samples as geometries, made once
     w = np.full(n, LANE_WIDTH_M) if widths is None else np.asarray(widths, np.float64)
-    if candidates is None:
-        a, b = shapely.STRtree(geoms).query(geoms, predicate="dwithin", distance=float(LATERAL[1] * w.max()))
+    middle = SAMPLES // 2  # each lane's middle must lie beside the other: a cheap first cut
+    if candidates is None:  # lanes in batches, so a crowded map's millions of candidate pairs never meet at once
+        reach, tree = float(LATERAL[1] * w.max()), shapely.STRtree(geoms)
+        batches = (_near(tree, spots[:, middle], np.arange(start, min(start + NEAR_BATCH, n)), reach)
+                   for start in range(0, n, NEAR_BATCH))
         lateral = LATERAL
     else:
         pairs = np.array([(i, j) for i, j in candidates if i != j], np.int64).reshape(-1, 2)
-        a, b = np.concatenate([pairs[:, 0], pairs[:, 1]]), np.concatenate([pairs[:, 1], pairs[:, 0]])
+        batches = iter([(np.concatenate([pairs[:, 0], pairs[:, 1]]), np.concatenate([pairs[:, 1], pairs[:, 0]]))])
         lateral = (0.0, np.inf)
-    width = 0.5 * (w[a] + w[b])
-    middle = SAMPLES // 2  # each lane's middle must lie beside the other: a cheap first cut
-    gaps = [shapely.distance(shapely.points(points[i, middle]), geoms[j]) / width for i, j in ((a, b), (b, a))]
-    keep = (a != b) & np.all([(g >= lateral[0]) & (g <= lateral[1]) for g in gaps], axis=0)
-    a, b, width = a[keep], b[keep], width[keep]
-    if len(a) == 0:
+    found = [_beside_pairs(geoms, points, spots, tangents, w, a, b, lateral) for a, b in batches]
+    if not found or sum(len(f[0]) for f in found) == 0:
         return []
-    offset, beside = _beside(geoms, points, tangents, a, b, width, lateral)
-    _, beside_back = _beside(geoms, points, tangents, b, a, width, lateral)
-    ok = (beside.mean(1) >= MIN_SHARE) & (beside_back.mean(1) >= MIN_SHARE)
-    there = np.array([side * np.median(o[m]) > 0 if m.any() else False for o, m in zip(offset, beside)])
+    a, b, offset, beside = (np.concatenate([f[k] for f in found]) for k in range(4))
+    there = np.array([side * np.median(o[m]) > 0 if m.any() else False for o, m in zip(offset, beside)], bool)
     gap = np.array([np.median(np.abs(o[m])) if m.any() else np.inf for o, m in zip(offset, beside)])
     best: dict[int, tuple[float, int]] = {}  # i -> (gap, j): only the nearest lane on that side
-    for i, j, g in zip(a[ok & there], b[ok & there], gap[ok & there]):
+    for i, j, g in zip(a[there], b[there], gap[there]):
         if int(i) not in best or g < best[int(i)][0]:
             best[int(i)] = (float(g), int(j))
     return sorted((i, j) for i, (_, j) in best.items())
+
+
+NEAR_BATCH = 4096  # lanes whose candidate pairs are sought and tested together
+
+
+def _near(tree, middles, lanes: np.ndarray, reach: float) -> tuple[np.ndarray, np.ndarray]:
+    """Pairs (a, b), a in ``lanes``, in order of a, then of the STR-tree, where a's middle point lies within
+    ``reach`` (a hair wider) of lane b. The gap test after asks both middles to lie within 1.5 widths, no more than
+    ``reach``, of the other lane, so the pairs where only one does need no cut here."""
+    q, b = tree.query(middles[lanes], predicate="dwithin", distance=reach * (1 + 1e-9))
+    return lanes[q], b
+
+
+def _beside_pairs(geoms, points, spots, tangents, w, a, b, lateral):
+    """The candidate pairs (a, b) that lie beside each other along most of both lanes, with the signed offsets of b
+    seen from a's samples and where b lies beside a: (a, b, offset, beside)."""
+    middle = SAMPLES // 2
+    width = 0.5 * (w[a] + w[b])
+    gaps = [shapely.distance(spots[i, middle], geoms[j]) / width for i, j in ((a, b), (b, a))]
+    keep = (a != b) & np.all([(g >= lateral[0]) & (g <= lateral[1]) for g in gaps], axis=0)
+    a, b, width = a[keep], b[keep], width[keep]
+    keep = _may_be_beside(geoms, spots, a, b, width, lateral)
+    a, b, width = a[keep], b[keep], width[keep]
+    keep = _may_be_beside(geoms, spots, b, a, width, lateral)
+    a, b, width = a[keep], b[keep], width[keep]
+    offset, beside = _beside(geoms, points, spots, tangents, a, b, width, lateral)
+    _, beside_back = _beside(geoms, points, spots, tangents, b, a, width, lateral)
+    ok = (beside.mean(1) >= MIN_SHARE) & (beside_back.mean(1) >= MIN_SHARE)
+    return a[ok], b[ok], offset[ok], beside[ok]
+
+
+def _may_be_beside(geoms, spots, a, b, width, lateral) -> np.ndarray:
+    """Whether lane b may lie beside enough of lane a's samples for :func:`_beside` to find it beside: a necessary
+    cut before that exact test, by distances alone. A sample beside b lies between ``lateral[0]`` widths and the
+    reach of ``lateral[1]`` widths and ``MAX_SKEW_M`` from b (1 mm wider, for rounding)."""
+    near = shapely.distance(spots[a], geoms[b][:, None])
+    lo, hi = lateral[0] * width - 1e-3, np.hypot(lateral[1] * width, MAX_SKEW_M) + 1e-3
+    return ((near >= lo[:, None]) & (near <= hi[:, None])).mean(axis=1) >= MIN_SHARE
 
 
 def _samples(geoms) -> tuple[np.ndarray, np.ndarray]:
@@ -100,12 +168,12 @@ def _samples(geoms) -> tuple[np.ndarray, np.ndarray]:
     return shapely.get_coordinates(shapely.line_interpolate_point(lines, s)).reshape(-1, SAMPLES, 2), _tangent(lines, s)
 
 
-def _beside(geoms, points, tangents, a, b, width, lateral):
+def _beside(geoms, points, spots, tangents, a, b, width, lateral):
     """For each pair (a[k], b[k]): the signed lateral offsets (+ = left) of lane b seen from the
     samples of lane a, and whether b lies beside a there."""
     p, tangent_a = points[a], tangents[a]
     gb = np.repeat(geoms[b][:, None], SAMPLES, 1)
-    sb = shapely.line_locate_point(gb, shapely.points(p))
+    sb = shapely.line_locate_point(gb, spots[a])
     q = shapely.get_coordinates(shapely.line_interpolate_point(gb, sb)).reshape(-1, SAMPLES, 2)
     tangent_b = _tangent(gb, sb)
     d = q - p
@@ -133,10 +201,19 @@ def _tangent(geoms, s, h: float = 0.5) -> np.ndarray:
 
 def same_direction(lanes, i: int, j: int) -> bool:
     """Whether lanes i and j run the same way (their directions at their middles within 90 degrees)."""
-    a, b = _lines([lanes[i], lanes[j]])
-    ta = _tangent(a, 0.5 * shapely.length(a))
-    sb = shapely.line_locate_point(b, shapely.line_interpolate_point(a, 0.5 * shapely.length(a)))
-    return float(np.dot(ta, _tangent(b, sb))) > 0.0
+    return bool(same_directions(lanes, [(i, j)])[0])
+
+
+def same_directions(lanes, pairs) -> np.ndarray:
+    """:func:`same_direction` of each pair ``(i, j)``, in one pass of vectorised GEOS calls."""
+    pairs = np.asarray(pairs, np.int64).reshape(-1, 2)
+    used = np.unique(pairs)  # only the lanes of the pairs: one pair of a huge map must not build them all
+    geoms = np.empty(max(len(lanes), 1), dtype=object)
+    geoms[used] = _lines([lanes[k] for k in used.tolist()]) if len(used) else []
+    a, b = geoms[pairs[:, 0]], geoms[pairs[:, 1]]
+    half = 0.5 * shapely.length(a)
+    sb = shapely.line_locate_point(b, shapely.line_interpolate_point(a, half))
+    return np.einsum("...k,...k", _tangent(a, half), _tangent(b, sb)) > 0.0
 
 
 def side_of(lanes, i: int, j: int) -> int:

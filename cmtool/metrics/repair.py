@@ -25,22 +25,18 @@ DUPLICATE_M = 0.5
 def repair(graph: LaneGraph) -> tuple[LaneGraph, list[str]]:
     """A repaired copy of ``graph`` and the list of changes (lane indices refer to the input)."""
     lanes = [np.array(l, np.float64) for l in graph.lanes]
-    keep = list(range(len(lanes)))  # input index of each kept lane
-    changes = []
-    for i in list(keep):
-        length = polyline_length(lanes[i])
-        if length < MIN_LENGTH_M:
-            keep.remove(i)
-            changes.append(f"dropped lane {i} ({length:.2f} m long)")
+    lengths = [polyline_length(lane) for lane in lanes]
+    keep = [i for i, length in enumerate(lengths) if length >= MIN_LENGTH_M]  # input index of each kept lane
+    changes = [f"dropped lane {i} ({length:.2f} m long)" for i, length in enumerate(lengths) if length < MIN_LENGTH_M]
     alias = {i: i for i in range(len(lanes))}  # merged lanes -> the lane that replaces them
     for a, b in duplicate_pairs([lanes[i] for i in keep], keep):
         if alias[a] == a and alias[b] == b:
             alias[b] = a
             changes.append(f"merged lane {b} into lane {a} (duplicate)")
     keep = [i for i in keep if alias[i] == i]
-    edges = {(alias[i], alias[j]) for i, j in graph.successors if alias[i] in keep and alias[j] in keep and
-             alias[i] != alias[j]}
     index = {old: new for new, old in enumerate(keep)}
+    edges = {(alias[i], alias[j]) for i, j in graph.successors if alias[i] in index and alias[j] in index and
+             alias[i] != alias[j]}
     kept = [lanes[i] for i in keep]
     old_edges = {(index[i], index[j]) for i, j in edges}
     joints = UnionFind(range(2 * len(kept)))  # 2i: start of kept lane i, 2i + 1: its end

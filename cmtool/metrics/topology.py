@@ -64,19 +64,35 @@ def scene_statistics(graph: KeypointGraph) -> dict[str, np.ndarray]:
     # grows with the component and the chunk, not with the square of the scene's keypoints
     _, label = connected_components(adjacency, directed=True, connection="weak")
     order = np.argsort(label, kind="stable")
+    pending: list[np.ndarray] = []  # small components, searched together (paths never leave a component)
+    size = 0
     for nodes in np.split(order, np.flatnonzero(np.diff(label[order])) + 1):
         if len(nodes) < 2:
             continue
-        sub = adjacency[nodes][:, nodes]
-        for start in range(0, len(nodes), CHUNK):
-            rows = np.arange(start, min(start + CHUNK, len(nodes)))
-            hops = shortest_path(sub, directed=True, unweighted=True, indices=rows)
-            hops[np.arange(len(rows)), rows] = np.inf
-            reachable = np.isfinite(hops)
-            reach[nodes[rows]] = reachable.sum(axis=1)
-            convenience.append(hops[reachable])
+        pending.append(nodes)
+        size += len(nodes)
+        if size >= CHUNK:
+            _search(adjacency, np.concatenate(pending), reach, convenience)
+            pending, size = [], 0
+    if pending:
+        _search(adjacency, np.concatenate(pending), reach, convenience)
     return {"connectivity": degree.astype(float), "density": np.array([float(n)]), "reach": reach,
             "convenience": np.concatenate(convenience) if convenience else np.zeros(0)}
+
+
+def _search(adjacency, nodes: np.ndarray, reach: np.ndarray, convenience: list) -> None:
+    """Hop counts from ``nodes`` (whole weakly connected components, in label order) among themselves, ``CHUNK``
+    sources at a time: each node's reach into ``reach``, the hop counts of reachable pairs (row by row, the
+    columns in order) appended to ``convenience``. Many small components go through one search, so a scene of
+    100,000 lanes is a few dozen calls, not one per component."""
+    sub = adjacency[nodes][:, nodes]
+    for start in range(0, len(nodes), CHUNK):
+        rows = np.arange(start, min(start + CHUNK, len(nodes)))
+        hops = shortest_path(sub, directed=True, unweighted=True, indices=rows)
+        hops[np.arange(len(rows)), rows] = np.inf
+        reachable = np.isfinite(hops)
+        reach[nodes[rows]] = reachable.sum(axis=1)
+        convenience.append(hops[reachable])
 
 
 def pooled_statistics(graphs) -> dict[str, np.ndarray]:

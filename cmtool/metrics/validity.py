@@ -16,8 +16,16 @@ Routability: the share of ordered lane pairs (i, j), i != j, with a path from i 
 successor edges, the same share when lane changes between same-direction neighbours are allowed
 (as a simulator routes; see :mod:`cmtool.maps.neighbours`), and the size of the largest strongly
 connected set of lanes (scipy's csgraph for the strongly connected sets, reachable lanes as bitsets
-over their condensation). Crops of a city are mostly not routable end to end, so routability is
+over their condensation, numbered within each weakly connected set, so memory grows with the largest of
+those, not with the map). Crops of a city are mostly not routable end to end, so routability is
 reported against the ground truth's, not scored.
+
+Huge maps: in a weakly connected set of more than ``EXACT_COMPONENT`` lanes, routability is estimated
+from ``SAMPLED_SOURCES`` lanes drawn with a fixed seed (the lanes each reaches, by breadth-first search);
+crossings are tested exactly for up to ``MAX_CROSSING_TESTS`` candidate pairs (lane pairs whose boxes
+overlap), beyond that on the pairs of a fixed-seed random share of the lanes, the count scaled up; at most
+``MAX_LISTED`` problems of a kind are listed, the rest counted. Every such estimate or cap is named in
+``estimated`` / ``unlisted`` (and the JSON); maps below the caps get exact values.
 
 Score: the share of lanes free of problems (a bad successor edge or a crossing counts against
 both its lanes); 1.0 for a map without problems, and for an empty map.
@@ -28,19 +36,25 @@ from __future__ import annotations
 from dataclasses import dataclass, field
 
 import numpy as np
+import shapely
 from scipy.sparse import csr_matrix
-from scipy.sparse.csgraph import connected_components
-from shapely import STRtree
-from shapely.geometry import LineString
+from scipy.sparse.csgraph import breadth_first_order, connected_components
+from scipy.spatial import cKDTree
 
 from cmtool.core.geometry import polyline_length, unit
-from cmtool.maps.neighbours import infer_neighbours, same_direction
+from cmtool.maps.neighbours import infer_neighbours, same_directions
 
 MAX_GAP_M, MAX_TURN_DEG = 1.5, 60.0
 MIN_LENGTH_M, MIN_RADIUS_M = 2.0, 4.0
 STEP_M = 0.01  # vertices closer than this to the one before carry no direction for the kink check
 BORDER_M = 1.0  # an endpoint this close to the frame edge touches the border
 JUNCTION_REACH_M = 20.0
+EXACT_COMPONENT = 20_000  # lanes: larger weakly connected sets get their routability from sampled sources
+SAMPLED_SOURCES = 1_000
+MAX_CROSSING_TESTS = 5_000_000  # candidate lane pairs tested for crossings; more: a random share of the lanes
+MAX_LISTED = 100_000  # problems of one kind listed; more are counted in ``unlisted``
+CHUNK_LANES = 2_048  # lanes per batch of the crossing search and of the kink check
+SEED = 0
 
 
 @dataclass
@@ -61,25 +75,29 @@ class Validity:
     routable_pairs: float = 1.0
     routable_with_changes: float = 1.0
     largest_scc: int = 0
+    unlisted: dict[str, int] = field(default_factory=dict)  # problems counted beyond ``MAX_LISTED``, per kind
+    unlisted_lanes: set[int] = field(default_factory=set)  # the lanes of those
+    estimated: dict[str, str] = field(default_factory=dict)  # quantity -> how it was estimated (huge maps)
 
     @property
     def score(self) -> float:
         if self.lanes == 0:
             return 1.0
-        bad = {i for p in self.problems for i in p.lanes}
+        bad = {i for p in self.problems for i in p.lanes} | self.unlisted_lanes
         return 1.0 - len(bad) / self.lanes
 
     def counts(self) -> dict[str, int]:
-        out: dict[str, int] = {}
+        out: dict[str, int] = dict(self.unlisted)
         for p in self.problems:
             out[p.kind] = out.get(p.kind, 0) + 1
         return out
 
     def to_json(self) -> dict:
+        caps = {k: v for k, v in (("unlisted", self.unlisted), ("estimated", self.estimated)) if v}
         return {"score": round(self.score, 6), "lanes": self.lanes, "counts": self.counts(),
                 "routable_pairs": round(self.routable_pairs, 6),
                 "routable_with_changes": round(self.routable_with_changes, 6), "largest_scc": self.largest_scc,
-                "problems": [p.to_json() for p in self.problems]}
+                **caps, "problems": [p.to_json() for p in self.problems]}
 
 
 def check(graph) -> Validity:
@@ -90,33 +108,44 @@ def check(graph) -> Validity:
     if n == 0:
         return report
     succ = [(int(i), int(j)) for i, j in graph.successors]
-    has_pred = np.zeros(n, bool)
-    has_succ = np.zeros(n, bool)
-    for i, j in succ:
-        has_succ[i] = has_pred[j] = True
+    joined = np.zeros(n, bool)
+    joined[[k for edge in succ for k in edge]] = True
     half = graph.frame_m / 2.0
-    for i, lane in enumerate(lanes):
-        length = polyline_length(lane)
-        touches = bool(np.any(np.abs(lane[[0, -1]]) >= half - BORDER_M))
-        if not has_pred[i] and not has_succ[i] and not touches:
+    ends = np.array([lane[[0, -1]] for lane in lanes])
+    touches = np.any(np.abs(ends) >= half - BORDER_M, axis=(1, 2))
+    shapes = _shapes(lanes)
+    simple = shapely.is_simple(shapes)
+    radius, where = _min_radii(lanes)
+    lengths = np.array([polyline_length(lane) for lane in lanes])
+    for i in np.flatnonzero(~joined | ~simple | (radius < MIN_RADIUS_M) | (lengths < MIN_LENGTH_M)).tolist():
+        lane, length = lanes[i], lengths[i]
+        if not joined[i] and not touches[i]:
             report.problems.append(Problem("dangling", [i], lane[len(lane) // 2].tolist()))
         if length < MIN_LENGTH_M:
             report.problems.append(Problem("short", [i], lane[0].tolist(), f"{length:.2f} m"))
-        if len(lane) >= 3 and not LineString(lane).is_simple:
+        if len(lane) >= 3 and not simple[i]:
             report.problems.append(Problem("self_intersection", [i], lane[len(lane) // 2].tolist()))
-        radius, where = _min_radius(lane)
-        if radius < MIN_RADIUS_M:
-            report.problems.append(Problem("kink", [i], where.tolist(), f"radius {radius:.2f} m"))
+        if radius[i] < MIN_RADIUS_M:
+            report.problems.append(Problem("kink", [i], where[i].tolist(), f"radius {radius[i]:.2f} m"))
     for i, j in succ:
         gap = float(np.linalg.norm(lanes[i][-1] - lanes[j][0]))
         turn = _turn_deg(lanes[i], lanes[j])
         if gap > MAX_GAP_M or turn > MAX_TURN_DEG:
             report.problems.append(Problem("bad_successor", [i, j], lanes[i][-1].tolist(),
                                            f"gap {gap:.2f} m, turn {turn:.0f} deg"))
-    report.problems += _crossings(lanes, succ)
-    report.routable_pairs, report.largest_scc = _routability(n, succ)
-    report.routable_with_changes = _routability(n, succ + lane_changes(graph))[0]
+    _add_crossings(report, lanes, shapes, succ)
+    report.routable_pairs, report.largest_scc, sampled = _routability(n, succ)
+    report.routable_with_changes, _, sampled_changes = _routability(n, succ + lane_changes(graph))
+    for key, done in (("routable_pairs", sampled), ("routable_with_changes", sampled_changes)):
+        if done:
+            report.estimated[key] = (f"{SAMPLED_SOURCES} sources sampled (seed {SEED}) in each weakly connected set "
+                                     f"of over {EXACT_COMPONENT:,} lanes")
     return report
+
+
+def _shapes(lanes: list[np.ndarray]) -> np.ndarray:
+    """The lanes as shapely LineStrings, made in one call."""
+    return shapely.linestrings(np.concatenate(lanes), indices=np.repeat(np.arange(len(lanes)), [len(l) for l in lanes]))
 
 
 def lane_changes(graph) -> list[tuple[int, int]]:
@@ -125,58 +154,92 @@ def lane_changes(graph) -> list[tuple[int, int]]:
     pairs = graph.left_neighbors
     if pairs is None:
         lanes = [np.asarray(l, np.float64) for l in graph.lanes]
-        pairs = [(i, j) for i, j in infer_neighbours(lanes, graph.widths) if same_direction(lanes, i, j)]
+        found = infer_neighbours(lanes, graph.widths)
+        pairs = [(i, j) for (i, j), same in zip(found, same_directions(lanes, found)) if same]
     return [(int(i), int(j)) for i, j in pairs] + [(int(j), int(i)) for i, j in pairs]
 
 
-def _min_radius(lane: np.ndarray) -> tuple[float, np.ndarray]:
-    """Smallest turn radius along the lane: at each vertex, the mean length of its two segments (the
-    shorter one at a corner) over the angle it turns by, on the vertices thinned to at least 2 m
-    apart with corners (turns over 45 degrees) always kept, so sparse and dense samplings of one
-    curve measure alike and a corner reads as sharp however long its sides."""
+def _min_radii(lanes: list[np.ndarray]) -> tuple[np.ndarray, np.ndarray]:
+    """Each lane's smallest turn radius and where it lies (:func:`_min_radius`), lanes of similar vertex counts
+    in batches of padded arrays, so a map of 100,000 lanes takes a loop over vertex positions, not over lanes."""
+    radius, where = np.full(len(lanes), np.inf), np.array([lane[0] for lane in lanes])
+    order = sorted(range(len(lanes)), key=lambda k: len(lanes[k]))
+    for start in range(0, len(order), CHUNK_LANES):
+        batch = order[start:start + CHUNK_LANES]
+        r, w = _min_radius(*_padded([lanes[k] for k in batch]))
+        radius[batch] = r
+        where[batch] = np.where(np.isfinite(r)[:, None], w, where[batch])
+    return radius, where
+
+
+def _padded(lines: list[np.ndarray]) -> tuple[np.ndarray, np.ndarray]:
+    """Lines as one (m, L, 2) array, each padded with copies of its last point, and their vertex counts."""
+    count = np.array([len(line) for line in lines])
+    out = np.repeat(np.array([line[-1] for line in lines])[:, None], count.max(), axis=1)
+    for k, line in enumerate(lines):
+        out[k, :len(line)] = line
+    return out, count
+
+
+def _min_radius(p: np.ndarray, count: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """Smallest turn radius along each padded line (``p``: (m, L, 2), ``count`` vertices each) and the vertex where
+    it lies: at each vertex, the mean length of its two segments (the shorter one at a corner) over the angle it
+    turns by, on the vertices thinned to at least 2 m apart with corners (turns over 45 degrees) always kept, so
+    sparse and dense samplings of one curve measure alike and a corner reads as sharp however long its sides."""
     corner = np.radians(45.0)
-    p = _thinned(lane, 2.0, corner)
-    if len(p) < 3:
-        return float("inf"), lane[0]
+    p, count = _thinned(p, count, 2.0, corner)
     turn, seg = _turns(p)
-    legs = np.where(turn > corner, np.minimum(seg[:-1], seg[1:]), (seg[:-1] + seg[1:]) / 2.0)
-    with np.errstate(divide="ignore"):
+    legs = np.where(turn > corner, np.minimum(seg[:, :-1], seg[:, 1:]), (seg[:, :-1] + seg[:, 1:]) / 2.0)
+    with np.errstate(divide="ignore", invalid="ignore"):
         radius = np.where(turn > 1e-9, legs / turn, np.inf)
-    k = int(np.argmin(radius))
-    return float(radius[k]), p[k + 1]
+    radius[np.arange(radius.shape[1])[None, :] >= count[:, None] - 2] = np.inf  # past each line's last corner
+    k = np.argmin(radius, axis=1) if radius.shape[1] else np.zeros(len(p), int)
+    rows = np.arange(len(p))
+    return (radius[rows, k] if radius.shape[1] else np.full(len(p), np.inf)), p[rows, np.minimum(k + 1, p.shape[1] - 1)]
 
 
 def _turns(line: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-    """The angle each interior vertex turns by, and the segment lengths."""
-    d = np.diff(line, axis=0)
-    seg = np.linalg.norm(d, axis=1)
-    cos = np.einsum("ij,ij->i", d[:-1], d[1:]) / np.maximum(seg[:-1] * seg[1:], 1e-12)
+    """The angle each interior vertex of (m, L, 2) lines turns by, (m, L - 2), and the segment lengths."""
+    d = np.diff(line, axis=1)
+    seg = np.linalg.norm(d, axis=2)
+    cos = np.einsum("mij,mij->mi", d[:, :-1], d[:, 1:]) / np.maximum(seg[:, :-1] * seg[:, 1:], 1e-12)
     return np.arccos(np.clip(cos, -1.0, 1.0)), seg
 
 
-def _thinned(line: np.ndarray, spacing: float, corner: float) -> np.ndarray:
-    """The vertices of ``line`` with each kept one at least ``spacing`` from the one before, except
-    that vertices turning by more than ``corner`` are always kept; the last vertex replaces a kept
-    one closer than that. Steps under ``STEP_M`` go first: they have no direction worth measuring, and
-    rounding a file's coordinates to the millimetre must not change the judgement."""
-    line = _spaced(line, STEP_M, np.zeros(len(line), bool))
-    sharp = np.r_[False, _turns(line)[0] > corner, False] if len(line) >= 3 else np.zeros(len(line), bool)
-    return _spaced(line, spacing, sharp)
+def _thinned(line: np.ndarray, count: np.ndarray, spacing: float, corner: float) -> tuple[np.ndarray, np.ndarray]:
+    """The vertices of padded lines with each kept one at least ``spacing`` from the one before, except that
+    vertices turning by more than ``corner`` are always kept; the last vertex replaces a kept one closer than that.
+    Steps under ``STEP_M`` go first: they have no direction worth measuring, and rounding a file's coordinates to
+    the millimetre must not change the judgement."""
+    line, count = _spaced(line, count, STEP_M, np.zeros(line.shape[:2], bool))
+    sharp = np.zeros(line.shape[:2], bool)
+    if line.shape[1] >= 3:
+        sharp[:, 1:-1] = _turns(line)[0] > corner
+    sharp[np.arange(len(line)), count - 1] = False
+    return _spaced(line, count, spacing, sharp)
 
 
-def _spaced(line: np.ndarray, spacing: float, kept: np.ndarray) -> np.ndarray:
-    """The vertices of ``line`` at least ``spacing`` from the one kept before, and those ``kept`` marks; the last
-    vertex replaces a kept one closer than that (unless marked)."""
-    keep = [0]
-    for i in range(1, len(line)):
-        if kept[i] or np.linalg.norm(line[i] - line[keep[-1]]) >= spacing:
-            keep.append(i)
-    if keep[-1] != len(line) - 1:
-        if len(keep) > 1 and not kept[keep[-1]]:
-            keep[-1] = len(line) - 1
-        else:
-            keep.append(len(line) - 1)
-    return line[keep]
+def _spaced(line: np.ndarray, count: np.ndarray, spacing: float, kept: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """The vertices of padded lines at least ``spacing`` from the one kept before, and those ``kept`` marks; the last
+    vertex replaces a kept one closer than that (unless marked). Returns the lines compacted (padded with their last
+    point) and their new vertex counts."""
+    rows, last = np.arange(len(line)), np.zeros(len(line), int)
+    keep = np.zeros(line.shape[:2], bool)
+    keep[:, 0] = True
+    for i in range(1, line.shape[1]):
+        take = (i < count) & (kept[:, i] | (np.linalg.norm(line[:, i] - line[rows, last], axis=1) >= spacing))
+        keep[:, i] = take
+        last = np.where(take, i, last)
+    end, short = count - 1, last != count - 1
+    replace = short & (keep.sum(axis=1) > 1) & ~kept[rows, last]
+    keep[rows[replace], last[replace]] = False
+    keep[rows[short], end[short]] = True
+    order = np.argsort(~keep, axis=1, kind="stable")
+    out = np.take_along_axis(line, order[:, :, None], axis=1)
+    new_count = keep.sum(axis=1)
+    pad = np.arange(line.shape[1])[None, :] >= new_count[:, None]
+    out[pad] = np.repeat(out[rows, new_count - 1], line.shape[1] - new_count, axis=0)
+    return out, new_count
 
 
 def _turn_deg(a: np.ndarray, b: np.ndarray) -> float:
@@ -184,49 +247,98 @@ def _turn_deg(a: np.ndarray, b: np.ndarray) -> float:
     return float(np.degrees(np.arccos(np.clip(np.dot(da, db), -1.0, 1.0))))
 
 
-def _crossings(lanes: list[np.ndarray], succ: list[tuple[int, int]]) -> list[Problem]:
-    """Crossings of lanes that are not joined by an edge, away from forks and merges."""
+def _add_crossings(report: Validity, lanes: list[np.ndarray], shapes: np.ndarray, succ: list[tuple[int, int]]) -> None:
+    """Add the crossings of lanes that are not joined by an edge, away from forks and merges: listed up to
+    ``MAX_LISTED``, counted beyond; estimated on huge maps (:func:`_crossing_pairs`)."""
     n = len(lanes)
     out_deg = np.bincount([i for i, _ in succ], minlength=n)
     in_deg = np.bincount([j for _, j in succ], minlength=n)
-    junction_points = []
-    junction_lanes = set()
+    junction_points, exempt = [], np.zeros(n, bool)
     for i, j in succ:  # a fork (i has several successors) or a merge (j has several predecessors)
         if out_deg[i] > 1 or in_deg[j] > 1:
-            junction_lanes.update((i, j))
+            exempt[[i, j]] = True
             junction_points.append(lanes[i][-1])
-    junction_points = np.array(junction_points).reshape(-1, 2)
-    linked = {frozenset(e) for e in succ}
-    shapes = [LineString(l) for l in lanes]
-    tree = STRtree(shapes)
-    problems = []
-    for i, j in zip(*tree.query(shapes, predicate="crosses")):
-        if i >= j or frozenset((i, j)) in linked or i in junction_lanes or j in junction_lanes:
-            continue
-        point = shapes[i].intersection(shapes[j]).representative_point()
-        at = np.array([point.x, point.y])
-        if len(junction_points) and np.min(np.linalg.norm(junction_points - at, axis=1)) <= JUNCTION_REACH_M:
-            continue
-        problems.append(Problem("crossing", [int(i), int(j)], at.tolist()))
-    return problems
+    linked = np.array(sorted({(min(e), max(e)) for e in succ}), np.int64).reshape(-1, 2)
+    i, j, share = _crossing_pairs(shapes, exempt, linked[:, 0] * n + linked[:, 1])
+    if junction_points:  # every crossing's point decides whether it is listed or counted
+        at = _crossing_points(shapes, i, j)
+        far = cKDTree(np.array(junction_points)).query(at)[0] > JUNCTION_REACH_M
+        i, j, at = i[far], j[far], at[far]
+    else:  # the points of the listed ones only: a dense map of 100,000 lanes has about a million crossings
+        at = _crossing_points(shapes, i[:MAX_LISTED], j[:MAX_LISTED])
+    report.problems += [Problem("crossing", [a, b], p) for a, b, p in
+                        zip(i[:MAX_LISTED].tolist(), j[:MAX_LISTED].tolist(), at[:MAX_LISTED].tolist())]
+    total = len(i) if share == 1.0 else int(round(len(i) / share))
+    if total > MAX_LISTED:
+        report.unlisted["crossing"] = total - min(len(i), MAX_LISTED)
+        report.unlisted_lanes.update(i[MAX_LISTED:].tolist(), j[MAX_LISTED:].tolist())
+    if share < 1.0:
+        report.estimated["crossing"] = (f"over {MAX_CROSSING_TESTS:,} candidate pairs: the pairs of {share:.2%} of the "
+                                        f"lanes (seed {SEED}) tested, the count scaled up; the score counts only "
+                                        "the lanes of the crossings found")
 
 
-def _routability(n: int, succ: list[tuple[int, int]]) -> tuple[float, int]:
-    """Share of ordered lane pairs joined by a path, and the largest strongly connected set: per strongly
-    connected component, children first, the set of lanes it reaches as the bits of an integer, so
-    thousands of lanes cost milliseconds, not an all-pairs path search."""
+def _crossing_pairs(shapes: np.ndarray, exempt: np.ndarray, linked: np.ndarray):
+    """Lane pairs (i < j) that cross, neither ``exempt`` nor ``linked`` (keys ``i * n + j``), in order of i, then of
+    the STR-tree. The lanes are taken in batches in a fixed-seed random order; once ``MAX_CROSSING_TESTS`` candidate
+    pairs (overlapping boxes) are tested, the rest are left: returns (i, j, the share of the lanes whose pairs were
+    tested)."""
+    n = len(shapes)
+    tree, order = shapely.STRtree(shapes), np.random.default_rng(SEED).permutation(n)
+    found, tested, done = [], 0, 0
+    while done < n and tested < MAX_CROSSING_TESTS:
+        batch = np.sort(order[done:done + CHUNK_LANES])
+        done += len(batch)
+        q, j = tree.query(shapes[batch])
+        i = batch[q]
+        keep = (i < j) & ~exempt[i] & ~exempt[j]
+        i, j = i[keep], j[keep]
+        i, j = (i, j) if len(linked) == 0 else (i[~np.isin(i * n + j, linked)], j[~np.isin(i * n + j, linked)])
+        tested += len(i)
+        cross = shapely.crosses(shapes[i], shapes[j])
+        found.append((i[cross], j[cross]))
+    i = np.concatenate([f[0] for f in found]) if found else np.zeros(0, np.int64)
+    j = np.concatenate([f[1] for f in found]) if found else np.zeros(0, np.int64)
+    first = np.argsort(i, kind="stable")
+    return i[first], j[first], done / n
+
+
+def _crossing_points(shapes: np.ndarray, i: np.ndarray, j: np.ndarray) -> np.ndarray:
+    """A point of each crossing of lanes ``i[k]`` and ``j[k]``: the representative point of their intersection."""
+    return shapely.get_coordinates(shapely.point_on_surface(shapely.intersection(shapes[i], shapes[j]))).reshape(-1, 2)
+
+
+def _routability(n: int, succ: list[tuple[int, int]]) -> tuple[float, int, bool]:
+    """Share of ordered lane pairs joined by a path, the largest strongly connected set, and whether the share was
+    estimated: per strongly connected component, children first, the set of lanes it reaches as the bits of an
+    integer (bits numbered within the weakly connected set, which paths never leave), so thousands of lanes cost
+    milliseconds, not an all-pairs path search; weakly connected sets of over ``EXACT_COMPONENT`` lanes count the
+    lanes reached from ``SAMPLED_SOURCES`` sampled sources instead."""
     if n < 2:
-        return 1.0, n
+        return 1.0, n, False
     adj = csr_matrix((np.ones(len(succ)), ([i for i, _ in succ], [j for _, j in succ])), shape=(n, n))
+    _, weak = connected_components(adj, directed=True, connection="weak")
+    size = np.bincount(weak)
+    huge = size[weak] > EXACT_COMPONENT
+    order = np.argsort(weak, kind="stable")
+    local = np.empty(n, np.int64)
+    local[order] = np.arange(n) - (np.cumsum(size) - size)[weak[order]]
     count, labels = connected_components(adj, directed=True, connection="strong")
+    pairs = _reach_pairs(count, labels, local, huge, succ) + _sampled_pairs(adj, weak, huge)
+    return pairs / (n * (n - 1)), int(np.bincount(labels).max()), bool(huge.any())
+
+
+def _reach_pairs(count: int, labels: np.ndarray, local: np.ndarray, huge: np.ndarray, succ) -> int:
+    """Ordered pairs joined by a path among the lanes not ``huge``: reachable sets as bitsets over the condensation
+    (strongly connected components ``labels``; bit ``local[lane]``), children first."""
     members = [0] * count
-    for lane, c in enumerate(labels.tolist()):
-        members[c] |= 1 << lane
+    for lane, c in zip(np.flatnonzero(~huge).tolist(), labels[~huge].tolist()):
+        members[c] |= 1 << int(local[lane])
     children: list[set[int]] = [set() for _ in range(count)]
     indegree = np.zeros(count, int)
     for i, j in succ:
         a, b = int(labels[i]), int(labels[j])
-        if a != b and b not in children[a]:
+        if a != b and b not in children[a] and not huge[i]:
             children[a].add(b)
             indegree[b] += 1
     order, stack = [], [c for c in range(count) if indegree[c] == 0]  # topological order (Kahn)
@@ -241,5 +353,16 @@ def _routability(n: int, succ: list[tuple[int, int]]) -> tuple[float, int]:
     for c in reversed(order):
         for k in children[c]:
             reach[c] |= reach[k]
-    pairs = sum((reach[c].bit_count() - 1) * members[c].bit_count() for c in range(count))
-    return pairs / (n * (n - 1)), int(np.bincount(labels).max())
+    return sum((reach[c].bit_count() - 1) * members[c].bit_count() for c in range(count) if members[c])
+
+
+def _sampled_pairs(adj, weak: np.ndarray, huge: np.ndarray) -> float:
+    """Ordered pairs joined by a path within each ``huge`` weakly connected set, estimated from the lanes that
+    ``SAMPLED_SOURCES`` of its lanes (drawn with seed ``SEED``) reach."""
+    rng, pairs = np.random.default_rng(SEED), 0.0
+    for component in np.unique(weak[huge]):
+        lanes = np.flatnonzero(weak == component)
+        sources = rng.choice(lanes, min(SAMPLED_SOURCES, len(lanes)), replace=False)
+        reached = [len(breadth_first_order(adj, int(s), return_predecessors=False)) - 1 for s in sources]
+        pairs += float(np.mean(reached)) * len(lanes)
+    return pairs
