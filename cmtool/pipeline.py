@@ -39,6 +39,7 @@ import torch
 
 from cmtool.core.errors import CmtoolError
 from cmtool.core.jsonio import read_json, write_json
+from cmtool.core.tables import read_toml
 from cmtool.model import checkpoint as ckpt
 from cmtool.train.recipe import Recipe, load_recipe
 
@@ -66,6 +67,9 @@ def stage_recipes(recipe: Recipe) -> dict[str, Path]:
         path = base / value
         if not path.is_file():
             raise CmtoolError(f"{recipe.path}: pipeline.{name}: no such recipe file {path}")
+        if "pipeline" in read_toml(path, "recipe"):  # itself, or another pipeline: stages would never end
+            raise CmtoolError(f"{recipe.path}: pipeline.{name}: {path} is a pipeline recipe, not the recipe of the "
+                              f"{name} stage")
         files[name] = path
     return files
 

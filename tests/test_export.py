@@ -368,7 +368,7 @@ def test_every_command_takes_every_map_that_holds_lanes(tmp_path, capsys):
     code, _, err = in_process(capsys, "convert", lanelet2, "--to", "hdmap", "--out", tmp_path / "kar.json")
     assert code == 0 and HDMap.load(tmp_path / "kar.json").city == "KAR", err
     code, _, err = in_process(capsys, "convert", city, "--to", "hdmap", "--out", city)
-    assert code == 1 and "the input itself" in err
+    assert code == 2 and "input is also its output" in err
 
 
 def test_lanelet2_and_carla_route_exactly_what_the_lane_graph_allows(tmp_path, capsys):

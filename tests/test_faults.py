@@ -462,9 +462,10 @@ def test_a_failed_sample_leaves_the_earlier_outputs_as_they_were(ws, tmp_path, f
     assert not [p for p in out.iterdir() if p.name.startswith(".")], "temporary files left behind"
 
 
-def test_eval_killed_midway_resumes_to_the_same_numbers(ws, tmp_path):
-    """kill -9 while `cmtool eval` generates maps, then the same command again: it continues from its cache and
-    ends with the metrics of a run never interrupted."""
+@pytest.mark.parametrize("sig", ["SIGKILL", "SIGTERM"])
+def test_eval_killed_midway_resumes_to_the_same_numbers(ws, tmp_path, sig):
+    """kill -9 (or SIGTERM, which ends it with exit 143) while `cmtool eval` generates maps, then the same command
+    again: it continues from its cache and ends with the metrics of a run never interrupted."""
     import os
     import signal
     import subprocess
@@ -485,8 +486,8 @@ def test_eval_killed_midway_resumes_to_the_same_numbers(ws, tmp_path):
     while not (cache.is_file() and len(cache.read_text().splitlines()) >= 2):
         assert proc.poll() is None and time.monotonic() < deadline, "eval ended before it could be killed"
         time.sleep(0.05)
-    os.kill(proc.pid, signal.SIGKILL)
-    proc.wait()
+    os.kill(proc.pid, getattr(signal, sig))
+    assert proc.wait(timeout=60) == (-9 if sig == "SIGKILL" else 143)
     assert not (killed / "metrics.json").exists()
     code, err = cli(*args, "--out", killed)
     assert code == 0, err
@@ -495,3 +496,569 @@ def test_eval_killed_midway_resumes_to_the_same_numbers(ws, tmp_path):
         for method in result["methods"].values():
             method.pop("seconds")  # timings differ
     assert numbers[0] == numbers[1]
+
+
+# --- Reliability 3: hostile inputs of new kinds, outputs onto inputs, special files, locks, signals ---------------
+
+def _osm(nodes: dict, ways: dict) -> str:
+    lines = ['<?xml version="1.0"?>', '<osm version="0.6">']
+    lines += [f' <node id="{i}" lat="{lat}" lon="{lon}"/>' for i, (lat, lon) in nodes.items()]
+    lines += [f' <way id="{w}">' + "".join(f'<nd ref="{i}"/>' for i in ids) + '<tag k="highway" v="residential"/></way>'
+              for w, ids in ways.items()]
+    return "\n".join(lines + ["</osm>"]) + "\n"
+
+
+def _safetensors_header(path: Path) -> tuple[dict, bytes]:
+    raw = path.read_bytes()
+    n = int.from_bytes(raw[:8], "little")
+    return json.loads(raw[8:8 + n]), raw[8 + n:]
+
+
+def _write_safetensors(path: Path, header_text: str, data: bytes) -> None:
+    head = header_text.encode()
+    path.write_bytes(len(head).to_bytes(8, "little") + head + data)
+
+
+@pytest.fixture(scope="module")
+def hostile(ws, tmp_path_factory):
+    """The workspace of the module, and inputs a hostile user would give."""
+    root = tmp_path_factory.mktemp("hostile")
+    p = dict(ws)
+
+    def put(name, text):
+        p[name.replace(".", "_").replace("-", "_")] = root / name
+        (root / name).write_text(text)
+
+    # coordinates off the globe, one id at two places
+    road = {2: (60.0, 24.91), 3: (60.001, 24.92)}
+    put("lat91.osm", _osm({1: (91, 24.9), **road}, {10: [1, 2, 3]}))
+    put("nan.osm", _osm({1: ("nan", 24.9), **road}, {10: [1, 2, 3]}))
+    put("inf.osm", _osm({1: (60.0, "inf"), **road}, {10: [1, 2, 3]}))
+    put("twice.osm", _osm({1: (60.0, 24.9), **road}, {10: [1, 2, 3]}).replace(
+        " <way", ' <node id="2" lat="20.0" lon="-10.0"/>\n <way', 1))
+    lanelet2 = LANELET2.read_text()
+    first = lanelet2.index("lat='") + len("lat='")
+    put("lanelet2_nan.osm", lanelet2[:first] + "nan" + lanelet2[lanelet2.index("'", first):])
+    # Argoverse 2: one lane segment id twice, no lane segments
+    av2 = json.loads(AV2.read_text())
+    ids = list(av2["lane_segments"])
+    av2["lane_segments"][ids[1]]["id"] = av2["lane_segments"][ids[0]]["id"]
+    (root / "dup").mkdir()
+    p["av2_dup"] = root / "dup" / AV2.name
+    p["av2_dup"].write_text(json.dumps(av2))
+    (root / "empty").mkdir()
+    p["av2_empty"] = root / "empty" / AV2.name
+    p["av2_empty"].write_text(json.dumps(json.loads(AV2.read_text()) | {"lane_segments": {}}))
+    # nesting thousands of levels deep
+    deep = "[" * 5000 + "]" * 5000
+    put("deep.json", '{"format": "cmtool.lanegraph", "version": 1, "lanes": ' + deep + "}")
+    put("deep.jsonl", '{"format": "cmtool.lanegraph", "version": 1, "lanes": ' + deep + "}\n")
+    put("deep_hd.json", '{"format": "cmtool.hdmap", "version": 1, "lanes": ' + deep + "}")
+    put("deep.toml", "x = " + "[" * 5000 + "]" * 5000 + "\n")
+    # memory asked for by a number
+    ihdr = (60000).to_bytes(4, "big") * 2 + bytes([8, 2, 0, 0, 0])
+    p["huge_png"] = root / "huge.png"
+    p["huge_png"].write_bytes(b"\x89PNG\r\n\x1a\n" + (13).to_bytes(4, "big") + b"IHDR" + ihdr + bytes(4))
+    np.save(root / "objects.npy", np.array([{"a": 1}], dtype=object), allow_pickle=True)
+    p["objects_npy"] = root / "objects.npy"
+    recipe = (REPO / "recipes" / "data_tiny.toml").read_text()
+    put("lines-huge.toml", recipe.replace("num_lines = 50", "num_lines = 1000000").replace("num_points = 20",
+                                                                                             "num_points = 10000"))
+    put("extent-huge.toml", recipe.replace("extent = 400.0", "extent = 1e9"))
+    # checkpoints: a header naming a tensor twice, tensors overlapping, an index out of its folder or of thousands
+    from cmtool.model.release import bundled_checkpoint
+
+    shipped = bundled_checkpoint()
+
+    def ckpt_copy(name):
+        dest = root / "ckpt" / name
+        shutil.copytree(shipped.parent, dest, ignore=shutil.ignore_patterns("MANIFEST.json"))
+        return dest / shipped.name
+
+    shard = sorted(shipped.glob("model-*.safetensors"))[0].name
+    header, data = _safetensors_header(shipped / shard)
+    names = [k for k in header if k != "__metadata__"]
+    text = json.dumps(header)
+    p["ckpt_twice"] = ckpt_copy("twice")
+    entry = json.dumps({names[0]: header[names[0]]})[1:-1]
+    _write_safetensors(p["ckpt_twice"] / shard, text[:-1] + ", " + entry + "}", data)
+    sizes = {}
+    for k in names:  # two tensors of one size, the second moved onto the first
+        span = header[k]["data_offsets"]
+        sizes.setdefault(span[1] - span[0], []).append(k)
+    a, b = next(v for v in sizes.values() if len(v) > 1)[:2]
+    overlap = json.loads(text)
+    overlap[b]["data_offsets"] = overlap[a]["data_offsets"]
+    p["ckpt_overlap"] = ckpt_copy("overlap")
+    _write_safetensors(p["ckpt_overlap"] / shard, json.dumps(overlap), data)
+    index = json.loads((shipped / "model.safetensors.index.json").read_text())
+    p["ckpt_escape"] = ckpt_copy("escape")
+    escape = dict(index, weight_map={k: "../../../" + v for k, v in index["weight_map"].items()})
+    (p["ckpt_escape"] / "model.safetensors.index.json").write_text(json.dumps(escape))
+    p["ckpt_bogus"] = ckpt_copy("bogus")
+    bogus = dict(index, weight_map=index["weight_map"] | {f"w{i}": f"model-{i:05d}-of-99999.safetensors"
+                                                         for i in range(5000)})
+    (p["ckpt_bogus"] / "model.safetensors.index.json").write_text(json.dumps(bogus))
+    p["ckpt_deep"] = ckpt_copy("deep")
+    (p["ckpt_deep"] / "config.json").write_text('{"format": "cmtool.checkpoint", "x": ' + deep + "}")
+    # datasets whose manifest lists shards out of the folder, or thousands that no unit makes
+    for name, shards in (("data_escape", lambda s: [{"file": "../" * 6 + "etc/passwd", "scenes": 8}]),
+                         ("data_bogus", lambda s: s + [{"file": f"train/u{i:05d}_00.npz", "scenes": 8}
+                                                       for i in range(900, 20000)])):
+        shutil.copytree(ws["data"], root / name)
+        manifest = json.loads((root / name / "manifest.json").read_text())
+        split = next(iter(manifest["splits"].values()))
+        split["shards"] = shards(split["shards"])
+        (root / name / "manifest.json").write_text(json.dumps(manifest))
+        p[name] = root / name
+    # training recipes of models far beyond any machine's memory
+    from tests.test_train import write_recipe
+
+    tiny = write_recipe(root / "rvae-tiny.toml", "rvae", 2, data=str(ws["data"])).read_text()
+    put("rvae-deep.toml", tiny.replace("decoder_layers = 1", "decoder_layers = 100000"))
+    put("rvae-huge.toml", tiny.replace("d_model = 32", "d_model = 16384").replace("decoder_layers = 1",
+                                                                                 "decoder_layers = 64")
+        .replace("ffn = 64", "ffn = 65536"))
+    # a pipeline recipe that names itself as a stage
+    for stage in ("rvae", "dit", "controlnet"):
+        (root / f"{stage}.toml").write_text(f'[train]\nstage = "{stage}"\n')
+    put("self.toml", '[pipeline]\ndata = "self.toml"\nrvae = "self.toml"\ndit = "dit.toml"\n'
+                     'controlnet = "controlnet.toml"\n')
+    return p
+
+
+SD_ARGS = ("--sd", str(SD_PNG), "--steps", "1", "--no-log", "--quiet")
+HOSTILE_CASES = [
+    case("import-osm-lat91", "data", "import", "--format", "osm", "{lat91_osm}", "--out", "{out}/o.json",
+         fragment="off the globe"),
+    case("import-osm-nan", "data", "import", "--format", "osm", "{nan_osm}", "--out", "{out}/o.json",
+         fragment="off the globe"),
+    case("import-osm-inf", "data", "import", "--format", "osm", "{inf_osm}", "--out", "{out}/o.json",
+         fragment="off the globe"),
+    case("import-osm-id-twice", "data", "import", "--format", "osm", "{twice_osm}", "--out", "{out}/o.json",
+         fragment="twice"),
+    case("sample-osm-nan", "sample", "--osm", "{nan_osm}", "--center", "60.0,24.91", "--steps", "1", "--no-log",
+         "--out", "{out}/s", fragment="off the globe"),
+    case("import-lanelet2-nan", "data", "import", "--format", "lanelet2", "{lanelet2_nan_osm}", "--out",
+         "{out}/l.json", fragment="off the globe"),
+    case("import-av2-id-twice", "data", "import", "--format", "av2", "{av2_dup}", "--out", "{out}/a.json",
+         fragment="earlier lane segment"),
+    case("import-av2-no-lanes", "data", "import", "--format", "av2", "{av2_empty}", "--out", "{out}/a.json",
+         fragment="no lane segments"),
+    *[case(f"{cmd}-deep-json", *args.split(), fragment="nested")
+      for cmd, args in {"validate": "validate {deep_json}", "validate-jsonl": "validate {deep_jsonl}",
+                        "metrics": "metrics --generated {deep_jsonl} --reference {gtl} --no-features",
+                        "export": "export --format geojson {deep_json} --origin 60,25 --out {out}/d.geojson",
+                        "data-sd": "data sd {deep_hd_json} --out {out}/d.json",
+                        "info-ckpt": "info {ckpt_deep}",
+                        "sample-ckpt": "sample --ckpt {ckpt_deep} --sd " + str(SD_PNG) + " --no-log --out {out}/d"
+                        }.items()],
+    *[case(f"{cmd}-deep-toml", *args.split(), fragment="nested")
+      for cmd, args in {"train": "train rvae --recipe {deep_toml} --out {out}/t",
+                        "build": "data build --recipe {deep_toml} --out {out}/b", "info": "info {deep_toml}"}.items()],
+    case("frames-n-huge", "data", "frames", "{sd}", "--n", str(10 ** 8), fragment="--n"),
+    case("poses-n-huge", "data", "poses", "{hd}", "--n", str(10 ** 8), fragment="--n"),
+    case("sample-picture-huge", "sample", "--sd", "{huge_png}", "--steps", "1", "--no-log", "--out", "{out}/p",
+         fragment="60000 x 60000"),
+    case("metrics-control-objects", "metrics", "--generated", "{lgl}", "--reference", "{gtl}", "--no-features",
+         "--control", "{objects_npy}", fragment="objects.npy"),
+    case("build-recipe-memory", "data", "build", "--recipe", "{lines_huge_toml}", "--out", "{out}/b",
+         fragment="GiB"),
+    case("build-recipe-extent", "data", "build", "--recipe", "{extent_huge_toml}", "--out", "{out}/b",
+         fragment="extent"),
+    *[case(f"sample-ckpt-{bad}", "sample", "--ckpt", "{ckpt_" + bad + "}", *SD_ARGS, "--out", "{out}/k",
+           fragment=fragment)
+      for bad, fragment in (("twice", "twice"), ("overlap", "overlapping"), ("escape", "index"),
+                            ("bogus", "index"))],
+    case("eval-manifest-escape", "eval", "--data", "{data_escape}", "--n", "2", "--steps", "1", "--out", "{out}/e",
+         fragment="manifest"),
+    case("eval-manifest-bogus", "eval", "--data", "{data_bogus}", "--n", "2", "--steps", "1", "--out", "{out}/e",
+         fragment="manifest"),
+    case("train-model-deep", "train", "rvae", "--recipe", "{rvae_deep_toml}", "--out", "{out}/t",
+         fragment="decoder_layers"),
+    case("train-model-huge", "train", "rvae", "--recipe", "{rvae_huge_toml}", "--out", "{out}/t",
+         fragment="billion parameters"),
+    case("pipeline-names-itself", "train", "pipeline", "--recipe", "{self_toml}", "--out", "{out}/p",
+         fragment="pipeline recipe"),
+    *[case(f"connect-{name}", "sample", *SD_ARGS[:-2], "--quiet", "--out", "{out}/c", "--connect", url,
+           fragment="--connect")
+      for name, url in (("port-70000", "rerun+http://127.0.0.1:70000/proxy"), ("port-abc", "rerun+http://127.0.0.1:abc"),
+                        ("port-negative", "rerun+http://127.0.0.1:-1/proxy"), ("not-a-url", "abc"),
+                        ("http-scheme", "http://127.0.0.1:9876/proxy"))],
+]
+
+
+@pytest.mark.parametrize("args, fragment, full", HOSTILE_CASES)
+def test_hostile_input_is_one_line(hostile, tmp_path, args, fragment, full):
+    out = tmp_path / "out"
+    out.mkdir()
+    check(*cli(*resolve(args, hostile, out)), fragment)
+    assert not any(out.iterdir()), "a refused command wrote files"
+
+
+SAME_FILE = {  # commands whose output is given as one of their inputs: (command line, the input)
+    "data-sd": (("data", "sd", "{f}", "--out", "{f}"), "hd"),
+    "export": (("export", "--format", "geojson", "{f}", "--origin", "60,25", "--out", "{f}"), "lgl"),
+    "repair": (("validate", "{f}", "--repair", "--out", "{f}"), "lgl"),
+    "import-osm": (("data", "import", "--format", "osm", "{f}", "--out", "{f}"), "lat91_osm"),
+    "metrics-json": (("metrics", "--generated", "{f}", "--reference", "{gtl}", "--no-features", "--json", "{f}"),
+                     "lgl"),
+    "metrics-json-ref": (("metrics", "--generated", "{lgl}", "--reference", "{f}", "--no-features", "--json", "{f}"),
+                         "gtl"),
+}
+
+
+@pytest.mark.parametrize("how", ["same-path", "hard-link", "symbolic-link"])
+@pytest.mark.parametrize("name", SAME_FILE)
+def test_an_output_never_replaces_an_input(hostile, tmp_path, name, how):
+    """The output named as the input itself, a hard link to it or a symbolic link to it: refused in one line
+    before any work, the input byte-identical."""
+    args, source = SAME_FILE[name]
+    f = tmp_path / Path(hostile[source]).name
+    shutil.copy(hostile[source], f)
+    before = f.read_bytes()
+    dest = f if how == "same-path" else tmp_path / ("alias" + f.suffix)
+    if how == "hard-link":
+        dest.hardlink_to(f)
+    elif how == "symbolic-link":
+        dest.symlink_to(f)
+    first = args.index("{f}")  # the input; the later {f}: the output
+    argv = [str(f) if i == first else str(dest) if a == "{f}" else a for i, a in enumerate(args)]
+    check(*cli(*resolve(argv, hostile, tmp_path)), "input")
+    assert f.read_bytes() == before
+
+
+def test_sample_into_the_folder_of_its_sd_picture_keeps_the_picture(tmp_path):
+    picture = tmp_path / "sd.png"
+    shutil.copy(SD_PNG, picture)
+    before = picture.read_bytes()
+    check(*cli("sample", "--sd", picture, "--steps", 1, "--no-log", "--quiet", "--out", tmp_path), "sd.png")
+    assert picture.read_bytes() == before and sorted(p.name for p in tmp_path.iterdir()) == ["sd.png"]
+
+
+def test_special_files_are_never_replaced(ws, tmp_path):
+    """A FIFO, a link to a FIFO (as /dev/stdout may be) and, as root, a character device (as /dev/null) are refused as
+    outputs and stay what they were; a link to a regular file is written through and stays a link."""
+    import os
+    import stat
+
+    fifo = tmp_path / "fifo"
+    os.mkfifo(fifo)
+    link = tmp_path / "stdout"
+    link.symlink_to(fifo)
+    specials = [fifo, link]
+    if os.geteuid() == 0:
+        device = tmp_path / "null"
+        os.mknod(device, 0o666 | stat.S_IFCHR, os.makedev(1, 3))
+        specials.append(device)
+    for path in specials:
+        for args in (("export", "--format", "geojson", ws["lg"], "--origin", "60,25", "--out", path),
+                     ("data", "sd", ws["hd"], "--out", path), ("validate", ws["lgl"], "--json", path)):
+            check(*cli(*args), "not a regular file")
+    assert stat.S_ISFIFO(os.stat(fifo).st_mode) and link.is_symlink()
+    assert os.geteuid() != 0 or stat.S_ISCHR(os.stat(tmp_path / "null").st_mode)
+    target = tmp_path / "real.geojson"
+    target.write_text("old")
+    alias = tmp_path / "alias.geojson"
+    alias.symlink_to(target)
+    code, err = cli("export", "--format", "geojson", ws["lg"], "--origin", "60,25", "--out", alias)
+    assert code == 0, err
+    assert alias.is_symlink() and json.loads(target.read_text())["type"] == "FeatureCollection"
+
+
+def test_nesting_is_measured_outside_strings():
+    """The JSON depth check agrees with a recursive count on random documents, brackets inside strings, escaped
+    quotes and chunk borders included."""
+    import random
+
+    from cmtool.core.jsonio import nesting
+
+    def depth(o):
+        if not isinstance(o, (list, dict)):
+            return 0
+        return 1 + max((depth(v) for v in (o.values() if isinstance(o, dict) else o)), default=0)
+
+    def gen(rng, d):
+        r = rng.random()
+        if d > 6 or r < 0.3:
+            return rng.choice(["[{", 'x]"]', 1, 2.5, 'a\\"[', None, "}}"])
+        if r < 0.65:
+            return [gen(rng, d + 1) for _ in range(rng.randint(0, 3))]
+        return {rng.choice(["k[", "}", "z"]) + str(i): gen(rng, d + 1) for i in range(rng.randint(0, 3))}
+
+    rng = random.Random(0)
+    for _ in range(500):
+        doc = gen(rng, 0)
+        text = json.dumps(doc)
+        assert {nesting(text, chunk) for chunk in (1, 3, 7, 1 << 22)} == {depth(doc)}, text
+
+
+@pytest.fixture(scope="module")
+def run(ws, tmp_path_factory):
+    """An RVAE run of 2 steps (one checkpoint with its training state), and its recipe."""
+    from tests.test_train import write_recipe
+
+    root = tmp_path_factory.mktemp("run")
+    recipe = write_recipe(root / "rvae.toml", "rvae", 2, data=str(ws["data"]))
+    code, err = cli("train", "rvae", "--recipe", recipe, "--quiet", "--out", root / "run")
+    assert code == 0, err
+    return root
+
+
+def _longer(run: Path, dest: Path, steps: int) -> Path:
+    """The run's recipe with ``steps`` training steps."""
+    import re
+
+    dest.write_text(re.sub(r"(?m)^(steps|preview_every) = 2$", rf"\1 = {steps}", (run / "rvae.toml").read_text()))
+    return dest
+
+
+@pytest.mark.parametrize("damage", ["no-param-groups", "empty-param-groups", "groups-not-a-list"])
+def test_damaged_optimizer_state_is_named(run, tmp_path, damage):
+    shutil.copytree(run / "run", tmp_path / "run")
+    meta = next((tmp_path / "run" / "checkpoints").glob("step_*")) / "train_state.json"
+    meta.write_text(json.dumps({} if damage == "no-param-groups" else
+                               {"param_groups": [] if damage == "empty-param-groups" else 5}))
+    check(*cli("train", "rvae", "--recipe", _longer(run, tmp_path / "rvae.toml", 4), "--quiet", "--resume", "--out",
+               tmp_path / "run"), "damaged training state")
+
+
+def test_full_disk_while_training_keeps_the_last_checkpoint(run, tmp_path):
+    """Resuming onto a full disk fails in one line; the checkpoint before is intact, no temporary folder stays."""
+    shutil.copytree(run / "run", tmp_path / "run")
+    before = snapshot(tmp_path / "run" / "checkpoints")
+    recipe = _longer(run, tmp_path / "rvae.toml", 4)
+    with full_disk():
+        code, err = cli("train", "rvae", "--recipe", recipe, "--quiet", "--resume", "--out", tmp_path / "run")
+    check(code, err, "cannot write")
+    assert snapshot(tmp_path / "run" / "checkpoints") == before
+    assert not list((tmp_path / "run" / "checkpoints").glob(".*"))
+
+
+def test_full_disk_while_packing_keeps_the_earlier_set(ws, tmp_path):
+    """pack over an earlier set with room for part of the new one: the earlier set stays whole."""
+    out = tmp_path / "weights"
+    code, err = cli("pack", "--ckpt", ws["ckpt"], "--out", out)
+    assert code == 0, err
+    before = snapshot(out)
+    soft, hard = resource.getrlimit(resource.RLIMIT_FSIZE)
+    resource.setrlimit(resource.RLIMIT_FSIZE, (12 * 2**20, hard))  # the first weight file fits, the second not
+    try:
+        code, err = cli("pack", "--ckpt", ws["ckpt"], "--out", out)
+    finally:
+        resource.setrlimit(resource.RLIMIT_FSIZE, (soft, hard))
+    check(code, err, "cannot write")
+    assert snapshot(out) == before
+    assert sorted(p.name for p in tmp_path.iterdir()) == ["weights"]
+
+
+def test_a_viewer_that_never_answers_is_refused(tmp_path):
+    import socket
+    import threading
+
+    server = socket.socket()
+    server.bind(("127.0.0.1", 0))
+    server.listen()
+    accepted = []
+    threading.Thread(target=lambda: accepted.append(server.accept()), daemon=True).start()
+    try:
+        check(*cli("sample", *SD_ARGS[:-2], "--out", tmp_path / "s", "--connect",
+                   f"rerun+http://127.0.0.1:{server.getsockname()[1]}/proxy"), "does not answer")
+    finally:
+        server.close()
+    assert accepted and not (tmp_path / "s").exists()
+
+
+def test_a_live_recording_onto_a_full_disk_is_one_line(tmp_path):
+    """--connect to a running viewer with --rrd onto a full disk: one line (Rerun's own file writer fails), no partial
+    recording left."""
+    import socket
+    import subprocess
+    import sys
+
+    with socket.socket() as s:
+        s.bind(("127.0.0.1", 0))
+        port = s.getsockname()[1]
+    viewer = subprocess.Popen([sys.executable, "-c", "import rerun as rr, time\nrr.init('viewer')\n"
+                               f"rr.serve_grpc(grpc_port={port})\nprint('up', flush=True)\ntime.sleep(600)"],
+                              stdout=subprocess.PIPE, text=True)
+    try:
+        assert viewer.stdout.readline().strip() == "up"
+        with full_disk():
+            code, err = cli("sample", *SD_ARGS[:-2], "--quiet", "--out", tmp_path / "s", "--rrd", tmp_path / "x.rrd",
+                            "--connect", f"rerun+http://127.0.0.1:{port}/proxy")
+    finally:
+        viewer.kill()
+        viewer.wait()
+    check(code, err, "cannot write")
+    assert sorted(p.name for p in tmp_path.iterdir()) == []
+
+
+def test_serve_on_a_busy_port_is_one_line(tmp_path):
+    import socket
+
+    from cmtool.viz.recording import GRPC_PORT
+
+    held = socket.socket()
+    try:
+        held.bind(("0.0.0.0", GRPC_PORT))  # bound, not listening: a connection test would find it free
+    except OSError:
+        pass  # something else holds it: busy all the same
+    try:
+        check(*cli("sample", "--sd", SD_PNG, "--steps", 1, "--quiet", "--out", tmp_path / "s", "--serve"),
+              f"port {GRPC_PORT}")
+    finally:
+        held.close()
+
+
+def _subprocess(*args, **kwargs):
+    import os
+    import subprocess
+    import sys
+
+    return subprocess.Popen([sys.executable, "-m", "cmtool", *map(str, args)], cwd=REPO, stdout=subprocess.DEVNULL,
+                            stderr=subprocess.PIPE, text=True, env=os.environ | {"OMP_NUM_THREADS": "1"}, **kwargs)
+
+
+def test_a_second_run_on_one_output_folder_fails_at_once(ws, tmp_path):
+    """While one run holds its output folder, a second run on it fails in one line (and leaves it alone); once the
+    first has ended, the folder is free."""
+    import subprocess
+    import sys
+
+    out = tmp_path / "eval"
+    holder = subprocess.Popen([sys.executable, "-c", "import sys, time\nfrom cmtool.core.outputs import claim_folder\n"
+                               f"claim_folder({str(out)!r})\nprint('held', flush=True)\ntime.sleep(600)"],
+                              cwd=REPO, stdout=subprocess.PIPE, text=True)
+    try:
+        assert holder.stdout.readline().strip() == "held"
+        for args in (("eval", "--data", ws["data"], "--n", 2, "--steps", 1, "--no-features", "--quiet", "--out", out),
+                     ("sample", *SD_ARGS, "--out", out), ("data", "build", "--recipe",
+                                                         REPO / "recipes" / "data_tiny.toml", "--out", out)):
+            check(*cli(*args), "another cmtool run")
+        assert not any(out.iterdir())
+    finally:
+        holder.kill()
+        holder.wait()
+    code, err = cli("sample", *SD_ARGS, "--out", out)
+    assert code == 0, err
+
+
+def _children(pid: int) -> list[int]:
+    """The processes whose parent is ``pid`` (from /proc)."""
+    found = []
+    for stat in Path("/proc").glob("[0-9]*/stat"):
+        try:
+            fields = stat.read_text().rsplit(")", 1)[1].split()
+        except OSError:
+            continue
+        if int(fields[1]) == pid:
+            found.append(int(stat.parent.name))
+    return found
+
+
+def _running(pid: int) -> bool:
+    try:
+        return Path(f"/proc/{pid}/stat").read_text().rsplit(")", 1)[1].split()[0] != "Z"
+    except OSError:
+        return False
+
+
+@pytest.mark.parametrize("sig", ["SIGTERM", "SIGINT"])
+def test_a_signal_stops_a_build_and_its_workers(tmp_path, sig):
+    """SIGTERM to `data build` (or Ctrl-C, which reaches its whole process group) stops it and its worker processes
+    with a clean exit status and no temporary file; the same command then finishes the dataset."""
+    import os
+    import signal
+    import time
+
+    recipe = tmp_path / "data.toml"
+    recipe.write_text((REPO / "recipes" / "data_tiny.toml").read_text().replace(
+        "maps_per_city = 1 ", "maps_per_city = 4 ").replace("scenes_per_map = 8 ", "scenes_per_map = 100 "))
+    out = tmp_path / "data"
+    proc = _subprocess("data", "build", "--recipe", recipe, "--out", out, "--workers", 2, start_new_session=True)
+    deadline = time.monotonic() + 120
+    while not list(out.rglob("*.npz")):
+        assert proc.poll() is None and time.monotonic() < deadline, proc.stderr.read()
+        time.sleep(0.05)
+    workers = _children(proc.pid)
+    assert workers, "no worker processes"
+    if sig == "SIGTERM":
+        proc.send_signal(signal.SIGTERM)
+    else:
+        os.killpg(proc.pid, signal.SIGINT)
+    err = proc.communicate(timeout=60)[1]
+    assert proc.returncode == (143 if sig == "SIGTERM" else 130), err
+    assert "Traceback" not in err, err
+    time.sleep(0.5)
+    alive = [w for w in workers if _running(w)]
+    assert not alive, f"workers {alive} outlived the command"
+    assert not [p for p in out.rglob(".*") if p.is_file()], "temporary files left behind"
+    code, err = cli("data", "build", "--recipe", recipe, "--out", out)
+    assert code == 0, err
+    assert json.loads((out / "manifest.json").read_text())["complete"]
+
+
+@pytest.mark.parametrize("sig", ["SIGTERM", "SIGINT"])
+def test_a_signal_during_sample_leaves_the_earlier_maps(tmp_path, sig):
+    import signal
+    import time
+
+    out = tmp_path / "s"
+    code, err = cli("sample", "--sd", SD_PNG, "--steps", 2, "--quiet", "--out", out)
+    assert code == 0, err
+    before = snapshot(out)
+    proc = _subprocess("sample", "--sd", SD_PNG, "--num", 64, "--steps", 50, "--out", out)
+    time.sleep(8)  # the model loaded, the maps being denoised
+    assert proc.poll() is None, proc.stderr.read()
+    proc.send_signal(getattr(signal, sig))
+    err = proc.communicate(timeout=60)[1]
+    assert proc.returncode == (143 if sig == "SIGTERM" else 130) and "Traceback" not in err, err
+    assert snapshot(out) == before
+    assert not [p for p in out.iterdir() if p.name.startswith(".")], "temporary files left behind"
+
+
+def test_sigterm_during_training_resumes(run, tmp_path):
+    """SIGTERM while a run trains: a clean exit; the checkpoints it has are whole, and --resume finishes it."""
+    import signal
+    import time
+
+    out = tmp_path / "run"
+    proc = _subprocess("train", "rvae", "--recipe", _longer(run, tmp_path / "long.toml", 400), "--quiet", "--out", out)
+    deadline = time.monotonic() + 300
+    while not list(out.glob("checkpoints/step_*")):
+        assert proc.poll() is None and time.monotonic() < deadline, proc.stderr.read()
+        time.sleep(0.1)
+    proc.send_signal(signal.SIGTERM)
+    err = proc.communicate(timeout=120)[1]
+    assert proc.returncode == 143 and "Traceback" not in err, err
+    assert not list(out.glob("checkpoints/.*")), "a half-written checkpoint folder"
+    last = max(int(p.name.split("_")[1]) for p in out.glob("checkpoints/step_*"))
+    code, err = cli("train", "rvae", "--recipe", _longer(run, tmp_path / "more.toml", last + 2), "--quiet", "--resume",
+                    "--out", out)
+    assert code == 0, err
+    assert (out / "checkpoints" / f"step_{last + 2:08d}").is_dir()
+
+
+def test_a_stop_waits_at_most_the_grace_period():
+    """SIGTERM while the command is inside one long call into C (where Python cannot run its handler): the process
+    still ends, with exit 143, within the grace period."""
+    import signal
+    import subprocess
+    import sys
+    import time
+
+    from cmtool.cli import _Watchdog
+
+    busy = ("import numpy as np\nfrom cmtool.cli import cli, main\n@cli.command('busy')\ndef busy():\n"
+            "    print('busy', flush=True)\n    np.linalg.svd(np.random.default_rng(0).random((4000, 4000)))\n"
+            "main(['busy'])\n")
+    proc = subprocess.Popen([sys.executable, "-c", busy], cwd=REPO, stdout=subprocess.PIPE, stderr=subprocess.PIPE,
+                            text=True)
+    assert proc.stdout.readline().strip() == "busy"
+    time.sleep(0.5)
+    began = time.monotonic()
+    proc.send_signal(signal.SIGTERM)
+    err = proc.communicate(timeout=120)[1]
+    assert proc.returncode == 143 and "Traceback" not in err, err
+    assert time.monotonic() - began < _Watchdog.GRACE_S + 5

@@ -12,13 +12,16 @@ maps: validate, export and convert, ablate, bench, release: info and pack); this
 from __future__ import annotations
 
 import errno
+import os
+import signal
 import sys
+import threading
 
 import click
 
 from cmtool import __version__
 from cmtool.cli import ablate, baseline, bench, data, evaluate, maps, release, sample, train
-from cmtool.core.errors import CmtoolError
+from cmtool.core.errors import CmtoolError, Terminated
 
 __all__ = ["cli", "main"]
 
@@ -35,7 +38,13 @@ for _command in (data.data, train.train_cmd, sample.sample, baseline.baseline, e
 
 
 def main(argv=None) -> None:
-    """Entry point: run the CLI, reducing user errors to one line and a non-zero exit."""
+    """Entry point: run the CLI, reducing user errors to one line and a non-zero exit. SIGTERM stops a command as
+    Ctrl-C does (exit 143, Ctrl-C 130): files being written are removed, worker processes stopped."""
+    from cmtool.core import outputs
+
+    on_main_thread = threading.current_thread() is threading.main_thread()
+    previous = signal.signal(signal.SIGTERM, _terminate) if on_main_thread else None
+    watchdog = _Watchdog() if on_main_thread else None
     try:
         cli.main(args=argv, prog_name="cmtool", standalone_mode=False)
     except CmtoolError as e:
@@ -44,6 +53,16 @@ def main(argv=None) -> None:
     except click.exceptions.Abort:
         click.echo("Aborted.", err=True)
         sys.exit(130)
+    except Terminated:
+        click.echo("Terminated.", err=True)
+        sys.exit(143)
+    except (MemoryError, RuntimeError) as e:  # a size no check foresaw: numpy and torch say what did not fit
+        if isinstance(e, RuntimeError) and "can't allocate memory" not in str(e):  # torch's CPU allocator
+            raise
+        why = str(e).strip().splitlines()[-1] if str(e).strip() else ""
+        click.echo(f"Error: out of memory{f' ({why})' if why else ''}: an option, recipe or input asks for more "
+                   f"than this machine has", err=True)
+        sys.exit(1)
     except click.UsageError as e:
         hint = f" (see '{e.ctx.command_path} --help')" if e.ctx is not None else ""
         click.echo(f"Error: {e.format_message()}{hint}", err=True)
@@ -59,3 +78,43 @@ def main(argv=None) -> None:
         where = f"{e.filename}: " if e.filename is not None else "cannot write: "
         click.echo(f"Error: {where}{os_reason(e)}", err=True)
         sys.exit(1)
+    finally:
+        outputs.release()
+        if previous is not None:
+            signal.signal(signal.SIGTERM, previous)
+        if watchdog is not None:
+            watchdog.stop()
+
+
+def _terminate(signum, frame):
+    signal.signal(signal.SIGTERM, signal.SIG_DFL)  # a second SIGTERM ends the process at once
+    raise Terminated
+
+
+class _Watchdog:
+    """Ends the process GRACE_S after a SIGTERM or Ctrl-C that the command has not yet acted on: Python runs signal
+    handlers between bytecodes, so a long call into C (GEOS on a huge map) would delay the clean stop for minutes.
+    Outputs stay whole either way (they are renamed into place only when complete)."""
+
+    GRACE_S = 10.0
+
+    def __init__(self):
+        self.read, write = os.pipe()
+        os.set_blocking(write, False)
+        self.previous = signal.set_wakeup_fd(write, warn_on_full_buffer=False)
+        self.write, self.done = write, threading.Event()
+        threading.Thread(target=self._watch, daemon=True).start()
+
+    def _watch(self) -> None:
+        while True:
+            got = os.read(self.read, 64)  # the C-level handler writes each signal's number here, at once
+            if not got or self.done.is_set():
+                return
+            if any(n in (signal.SIGTERM, signal.SIGINT) for n in got) and not self.done.wait(self.GRACE_S):
+                sys.stderr.write("Terminated (the command did not stop in time).\n")
+                os._exit(143 if signal.SIGTERM in got else 130)
+
+    def stop(self) -> None:
+        self.done.set()
+        signal.set_wakeup_fd(self.previous)
+        os.close(self.write)  # the watching thread reads the end of the pipe and ends

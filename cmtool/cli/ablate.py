@@ -6,8 +6,8 @@ from pathlib import Path
 
 import click
 
-from cmtool.cli.common import (CITY_CFG_HELP, PRECISION_OPTION, SEED, SMOOTH_OPTION, DatasetDir, Finite, _device,
-                               _generator, sampler_options)
+from cmtool.cli.common import (CITY_CFG_HELP, PRECISION_OPTION, SEED, SMOOTH_OPTION, DatasetDir, Finite, InPath,
+                               OutPath, _device, _generator, sampler_options)
 from cmtool.core.errors import CmtoolError
 
 
@@ -39,7 +39,7 @@ def _floats(value: str, option: str) -> list[float]:
 
 
 _ABLATE_COMMON = [
-    click.option("--ckpt", type=click.Path(path_type=Path),
+    click.option("--ckpt", type=InPath(),
                  help="ControlMap checkpoint or run folder [default: the weights shipped with cmtool]."),
     click.option("--data", "data_dir", required=True, type=DatasetDir(),
                  help="Dataset cache whose scenes give the SD maps."),
@@ -47,7 +47,7 @@ _ABLATE_COMMON = [
     click.option("--n", default=64, show_default=True, type=click.IntRange(min=1), help="Scenes (the first N)."),
     sampler_options,
     SMOOTH_OPTION,
-    click.option("--out", required=True, type=click.Path(file_okay=False, path_type=Path), help="Output folder."),
+    click.option("--out", required=True, type=OutPath(file_okay=False), help="Output folder."),
     click.option("--device", help="torch device [default: cuda when available, else cpu]."),
     PRECISION_OPTION,
     click.option("--quiet", is_flag=True, help="No progress line."),
@@ -63,10 +63,10 @@ def _ablate_options(fn):
 @ablate.command("cfg")
 @_ablate_options
 @click.option("--w", "weights", default="0,0.3,0.5,0.7,1.0", show_default=True, help="Guidance weights to sweep.")
-@click.option("--seeds", default=2, show_default=True, type=click.IntRange(min=1), help="Maps per scene (diversity).")
+@click.option("--seeds", default=2, show_default=True, type=click.IntRange(1, 100), help="Maps per scene (diversity).")
 @click.option("--backbone", default="resnet50-seeded", show_default=True,
               type=click.Choice(["resnet50-seeded", "resnet50-imagenet"]), help="Feature network of GT Recall.")
-@click.option("--weights-file", type=click.Path(dir_okay=False, path_type=Path), help="ImageNet ResNet-50 weights.")
+@click.option("--weights-file", type=InPath(dir_okay=False), help="ImageNet ResNet-50 weights.")
 @click.option("--no-features", is_flag=True, help="Skip GT Recall.")
 def ablate_cfg(ckpt, data_dir, split, n, steps, sampler, smooth, out, device, precision, quiet, weights, seeds, backbone,
                weights_file, no_features):
@@ -114,7 +114,7 @@ def ablate_city_swap(ckpt, data_dir, split, n, steps, sampler, smooth, out, devi
 
 
 @ablate.command("dit")
-@click.option("--ckpt", "ckpts", multiple=True, required=True, type=click.Path(path_type=Path),
+@click.option("--ckpt", "ckpts", multiple=True, required=True, type=InPath(),
               help="DiT (or ControlMap, sampled without control) checkpoint or run folder (repeatable).")
 @click.option("--data", "data_dir", required=True, type=DatasetDir(),
               help="Dataset cache whose scenes give the city labels and the reference maps.")
@@ -124,7 +124,7 @@ def ablate_city_swap(ckpt, data_dir, split, n, steps, sampler, smooth, out, devi
 @click.option("--seed", default=0, show_default=True, type=SEED,
               help="Random seed (the same noise for every checkpoint).")
 @SMOOTH_OPTION
-@click.option("--out", required=True, type=click.Path(file_okay=False, path_type=Path), help="Output folder.")
+@click.option("--out", required=True, type=OutPath(file_okay=False), help="Output folder.")
 @click.option("--device", help="torch device [default: cuda when available, else cpu].")
 @PRECISION_OPTION
 @click.option("--quiet", is_flag=True, help="No progress line.")
@@ -147,9 +147,9 @@ def ablate_dit(ckpts, data_dir, split, n, steps, sampler, seed, smooth, out, dev
 
 
 @ablate.command("rvae")
-@click.option("--rvae", "rvae_path", type=click.Path(path_type=Path),
+@click.option("--rvae", "rvae_path", type=InPath(),
               help="RVAE checkpoint or run folder [default: the decoder shipped with cmtool].")
-@click.option("--encoder", "encoder_path", type=click.Path(path_type=Path),
+@click.option("--encoder", "encoder_path", type=InPath(),
               help="RVAE run whose encoder makes the latents [default: the RVAE's own]; needed for a decoder "
                    "without one, such as the shipped decoder (its encoder does not ship; `cmtool train encoder` "
                    "trains one for it).")
@@ -159,7 +159,7 @@ def ablate_dit(ckpts, data_dir, split, n, steps, sampler, seed, smooth, out, dev
 @click.option("--n", default=64, show_default=True, type=click.IntRange(min=1), help="Scenes per split and city.")
 @click.option("--tol", default=1.0, show_default=True, type=Finite(min=0, min_open=True),
               help="Lane F1 tolerance (m).")
-@click.option("--out", required=True, type=click.Path(file_okay=False, path_type=Path), help="Output folder.")
+@click.option("--out", required=True, type=OutPath(file_okay=False), help="Output folder.")
 @click.option("--device", help="torch device [default: cuda when available, else cpu].")
 @click.option("--quiet", is_flag=True, help="No progress line.")
 def ablate_rvae(rvae_path, encoder_path, data_dir, splits, n, tol, out, device, quiet):

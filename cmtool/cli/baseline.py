@@ -6,7 +6,7 @@ from pathlib import Path
 
 import click
 
-from cmtool.cli.common import SEED, map_input_options, map_inputs
+from cmtool.cli.common import SEED, OutPath, map_input_options, map_inputs
 from cmtool.core.errors import CmtoolError
 
 INPUTS_HELP = """
@@ -38,10 +38,10 @@ def _inputs(command):
         click.option("--side", default="auto", show_default=True, type=click.Choice(["auto", "right", "left"]),
                      help="Driving side; auto: the HD map's city's, else right."),
         click.option("--out", default=Path("baseline"), show_default=True,
-                     type=click.Path(file_okay=False, path_type=Path), help="Folder for the lane graphs and pictures."),
-        click.option("--grid", type=click.Path(dir_okay=False, path_type=Path),
+                     type=OutPath(file_okay=False), help="Folder for the lane graphs and pictures."),
+        click.option("--grid", type=OutPath(dir_okay=False),
                      help="Also write all maps' pictures stacked into this PNG."),
-        click.option("--whole", type=click.Path(dir_okay=False, path_type=Path),
+        click.option("--whole", type=OutPath(dir_okay=False),
                      help="Write the layout of the whole SD map as an HD map JSON here."),
     ]):
         command = option(command)

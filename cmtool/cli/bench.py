@@ -2,12 +2,11 @@
 
 from __future__ import annotations
 
-from pathlib import Path
 
 import click
 
-from cmtool.cli.common import (FEATURE_PRECISION_OPTION, PRECISION_OPTION, WORKERS_OPTION, Finite, _device, _generator,
-                               sampler_options)
+from cmtool.cli.common import (FEATURE_PRECISION_OPTION, PRECISION_OPTION, WORKERS_OPTION, Finite, InPath, _device,
+                               _generator, sampler_options)
 
 
 @click.group()
@@ -16,13 +15,14 @@ def bench():
 
 
 @bench.command("sample")
-@click.option("--ckpt", type=click.Path(path_type=Path),
+@click.option("--ckpt", type=InPath(),
               help="ControlMap (or DiT) checkpoint or run folder [default: the weights shipped with cmtool].")
-@click.option("--sd", "sd_path", type=click.Path(path_type=Path), help="SD input [default: a procedural crossing].")
+@click.option("--sd", "sd_path", type=InPath(), help="SD input [default: a procedural crossing].")
 @sampler_options
 @click.option("--cfg", default=1.0, show_default=True, type=Finite(min=0), help="Guidance weight.")
-@click.option("--batch", default=64, show_default=True, type=click.IntRange(min=2), help="The large batch to compare.")
-@click.option("--repeats", default=3, show_default=True, type=click.IntRange(min=1), help="Timed runs per setting.")
+@click.option("--batch", default=64, show_default=True, type=click.IntRange(2, 4096),
+              help="The large batch to compare.")
+@click.option("--repeats", default=3, show_default=True, type=click.IntRange(1, 1000), help="Timed runs per setting.")
 @click.option("--device", help="torch device [default: cuda when available, else cpu].")
 @PRECISION_OPTION
 def bench_sample_cmd(ckpt, sd_path, steps, sampler, cfg, batch, repeats, device, precision):
@@ -50,8 +50,8 @@ def bench_sample_cmd(ckpt, sd_path, steps, sampler, cfg, batch, repeats, device,
 
 @bench.command("dit")
 @click.option("--size", default="B", show_default=True, help="DiT size (tiny, S, B, L, XL).")
-@click.option("--batch", default=32, show_default=True, type=click.IntRange(min=1), help="Latents per forward pass.")
-@click.option("--repeats", default=5, show_default=True, type=click.IntRange(min=1), help="Timed passes per setting.")
+@click.option("--batch", default=32, show_default=True, type=click.IntRange(1, 4096), help="Latents per forward pass.")
+@click.option("--repeats", default=5, show_default=True, type=click.IntRange(1, 1000), help="Timed passes per setting.")
 def bench_dit_cmd(size, batch, repeats):
     """This project's DiT forward pass against diffusers' DiTTransformer2DModel of the same shape and batch, fp32
     and bf16 autocast, on the CPU (needs `pip install 'cmtool[bench]'`)."""
@@ -61,12 +61,12 @@ def bench_dit_cmd(size, batch, repeats):
 
 
 @bench.command("metrics")
-@click.option("--eval", "eval_dir", required=True, type=click.Path(file_okay=False, path_type=Path),
+@click.option("--eval", "eval_dir", required=True, type=InPath(file_okay=False),
               help="A `cmtool eval --out` folder: its cached maps and the scenes they were made for.")
 @click.option("--method", default="controlmap", show_default=True, type=click.Choice(["controlmap", "unguided"]))
-@click.option("--tile", default=1, show_default=True, type=click.IntRange(min=1),
+@click.option("--tile", default=1, show_default=True, type=click.IntRange(1, 64),
               help="Repeat the set this many times (512 x 8 = 4,096 is the paper's test-set size).")
-@click.option("--repeats", default=3, show_default=True, type=click.IntRange(min=1), help="Timed runs.")
+@click.option("--repeats", default=3, show_default=True, type=click.IntRange(1, 1000), help="Timed runs.")
 @click.option("--no-features", is_flag=True, help="Leave out the ResNet-50 metrics.")
 @click.option("--device", help="torch device [default: cuda when available, else cpu].")
 @FEATURE_PRECISION_OPTION

@@ -31,11 +31,51 @@ class Finite(click.FloatRange):
         return "" if self.min is None and self.max is None else super()._describe_range()
 
 
-class DatasetDir(click.Path):
+class InPath(click.Path):
+    """A file or folder the command reads: no output of the command may be written over it."""
+
+    def __init__(self, **kwargs):
+        super().__init__(path_type=Path, **kwargs)
+
+    def convert(self, value, param, ctx):
+        from cmtool.core import outputs
+
+        path = super().convert(value, param, ctx)
+        outputs.note_input(path)
+        for out in ctx.meta.get("cmtool.outputs", []) if ctx is not None else []:
+            if outputs.is_input(out) is not None:
+                self.fail(f"{path}: this command's input is also its output {out}; write the output to another path",
+                          param, ctx)
+        return path
+
+
+class OutPath(click.Path):
+    """A file (or, with ``file_okay=False``, a folder) the command writes: refused at once when it is one of the
+    command's inputs or a device, FIFO or socket; a folder is locked for the run (two runs never mix their files)."""
+
+    def __init__(self, **kwargs):
+        super().__init__(path_type=Path, **kwargs)
+
+    def convert(self, value, param, ctx):
+        from cmtool.core import outputs
+
+        path = super().convert(value, param, ctx)
+        try:
+            outputs.target(path)
+            if not self.file_okay:
+                outputs.claim_folder(path)
+        except CmtoolError as e:
+            self.fail(str(e), param, ctx)
+        if ctx is not None:
+            ctx.meta.setdefault("cmtool.outputs", []).append(path)
+        return path
+
+
+class DatasetDir(InPath):
     """A dataset folder (``cmtool data build``); a map file gets a line saying how to make a dataset of it."""
 
     def __init__(self):
-        super().__init__(file_okay=False, path_type=Path)
+        super().__init__(file_okay=False)
 
     def convert(self, value, param, ctx):
         path = Path(value)
@@ -141,11 +181,11 @@ def _checkpoint(path: Path | None) -> Path:
 def map_input_options(command):
     """--osm/--center/--heading and --from-hd/--pose: SD inputs cut from a map (``cmtool sample`` and ``baseline``)."""
     for option in reversed([
-        click.option("--osm", type=click.Path(path_type=Path), help="OpenStreetMap .osm/.osm.pbf file."),
+        click.option("--osm", type=InPath(), help="OpenStreetMap .osm/.osm.pbf file."),
         click.option("--center", help="With --osm: LAT,LON of the frame centre, or a .jsonl of {lat, lon, heading}."),
         click.option("--heading", default=0.0, show_default=True, type=Finite(),
                      help="With --osm: compass heading that points up, degrees."),
-        click.option("--from-hd", "from_hd", type=click.Path(path_type=Path),
+        click.option("--from-hd", "from_hd", type=InPath(),
                      help="HD map JSON (procedural or imported)."),
         click.option("--pose", help="With --from-hd: X,Y,YAW (m, m, degrees) or a .jsonl of {x, y, yaw} [default: a "
                                     "random drivable pose]."),
@@ -189,7 +229,7 @@ def init_options(command):
         click.option("--strength", default=0.5, show_default=True, type=Finite(min=0, max=1, min_open=True),
                      help="With --init: how far up the noise schedule the layout is noised (1: as from noise; small: "
                           "the layout kept nearly as it is)."),
-        click.option("--encoder", "encoder_path", type=click.Path(path_type=Path),
+        click.option("--encoder", "encoder_path", type=InPath(),
                      help="With --init: an RVAE run whose encoder encodes into the checkpoint's latent space (`cmtool "
                           "train encoder`) [default: the checkpoint's own RVAE, when it holds an encoder]."),
     ]):

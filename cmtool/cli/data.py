@@ -2,15 +2,16 @@
 
 from __future__ import annotations
 
-from pathlib import Path
 
 import click
 
-from cmtool.cli.common import SEED, Finite, _origin
+from cmtool.cli.common import SEED, Finite, InPath, OutPath, _origin
 from cmtool.core.errors import CmtoolError
 
 CITY_CHOICES = ("LAV", "PIT", "SGP", "BOS")
 
+
+MAX_FRAMES = 100_000  # poses or frames one command picks on a map (more say nothing new and take hours)
 
 @click.group()
 def data():
@@ -23,7 +24,7 @@ def data():
 @click.option("--seed", default=0, show_default=True, type=SEED, help="Random seed.")
 @click.option("--extent", default=800.0, show_default=True, type=Finite(min=100, max=20000),
               help="Side of the square city, metres.")
-@click.option("--out", required=True, type=click.Path(dir_okay=False, path_type=Path), help="HD map JSON to write.")
+@click.option("--out", required=True, type=OutPath(dir_okay=False), help="HD map JSON to write.")
 def synth(city, seed, extent, out):
     """Generate a procedural city HD map in the style of a nuPlan city."""
     from cmtool.data.synth import generate_city
@@ -49,8 +50,8 @@ IMPORT_FORMATS = ("av2", "lanelet2", "nuplan", "osm")
 @data.command("import")
 @click.option("--format", "fmt", required=True, type=click.Choice(IMPORT_FORMATS),
               help="av2, lanelet2, nuplan: HD maps; osm: an OpenStreetMap .osm/.osm.pbf file to an SD map.")
-@click.argument("file", type=click.Path(path_type=Path))
-@click.option("--out", required=True, type=click.Path(dir_okay=False, path_type=Path), help="Map JSON to write.")
+@click.argument("file", type=InPath())
+@click.option("--out", required=True, type=OutPath(dir_okay=False), help="Map JSON to write.")
 @click.option("--city", default=None, help="City code to record (default: from the file or format).")
 def import_(fmt, file, out, city):
     """Import a real map into cmtool's HD (or, for osm, SD) map JSON."""
@@ -74,8 +75,8 @@ def import_(fmt, file, out, city):
 
 
 @data.command()
-@click.argument("hd_map", type=click.Path(path_type=Path))
-@click.option("--out", required=True, type=click.Path(dir_okay=False, path_type=Path),
+@click.argument("hd_map", type=InPath())
+@click.option("--out", required=True, type=OutPath(dir_okay=False),
               help="SD map to write: cmtool JSON, or OpenStreetMap XML when the name ends in .osm.")
 @click.option("--origin", help="With an .osm output: LAT,LON where the map's (0, 0) lies.")
 @click.option("--offset", default=0.0, show_default=True, type=Finite(min=0, max=1000),
@@ -109,12 +110,12 @@ def sd(hd_map, out, origin, offset, rotation, drop_minor, seed):
 
 
 @data.command()
-@click.argument("sd_map", type=click.Path(path_type=Path))
+@click.argument("sd_map", type=InPath())
 @click.option("--x", "x", type=Finite(), default=None, help="Frame centre x, metres [default: map centre].")
 @click.option("--y", "y", type=Finite(), default=None, help="Frame centre y, metres [default: map centre].")
 @click.option("--yaw", default=90.0, show_default=True, type=Finite(),
               help="Heading of the frame's forward axis, degrees (90 = north up).")
-@click.option("--png", required=True, type=click.Path(dir_okay=False, path_type=Path), help="SD raster PNG to write.")
+@click.option("--png", required=True, type=OutPath(dir_okay=False), help="SD raster PNG to write.")
 def raster(sd_map, x, y, yaw, png):
     """Rasterise a 64 m window of an SD map into the 128 x 128 RGB control image (docs/data.md). SD_MAP may be
     any map file: an SD map JSON, an OpenStreetMap file, or an HD map or lane graph (the SD map derived from it)."""
@@ -135,15 +136,15 @@ def raster(sd_map, x, y, yaw, png):
 
 
 @data.command()
-@click.argument("map_file", type=click.Path(path_type=Path))
-@click.option("--n", default=1, show_default=True, type=click.IntRange(min=1), help="Poses to print.")
+@click.argument("map_file", type=InPath())
+@click.option("--n", default=1, show_default=True, type=click.IntRange(1, MAX_FRAMES), help="Poses to print.")
 @click.option("--seed", default=0, show_default=True, type=SEED, help="Random seed.")
 @click.option("--kind", help="Only these kinds of frame, comma-separated: junction, approach, exit, end, curve, "
               "straight [default: all, in the dataset's mix].")
 @click.option("--near-junction", type=Finite(min=0), help="Only poses within this many metres of a junction.")
 @click.option("--latlon", is_flag=True, help="Print {lat, lon, heading} (compass degrees) for `sample --osm --center`; "
               "needs a map with a geographic origin (an OpenStreetMap file or its import).")
-@click.option("--out", type=click.Path(dir_okay=False, path_type=Path), help="Write the lines to this .jsonl file.")
+@click.option("--out", type=OutPath(dir_okay=False), help="Write the lines to this .jsonl file.")
 def poses(map_file, n, seed, kind, near_junction, latlon, out):
     """Ego poses as the dataset frames its scenes: on a road, facing its travel direction, spread over
     straight roads, curves, junctions, approaches and exits. MAP_FILE: an OpenStreetMap .osm/.osm.pbf
@@ -199,16 +200,16 @@ def poses(map_file, n, seed, kind, near_junction, latlon, out):
 
 
 @data.command()
-@click.argument("sources", nargs=-1, type=click.Path(path_type=Path))
-@click.option("--recipe", type=click.Path(dir_okay=False, path_type=Path),
+@click.argument("sources", nargs=-1, type=InPath())
+@click.option("--recipe", type=InPath(dir_okay=False),
               help="Also the SD maps of this data recipe's procedural cities, framed and jittered as its build does.")
-@click.option("--maps", default=4, show_default=True, type=click.IntRange(min=1),
+@click.option("--maps", default=4, show_default=True, type=click.IntRange(1, 100),
               help="With --recipe: maps per city, each with the recipe's scenes_per_map frames.")
-@click.option("--n", default=500, show_default=True, type=click.IntRange(min=1), help="Frames per map file.")
+@click.option("--n", default=500, show_default=True, type=click.IntRange(1, MAX_FRAMES), help="Frames per map file.")
 @click.option("--seed", default=0, show_default=True, type=SEED, help="Seed of the frames.")
-@click.option("--png", type=click.Path(dir_okay=False, path_type=Path),
+@click.option("--png", type=OutPath(dir_okay=False),
               help="Also write the SD rasters of some frames of each source, a row each.")
-@click.option("--json", "json_out", type=click.Path(dir_okay=False, path_type=Path), help="Write the numbers here.")
+@click.option("--json", "json_out", type=OutPath(dir_okay=False), help="Write the numbers here.")
 def frames(sources, recipe, maps, n, seed, png, json_out):
     """Per-frame statistics of SD maps side by side: roads, road length, one-way, divided-road,
     lane-count and major-road shares, junctions. SOURCES: OpenStreetMap .osm/.osm.pbf files, SD or HD map JSON
@@ -246,7 +247,7 @@ def frames(sources, recipe, maps, n, seed, png, json_out):
 
 
 @data.command()
-@click.argument("maps", nargs=-1, type=click.Path(path_type=Path))
+@click.argument("maps", nargs=-1, type=InPath())
 @click.option("--seeds", default=2, show_default=True, type=click.IntRange(1, 100),
               help="Without MAPS: procedural seeds per city style.")
 @click.option("--extent", default=800.0, show_default=True, type=Finite(min=100, max=20000),
@@ -284,8 +285,8 @@ def _stats_table(rows: dict[str, list[dict[str, float]]]) -> str:
 
 
 @data.command()
-@click.option("--recipe", required=True, type=click.Path(path_type=Path), help="Recipe TOML (see recipes/).")
-@click.option("--out", required=True, type=click.Path(file_okay=False, path_type=Path), help="Dataset directory.")
+@click.option("--recipe", required=True, type=InPath(), help="Recipe TOML (see recipes/).")
+@click.option("--out", required=True, type=OutPath(file_okay=False), help="Dataset directory.")
 @click.option("--workers", default=None, type=click.IntRange(min=1), help="Worker processes [default: min(2, CPUs)].")
 def build(recipe, out, workers):
     """Build (or resume building) a sharded dataset cache from a recipe."""
@@ -324,10 +325,10 @@ def _lost(scenes: int, pieces: int, total: int) -> str:
 
 
 @data.command()
-@click.argument("data_dir", type=click.Path(file_okay=False, path_type=Path))
+@click.argument("data_dir", type=InPath(file_okay=False))
 @click.option("--n", default=16, show_default=True, type=click.IntRange(min=1), help="Number of scenes.")
-@click.option("--png", type=click.Path(dir_okay=False, path_type=Path), help="Picture grid to write.")
-@click.option("--rrd", type=click.Path(dir_okay=False, path_type=Path), help="Rerun recording to write.")
+@click.option("--png", type=OutPath(dir_okay=False), help="Picture grid to write.")
+@click.option("--rrd", type=OutPath(dir_okay=False), help="Rerun recording to write.")
 @click.option("--split", default=None, help="Split to show [default: all].")
 @click.option("--seed", default=0, show_default=True, type=SEED, help="Seed of the scene choice.")
 def show(data_dir, n, png, rrd, split, seed):

@@ -3,28 +3,28 @@
 from __future__ import annotations
 
 import time
-from pathlib import Path
 
 import click
 
 from cmtool.core.errors import CmtoolError
 from cmtool.cli.common import (FEATURE_PRECISION_OPTION, PRECISION_OPTION, SEED, SMOOTH_OPTION, WORKERS_OPTION,
-                               DatasetDir, Finite, _device, _generator, attach_init, init_options, sampler_options)
+                               DatasetDir, Finite, InPath, OutPath, _device, _generator, attach_init, init_options,
+                               sampler_options)
 
 
 @click.command()
-@click.option("--generated", required=True, multiple=True, type=click.Path(dir_okay=False, path_type=Path),
+@click.option("--generated", required=True, multiple=True, type=InPath(dir_okay=False),
               help="Generated lane graphs (.jsonl); repeat it to score several generators side by side (e.g. "
                    "`cmtool sample` and `cmtool baseline rules` maps of the same inputs), a column each.")
-@click.option("--reference", required=True, type=click.Path(dir_okay=False, path_type=Path),
+@click.option("--reference", required=True, type=InPath(dir_okay=False),
               help="Reference (ground-truth) lane graphs (.jsonl), paired line by line.")
-@click.option("--control", type=click.Path(path_type=Path),
+@click.option("--control", type=InPath(),
               help="SD controls, paired in order: a folder of SD pictures or a .npy stack (N, 128, 128, 3).")
-@click.option("--json", "json_out", type=click.Path(dir_okay=False, path_type=Path), help="Write all numbers here.")
+@click.option("--json", "json_out", type=OutPath(dir_okay=False), help="Write all numbers here.")
 @click.option("--backbone", default="resnet50-seeded", show_default=True,
               type=click.Choice(["resnet50-seeded", "resnet50-imagenet"]),
               help="Feature network of the recall metrics.")
-@click.option("--weights", type=click.Path(dir_okay=False, path_type=Path),
+@click.option("--weights", type=InPath(dir_okay=False),
               help="ImageNet ResNet-50 weights file [default: torchvision's file in the torch hub cache].")
 @click.option("--no-features", is_flag=True, help="Skip the feature metrics (precision/recall, Control/GT Recall).")
 @click.option("--device", help="torch device [default: cuda when available, else cpu].")
@@ -69,7 +69,7 @@ def metrics(generated, reference, control, json_out, backbone, weights, no_featu
 
 
 @click.command("eval")
-@click.option("--ckpt", type=click.Path(path_type=Path),
+@click.option("--ckpt", type=InPath(),
               help="ControlMap checkpoint or run folder [default: the weights shipped with cmtool].")
 @click.option("--data", "data_dir", required=True, type=DatasetDir(),
               help="Dataset cache (cmtool data build).")
@@ -82,12 +82,12 @@ def metrics(generated, reference, control, json_out, backbone, weights, no_featu
 @click.option("--seed", default=0, show_default=True, type=SEED, help="Random seed (the same noise for both methods).")
 @SMOOTH_OPTION
 @click.option("--batch", default=64, show_default=True, type=click.IntRange(min=1), help="Maps per forward pass.")
-@click.option("--out", required=True, type=click.Path(file_okay=False, path_type=Path),
+@click.option("--out", required=True, type=OutPath(file_okay=False),
               help="Folder for metrics.json, summary.md, eval.rrd and the generation cache.")
 @click.option("--backbone", default="resnet50-seeded", show_default=True,
               type=click.Choice(["resnet50-seeded", "resnet50-imagenet"]),
               help="Feature network of the recall metrics.")
-@click.option("--weights", type=click.Path(dir_okay=False, path_type=Path), help="ImageNet ResNet-50 weights file.")
+@click.option("--weights", type=InPath(dir_okay=False), help="ImageNet ResNet-50 weights file.")
 @click.option("--no-features", is_flag=True, help="Skip the feature metrics.")
 @click.option("--rrd-samples", default=64, show_default=True, type=click.IntRange(min=0),
               help="Scenes whose maps go into eval.rrd (scores go in for all).")

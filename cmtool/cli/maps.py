@@ -2,22 +2,21 @@
 
 from __future__ import annotations
 
-from pathlib import Path
 
 import click
 
-from cmtool.cli.common import Finite, _origin
+from cmtool.cli.common import Finite, InPath, OutPath, _origin
 from cmtool.core.errors import CmtoolError
 
 LARGE_SCENE = 2000  # lanes; export announces itself for scenes this large
 
 
 @click.command()
-@click.argument("maps", type=click.Path(dir_okay=False, path_type=Path))
-@click.option("--json", "json_out", type=click.Path(dir_okay=False, path_type=Path), help="Write the full report here.")
+@click.argument("maps", type=InPath(dir_okay=False))
+@click.option("--json", "json_out", type=OutPath(dir_okay=False), help="Write the full report here.")
 @click.option("--repair", is_flag=True, help="Snap near-miss joints, drop lanes under 2 m, merge duplicates; "
               "report the repaired maps.")
-@click.option("--out", type=click.Path(dir_okay=False, path_type=Path),
+@click.option("--out", type=OutPath(dir_okay=False),
               help="With --repair: the repaired maps (.jsonl).")
 def validate(maps, json_out, repair, out):
     """Check lane graphs (a .json scene or a .jsonl of scenes, or a whole HD map: cmtool's JSON, Argoverse 2,
@@ -70,7 +69,7 @@ def validate(maps, json_out, repair, out):
               help="lanelet2: a Lanelet2 OSM map (.osm); opendrive: an OpenDRIVE 1.6 map (.xodr); "
                    "geojson: GeoJSON features; sumo: a SUMO network for traffic (.net.xml; needs SUMO: "
                    "pip install eclipse-sumo).")
-@click.argument("map_path", metavar="MAP", type=click.Path(dir_okay=False, path_type=Path))
+@click.argument("map_path", metavar="MAP", type=InPath(dir_okay=False))
 @click.option("--origin", help="LAT,LON where the scene's origin (the ego) lies [default: what the map's meta.geo "
                                "records, as maps from `sample --osm` do].")
 @click.option("--heading", type=Finite(),
@@ -78,7 +77,7 @@ def validate(maps, json_out, repair, out):
 @click.option("--scene", default=0, show_default=True, type=click.IntRange(min=0), help="Scene of a .jsonl file.")
 @click.option("--lane-width", default=3.5, show_default=True, type=Finite(min=0.5, max=10.0),
               help="Lane width where the map records none and no neighbours give one, metres.")
-@click.option("--out", required=True, type=click.Path(dir_okay=False, path_type=Path), help="File to write.")
+@click.option("--out", required=True, type=OutPath(dir_okay=False), help="File to write.")
 @click.option("--verify", is_flag=True,
               help="Load the export in an independent reader (opendrive: CARLA's, from the carla wheel; lanelet2: the "
                    "lanelet2 wheel's routing graph) and check that it routes the lane graph's successor joins and "
@@ -163,19 +162,17 @@ def export(fmt, map_path, origin, heading, scene, lane_width, out, verify):
 
 
 @click.command()
-@click.argument("map_path", metavar="MAP", type=click.Path(dir_okay=False, path_type=Path))
+@click.argument("map_path", metavar="MAP", type=InPath(dir_okay=False))
 @click.option("--to", "kind", required=True, type=click.Choice(["hdmap", "lanegraph"]),
               help="hdmap: cmtool's HD map JSON (what `data sd`, `data stats` and `sample --from-hd` read as a whole "
                    "map); lanegraph: a lane graph JSON (what `sample` writes, and `metrics` and `export` read).")
-@click.option("--out", required=True, type=click.Path(dir_okay=False, path_type=Path), help="File to write.")
+@click.option("--out", required=True, type=OutPath(dir_okay=False), help="File to write.")
 def convert(map_path, kind, out):
     """Convert a map between cmtool's own formats: any map file that holds lanes (an HD map of any source, a lane
     graph of one map) to an HD map JSON or a lane graph JSON."""
     from cmtool.core.jsonio import write_json
     from cmtool.formats.mapfile import read_hd_map, read_lane_graphs
 
-    if out.resolve() == map_path.resolve():
-        raise CmtoolError(f"--out {out}: the input itself; write the converted map to another file")
     if kind == "hdmap":
         hd = read_hd_map(map_path)
         hd.save(out)

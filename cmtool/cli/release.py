@@ -2,13 +2,13 @@
 
 from __future__ import annotations
 
-from pathlib import Path
 
 import click
 
+from cmtool.cli.common import InPath, OutPath
 
 @click.command()
-@click.argument("path", required=False, type=click.Path(path_type=Path))
+@click.argument("path", required=False, type=InPath())
 @click.option("--json", "as_json", is_flag=True, help="Print the checkpoint's full config as JSON.")
 def info(path, as_json):
     """What a checkpoint (or run folder) holds, or the model sizes a recipe defines.
@@ -27,15 +27,15 @@ def info(path, as_json):
 
 
 @click.command()
-@click.option("--ckpt", required=True, type=click.Path(path_type=Path), help="ControlMap checkpoint or run folder.")
-@click.option("--rvae", default=None, type=click.Path(path_type=Path),
+@click.option("--ckpt", required=True, type=InPath(), help="ControlMap checkpoint or run folder.")
+@click.option("--rvae", default=None, type=InPath(),
               help="RVAE to ship instead of the one the ControlMap was trained on: a `cmtool train decoder` run "
                    "on that RVAE (same encoder, so the same latent space), or an already packed decoder "
                    "with the same latent scale (e.g. cmtool/weights/rvae).")
-@click.option("--encoder", default=None, type=click.Path(path_type=Path),
+@click.option("--encoder", default=None, type=InPath(),
               help="Ship this RVAE's encoder too: a `cmtool train encoder` run for the decoder that ships (same "
                    "decoder weights and latent scale), so that `sample --init` needs no --encoder.")
-@click.option("--out", default=None, type=click.Path(file_okay=False, path_type=Path),
+@click.option("--out", default=None, type=OutPath(file_okay=False),
               help="Folder to write [default: the package's own cmtool/weights].")
 def pack(ckpt, rvae, encoder, out):
     """Pack a trained ControlMap (and its RVAE's decoder, with --encoder an encoder too) as float16 weights to ship

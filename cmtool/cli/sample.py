@@ -7,8 +7,8 @@ from pathlib import Path
 
 import click
 
-from cmtool.cli.common import (CITY_CFG_HELP, PRECISION_OPTION, SEED, SMOOTH_OPTION, Finite, _device, _generator,
-                               attach_init, init_options, map_input_options, map_inputs, sampler_options)
+from cmtool.cli.common import (CITY_CFG_HELP, PRECISION_OPTION, SEED, SMOOTH_OPTION, Finite, InPath, OutPath, _device,
+                               _generator, attach_init, init_options, map_input_options, map_inputs, sampler_options)
 from cmtool.core.errors import CmtoolError
 
 SAMPLE_HELP = """Generate lane-level HD maps from SD maps with ControlMap, recording every denoising step.
@@ -31,9 +31,9 @@ Large sets in several processes (CPU or GPUs), the same maps as one process:
 
 
 @click.command(help=SAMPLE_HELP)
-@click.option("--ckpt", type=click.Path(path_type=Path),
+@click.option("--ckpt", type=InPath(),
               help="ControlMap (or DiT) checkpoint or run folder [default: the weights shipped with cmtool].")
-@click.option("--sd", "sd_paths", multiple=True, type=click.Path(path_type=Path),
+@click.option("--sd", "sd_paths", multiple=True, type=InPath(),
               help="SD raster / road drawing picture, or a folder of them (repeatable).")
 @map_input_options
 @click.option("--area", help="With --osm, --from-hd or one --sd picture: one map of a whole area instead of frames: "
@@ -43,8 +43,8 @@ Large sets in several processes (CPU or GPUs), the same maps as one process:
                              "given (docs/area.md).")
 @click.option("--px-m", default=0.5, show_default=True, type=Finite(min=0, min_open=True),
               help="With --sd PICTURE --area: metres per pixel of the picture (north up).")
-@click.option("--num", default=1, show_default=True, type=click.IntRange(min=1), help="Maps per SD input.")
-@click.option("--candidates", default=1, show_default=True, type=click.IntRange(min=1),
+@click.option("--num", default=1, show_default=True, type=click.IntRange(1, 100_000), help="Maps per SD input.")
+@click.option("--candidates", default=1, show_default=True, type=click.IntRange(1, 100),
               help="Draw this many maps for each one and keep the best: the highest mean of its validity score, "
                    "SD road covered and legal one-way share (every candidate is in the recording).")
 @click.option("--seed", default=0, show_default=True, type=SEED, help="Random seed.")
@@ -59,11 +59,11 @@ Large sets in several processes (CPU or GPUs), the same maps as one process:
 @init_options
 @SMOOTH_OPTION
 @click.option("--batch", default=16, show_default=True, type=click.IntRange(min=1), help="Maps per forward pass.")
-@click.option("--out", default=Path("samples"), show_default=True, type=click.Path(file_okay=False, path_type=Path),
+@click.option("--out", default=Path("samples"), show_default=True, type=OutPath(file_okay=False),
               help="Folder for the lane graphs and pictures.")
-@click.option("--rrd", type=click.Path(dir_okay=False, path_type=Path),
+@click.option("--rrd", type=OutPath(dir_okay=False),
               help="Recording to write [default: OUT/sample.rrd].")
-@click.option("--grid", type=click.Path(dir_okay=False, path_type=Path),
+@click.option("--grid", type=OutPath(dir_okay=False),
               help="Also write all maps' pictures stacked into this PNG (a gallery).")
 @click.option("--spawn", is_flag=True, help="Also stream live to a newly started Rerun viewer.")
 @click.option("--connect", "connect_url", help="Also stream live to a running viewer at this gRPC URL.")
@@ -92,6 +92,10 @@ def sample(ckpt, sd_paths, osm, center, heading, from_hd, pose, area, px_m, num,
         raise CmtoolError("--no-log cannot be combined with --rrd, --spawn, --connect or --serve")
     if spawn + bool(connect_url) + serve > 1:
         raise CmtoolError("give one of --spawn, --connect and --serve")
+    if connect_url:
+        from cmtool.sample.run import check_viewer
+
+        check_viewer(connect_url, f"--connect {connect_url}")
     if area is not None:
         return _area(ckpt, sd_paths, px_m, osm, center, from_hd, pose, area, num, candidates, seed, steps, sampler,
                      eta, city, cfg, city_cfg, init, strength, encoder_path, smooth, batch, out, rrd, grid, spawn,

@@ -7,15 +7,16 @@ from pathlib import Path
 
 import click
 
-from cmtool.cli.common import DatasetDir, _device
+from cmtool.cli.common import DatasetDir, InPath, OutPath, _device
 from cmtool.core.errors import CmtoolError
+from cmtool.core.outputs import claim_folder
 from cmtool.train import PRECISIONS
 
 
 @click.command("train")
 @click.argument("stage", type=click.Choice(["rvae", "decoder", "encoder", "dit", "controlnet", "pipeline"]))
-@click.option("--recipe", required=True, type=click.Path(path_type=Path), help="Recipe TOML (see recipes/).")
-@click.option("--out", type=click.Path(file_okay=False, path_type=Path),
+@click.option("--recipe", required=True, type=InPath(), help="Recipe TOML (see recipes/).")
+@click.option("--out", type=OutPath(file_okay=False),
               help="Run folder [default: the recipe's train.out].")
 @click.option("--resume", is_flag=True, help="Continue from the run folder's newest checkpoint (pipeline: from where "
               "it stopped, finished stages skipped).")
@@ -65,6 +66,7 @@ def train_cmd(stage, recipe, out, resume, data_dir, steps, precision, device, qu
     run_dir = out or (Path(rec.train.out) if rec.train.out else None)
     if run_dir is None:
         raise CmtoolError(f"{recipe}: no run folder: give --out or set train.out")
+    claim_folder(run_dir)  # --out is claimed as it is parsed; the recipe's folder here
 
     from cmtool.train.loop import train
     from cmtool.train.stages import STAGES

@@ -7,3 +7,8 @@ is a bug and keeps its traceback.
 
 class CmtoolError(Exception):
     """An error caused by the user's input, reported without a traceback."""
+
+
+class Terminated(BaseException):
+    """SIGTERM, raised in the main thread so that a command unwinds (temporary files removed, worker processes
+    stopped) as it does on Ctrl-C; not an ``Exception``, so no ``except Exception`` swallows it."""

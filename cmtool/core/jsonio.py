@@ -6,11 +6,15 @@ import errno
 import json
 import math
 import os
-import tempfile
+import re
+import secrets
 from contextlib import contextmanager
 from pathlib import Path
 
+import numpy as np
+
 from cmtool.core.errors import CmtoolError
+from cmtool.core.outputs import target
 
 
 def read_text(path: str | os.PathLike) -> str:
@@ -26,13 +30,55 @@ def read_text(path: str | os.PathLike) -> str:
         raise CmtoolError(f"{path}: cannot read it: {os_reason(e)}") from None
 
 
-def read_json(path: str | os.PathLike):
-    """Load a JSON file; a missing file, non-UTF-8 text or malformed JSON becomes a :class:`CmtoolError`."""
-    text = read_text(path)
+MAX_DEPTH = 64  # of nested JSON arrays and objects (cmtool's own files nest 5 deep)
+
+
+def loads(text: str, where: str):
+    """The JSON value of ``text`` (the one JSON parser of cmtool's readers); malformed JSON, or JSON nested deeper
+    than ``MAX_DEPTH``, is a :class:`CmtoolError` naming ``where``."""
+    depth = nesting(text)
+    if depth > MAX_DEPTH:
+        raise CmtoolError(f"{where}: JSON nested {depth} levels deep (cmtool reads at most {MAX_DEPTH})")
     try:
         return json.loads(text)
     except json.JSONDecodeError as e:
-        raise CmtoolError(f"{path}: malformed JSON at line {e.lineno}, column {e.colno}: {e.msg}") from None
+        raise MalformedJson(f"{where}: malformed JSON at line {e.lineno}, column {e.colno}: {e.msg}") from None
+
+
+class MalformedJson(CmtoolError):
+    """Text that is not JSON."""
+
+
+_STRING = re.compile(r'"(?:[^"\\]|\\.)*"')
+_STEP = np.zeros(256, np.int32)  # +1 for each opening bracket, -1 for each closing one
+_STEP[[ord("["), ord("{")]], _STEP[[ord("]"), ord("}")]] = 1, -1
+
+
+def nesting(text: str, chunk: int = 1 << 22) -> int:
+    """How deep the arrays and objects of JSON ``text`` nest (brackets inside strings not counted), in one
+    vectorised pass of bounded memory."""
+    if "\\" in text:
+        text = _STRING.sub('""', text)
+    data = np.frombuffer(text.encode("utf-8"), np.uint8)
+    depth = deepest = 0
+    inside = False
+    for start in range(0, len(data), chunk):
+        b = data[start:start + chunk]
+        quote = b == ord('"')
+        step = _STEP[b]
+        if inside or quote.any():  # brackets in strings do not count (a quote opens or closes one; no escaped ones)
+            step[((np.cumsum(quote, dtype=np.int32) + inside) % 2 == 1) | quote] = 0
+        levels = depth + np.cumsum(step, dtype=np.int32)
+        if len(levels):
+            deepest, depth = max(deepest, int(levels.max())), int(levels[-1])
+        inside = bool((inside + int(quote.sum())) % 2)
+    return deepest
+
+
+def read_json(path: str | os.PathLike):
+    """Load a JSON file; a missing file, non-UTF-8 text or malformed or too deeply nested JSON becomes a
+    :class:`CmtoolError`."""
+    return loads(read_text(path), str(path))
 
 
 class MalformedLine(CmtoolError):
@@ -50,10 +96,9 @@ def json_lines(path: str | os.PathLike) -> list[tuple[int, object]]:
     for lineno, line in enumerate(read_text(path).splitlines(), start=1):
         if line.strip():
             try:
-                out.append((lineno, json.loads(line)))
-            except json.JSONDecodeError as e:
-                raise MalformedLine(f"{path}: line {lineno}: malformed JSON at column {e.colno}: {e.msg}",
-                                    lineno) from None
+                out.append((lineno, loads(line, f"{path}: line {lineno}")))
+            except MalformedJson as e:
+                raise MalformedLine(str(e), lineno) from None
     return out
 
 
@@ -72,15 +117,13 @@ def os_reason(e: OSError) -> str:
 def atomic_open(path: str | os.PathLike, mode: str = "w"):
     """Open a temporary file beside ``path`` for writing; when the block succeeds it is renamed over
     ``path``, when it fails it is removed. So a crash never leaves a half-written file behind. An OS error
-    (a file in the way, no permission, a full disk) becomes a :class:`CmtoolError` naming ``path``."""
-    path = Path(path)
-    tmp = None
+    (a file in the way, no permission, a full disk) becomes a :class:`CmtoolError` naming ``path``; a path that must
+    not be written (:func:`cmtool.core.outputs.target`) is refused."""
+    path = target(path)
+    tmp = _temporary(path)  # named before it exists: a signal at any point below leaves nothing behind
     try:
-        path.parent.mkdir(parents=True, exist_ok=True)
-        fd, tmp = tempfile.mkstemp(dir=path.parent, prefix=f".{path.name}.", suffix=".tmp")
-        with os.fdopen(fd, mode, encoding=None if "b" in mode else "utf-8") as f:
+        with os.fdopen(_create(tmp), mode, encoding=None if "b" in mode else "utf-8") as f:
             yield f
-        os.chmod(tmp, file_mode())  # mkstemp makes 0600 files; give the usual permissions
         os.replace(tmp, path)
     except OSError as e:
         _remove(tmp)
@@ -99,15 +142,12 @@ class OutputSet:
         self.staged: list[tuple[str, Path]] = []
 
     def write_bytes(self, path: str | os.PathLike, data: bytes) -> None:
-        path = Path(path)
-        tmp = None
+        path = target(path)
+        tmp = _temporary(path)
+        self.staged.append((tmp, path))
         try:
-            path.parent.mkdir(parents=True, exist_ok=True)
-            fd, tmp = tempfile.mkstemp(dir=path.parent, prefix=f".{path.name}.", suffix=".tmp")
-            self.staged.append((tmp, path))
-            with os.fdopen(fd, "wb") as f:
+            with os.fdopen(_create(tmp), "wb") as f:
                 f.write(data)
-            os.chmod(tmp, file_mode())
         except OSError as e:
             raise CmtoolError(f"cannot write {path}: {os_reason(e)}") from None
 
@@ -127,6 +167,17 @@ class OutputSet:
         for tmp, _ in self.staged:
             _remove(tmp)
         self.staged = []
+
+
+def _temporary(path: Path) -> str:
+    """A name for a new temporary file beside ``path`` (hidden, ending in .tmp)."""
+    return str(path.parent / f".{path.name}.{secrets.token_hex(4)}.tmp")
+
+
+def _create(tmp: str) -> int:
+    """Create the file ``tmp`` (and its folder), new, with the permissions ``open`` gives under the umask."""
+    Path(tmp).parent.mkdir(parents=True, exist_ok=True)
+    return os.open(tmp, os.O_WRONLY | os.O_CREAT | os.O_EXCL, 0o666)
 
 
 def _remove(tmp: str | None) -> None:
@@ -149,7 +200,10 @@ def write_text_atomic(path: str | os.PathLike, text: str) -> None:
 def json_text(obj) -> str:
     """``obj`` as one line of compact, strict JSON: NaN and infinite numbers (which JSON has no words for, and
     readers other than Python's refuse) are written as null."""
-    return json.dumps(strict(obj), separators=(",", ":"), allow_nan=False) + "\n"
+    try:  # walking every number to replace the non-finite ones only when there is one
+        return json.dumps(obj, separators=(",", ":"), allow_nan=False) + "\n"
+    except ValueError:
+        return json.dumps(strict(obj), separators=(",", ":"), allow_nan=False) + "\n"
 
 
 def strict(obj):

@@ -29,6 +29,8 @@ def read_toml(path: Path, what: str = "TOML") -> dict:
         raise CmtoolError(f"{path}: malformed TOML: {e}") from None
     except UnicodeDecodeError:
         raise CmtoolError(f"{path}: not a UTF-8 text file") from None
+    except RecursionError:
+        raise CmtoolError(f"{path}: TOML nested too deeply to read") from None
 
 
 def toml_fields(cls) -> list[dataclasses.Field]:

@@ -30,8 +30,8 @@ at the manifest's ``px_m``.
 from __future__ import annotations
 
 import json
-import multiprocessing
 import os
+import re
 import time
 import zipfile
 from collections import Counter
@@ -43,6 +43,7 @@ import numpy as np
 from cmtool.core.errors import CmtoolError
 from cmtool.core.jsonio import atomic_open, read_json, write_json
 from cmtool.core.progress import Progress
+from cmtool.core.workers import pool
 from cmtool.data.frames import label_order
 from cmtool.data.recipe import DataRecipe
 from cmtool.data.scene import Pose, Scene, SceneCropper
@@ -218,8 +219,8 @@ def build_dataset(recipe, out_dir, workers: int | None = None, progress: bool = 
             for job in jobs:
                 bar.update(_build_unit(job)[1])
         else:
-            with multiprocessing.Pool(min(workers, len(jobs))) as pool:
-                for _, n in pool.imap_unordered(_build_unit, jobs):
+            with pool(min(workers, len(jobs))) as processes:
+                for _, n in processes.imap_unordered(_build_unit, jobs):
                     bar.update(n)
 
     splits, labels = _count(out_dir, units, data.shard_size)
@@ -306,7 +307,29 @@ def load_manifest(data_dir) -> dict:
         raise CmtoolError(f"{path}: not a cmtool dataset manifest")
     if not manifest.get("complete"):
         raise CmtoolError(f"{data_dir}: dataset build did not finish; run the build again to complete it")
+    _check_shards(manifest, path)
     return manifest
+
+
+_SHARD = re.compile(r"[A-Za-z0-9_-]+/u\d{5}_\d{2}\.npz")  # SPLIT/uUNIT_PART.npz (WorkUnit.shard_files)
+
+
+def _check_shards(manifest: dict, path: Path) -> None:
+    """Refuse a manifest whose splits list shards the build does not name (a path out of the folder, a file of
+    another layout, one that no unit makes, or one listed twice)."""
+    try:
+        made = {name for u in manifest["units"] for name in u["shards"]}
+        listed = [(shard["file"], shard["scenes"]) for split in manifest["splits"].values()
+                  for shard in split["shards"]]
+    except (KeyError, TypeError, AttributeError) as e:
+        raise CmtoolError(f"{path}: damaged manifest ({type(e).__name__}: {e})") from None
+    seen: set[str] = set()
+    for name, scenes in listed:
+        if not (isinstance(name, str) and _SHARD.fullmatch(name) and name in made and name not in seen) \
+                or not isinstance(scenes, int) or scenes < 0:
+            raise CmtoolError(f"{path}: damaged manifest: shard {str(name)[:80]!r} is not one of the shards its units "
+                              f"make (or is listed twice)")
+        seen.add(name)
 
 
 @dataclass

@@ -9,10 +9,14 @@ from dataclasses import dataclass, field
 from pathlib import Path
 
 from cmtool.core.errors import CmtoolError
+from cmtool.core.memory import check_fits
 from cmtool.data.frames import KINDS, FrameMix
 from cmtool.data.sd_jitter import SDJitter
+from cmtool.data.sd_raster import SIZE as SD_SIZE
 from cmtool.formats.importers import FORMATS as IMPORT_FORMATS
 
+
+MAX_EXTENT_M = 20_000.0  # the side of the largest procedural city (`data synth --extent` allows as much)
 
 @dataclass
 class RealMapsRecipe:
@@ -58,6 +62,12 @@ class DataRecipe:
         for key in ("maps_per_city", "test_maps_per_city", "scenes_per_map", "num_lights", "min_piece_m"):
             if getattr(self, key) < 0:
                 raise CmtoolError(f"{where}: data.{key}: must not be negative, got {getattr(self, key)}")
+        if not 100 <= self.extent <= MAX_EXTENT_M:
+            raise CmtoolError(f"{where}: data.extent: must be within [100, {MAX_EXTENT_M:.0f}] m, got {self.extent}")
+        per_scene = 4 * 2 * self.num_points * (self.num_lines + 2 * self.num_lights) + 3 * SD_SIZE**2
+        check_fits(3 * per_scene * max(self.scenes_per_map, 1),
+                   f"{where}: data: {self.scenes_per_map} scenes per map of {self.num_lines} lines and "
+                   f"{2 * self.num_lights} light lines of {self.num_points} points each")
         if (self.frame_m / self.px_m) % 1:
             raise CmtoolError(f"{where}: data.px_m: frame_m / px_m must be a whole number of pixels")
         both = sorted(set(self.train_cities) & set(self.test_cities))

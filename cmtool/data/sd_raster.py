@@ -26,6 +26,7 @@ import cv2
 import numpy as np
 
 from cmtool.core.errors import CmtoolError
+from cmtool.core.memory import check_fits
 from cmtool.core.geometry import CV_SHIFT, ego_to_pixel, to_frame
 from cmtool.maps.sdmap import SDMap
 
@@ -177,7 +178,16 @@ def _read_picture(path) -> np.ndarray:
             return np.load(path, allow_pickle=False)
         except (OSError, ValueError) as e:
             raise CmtoolError(f"{path}: cannot read the array ({e})") from None
-    img = cv2.imread(str(path), cv2.IMREAD_UNCHANGED) if path.is_file() else None
+    size = _header_size(path) if path.is_file() else None
+    if size is not None and size[0] * size[1] > MAX_PIXELS:
+        raise CmtoolError(f"{path}: a picture of {size[0]} x {size[1]} pixels; cmtool reads up to {MAX_PIXELS:,} "
+                          f"pixels (16384 x 16384)")
+    if size is not None:
+        check_fits(16 * size[0] * size[1], f"{path}: a picture of {size[0]} x {size[1]} pixels")
+    try:
+        img = cv2.imread(str(path), cv2.IMREAD_UNCHANGED) if path.is_file() else None
+    except cv2.error as e:
+        raise CmtoolError(f"{path}: cannot decode the picture ({str(e).strip().splitlines()[-1]})") from None
     if img is None or img.size == 0:
         raise CmtoolError(f"{path}: cannot read image (missing or empty file, or not a PNG/JPG picture)")
     if img.ndim == 3 and img.shape[2] == 3:
@@ -185,6 +195,32 @@ def _read_picture(path) -> np.ndarray:
     if img.ndim == 3 and img.shape[2] == 4:
         return cv2.cvtColor(img, cv2.COLOR_BGRA2RGBA)
     return img
+
+
+MAX_PIXELS = 1 << 28
+
+
+def _header_size(path: Path) -> tuple[int, int] | None:
+    """(width, height) that a PNG or JPEG file's header states, read before anything is decoded (None: another
+    format, left to OpenCV's own limit)."""
+    with open(path, "rb") as f:
+        head = f.read(24)
+        if head[:8] == b"\x89PNG\r\n\x1a\n" and len(head) == 24:
+            return int.from_bytes(head[16:20], "big"), int.from_bytes(head[20:24], "big")
+        if head[:2] != b"\xff\xd8":
+            return None
+        f.seek(2)
+        while True:  # JPEG segments up to the frame header (SOF0-SOF15 but DHT, JPG and DAC)
+            marker = f.read(4)
+            if len(marker) < 4 or marker[0] != 0xFF:
+                return None
+            if 0xC0 <= marker[1] <= 0xCF and marker[1] not in (0xC4, 0xC8, 0xCC):
+                frame = f.read(5)
+                return (int.from_bytes(frame[3:5], "big"), int.from_bytes(frame[1:3], "big")) if len(frame) == 5 \
+                    else None
+            if int.from_bytes(marker[2:4], "big") < 2:  # a segment length that would not move on
+                return None
+            f.seek(int.from_bytes(marker[2:4], "big") - 2, 1)
 
 
 def _as_uint8(img: np.ndarray) -> np.ndarray:

@@ -10,12 +10,11 @@ lanes gets one line saying what it is and which command makes lanes of it.
 
 from __future__ import annotations
 
-import json
 import os
 from pathlib import Path
 
 from cmtool.core.errors import CmtoolError
-from cmtool.core.jsonio import read_text
+from cmtool.core.jsonio import MalformedJson, loads, read_text
 from cmtool.formats.importers import import_hd_map
 from cmtool.maps.hdmap import FORMAT as HD_FORMAT
 from cmtool.maps.hdmap import HDMap
@@ -41,8 +40,8 @@ def map_kind(path: str | os.PathLike) -> tuple[str, object]:
     if text.lstrip().startswith("<"):
         return ("lanelet2" if "lanelet" in text else "osm"), None
     try:
-        obj = json.loads(text)
-    except json.JSONDecodeError:
+        obj = loads(text, str(path))
+    except MalformedJson:
         return "lanegraph", None  # JSON Lines, or broken JSON: the lane graph reader names the line
     if isinstance(obj, dict):
         if obj.get("format") == HD_FORMAT:

@@ -67,13 +67,33 @@ def read_osm_xml(path: str | os.PathLike) -> OsmData:
                 continue
             tags = {t.get("k"): t.get("v", "") for t in el.iter("tag")}
             if el.tag == "node":
-                data.nodes[int(el.get("id"))] = OsmNode(float(el.get("lat")), float(el.get("lon")), tags)
+                node = OsmNode(float(el.get("lat")), float(el.get("lon")), tags)
+                _check_node(path, el, node, data.nodes.get(int(el.get("id"))))
+                data.nodes[int(el.get("id"))] = node
             elif el.tag == "way":
-                data.ways[int(el.get("id"))] = OsmWay([int(nd.get("ref")) for nd in el.iter("nd")], tags)
+                way = OsmWay([int(nd.get("ref")) for nd in el.iter("nd")], tags)
+                if data.ways.get(int(el.get("id")), way).nodes != way.nodes:
+                    raise CmtoolError(f"{path}: way {el.get('id')}{_line(el)} appears twice with other nodes")
+                data.ways[int(el.get("id"))] = way
             elif el.tag == "relation":
                 members = [(m.get("type"), int(m.get("ref")), m.get("role", "")) for m in el.iter("member")]
                 data.relations[int(el.get("id"))] = OsmRelation(members, tags)
     except (TypeError, ValueError):
-        line = f" (line {el.sourceline})" if hasattr(el, "sourceline") else ""
-        raise CmtoolError(f"{path}: <{el.tag} id={el.get('id')!r}>{line} lacks a valid id, lat/lon or ref") from None
+        raise CmtoolError(f"{path}: <{el.tag} id={el.get('id')!r}>{_line(el)} lacks a valid id, lat/lon or ref") \
+            from None
     return data
+
+
+def _check_node(path: Path, el, node: OsmNode, before: OsmNode | None) -> None:
+    """Refuse a node off the globe (latitude beyond 90 degrees, longitude beyond 180, not finite) or one whose id an
+    earlier node of another place has."""
+    if not (abs(node.lat) <= 90.0 and abs(node.lon) <= 180.0):  # also false for nan
+        raise CmtoolError(f"{path}: node {el.get('id')}{_line(el)} lies off the globe (lat {el.get('lat')}, lon "
+                          f"{el.get('lon')}; latitude within [-90, 90], longitude within [-180, 180])")
+    if before is not None and (before.lat, before.lon) != (node.lat, node.lon):
+        raise CmtoolError(f"{path}: node id {el.get('id')}{_line(el)} appears twice, at two places "
+                          f"({before.lat}, {before.lon} and {node.lat}, {node.lon})")
+
+
+def _line(el) -> str:
+    return f" (line {el.sourceline})" if getattr(el, "sourceline", None) else ""

@@ -13,12 +13,11 @@ from __future__ import annotations
 import os
 import time
 from collections.abc import Callable
-from concurrent.futures import ProcessPoolExecutor
 from dataclasses import dataclass
-from multiprocessing import get_context
 
 import numpy as np
 
+from cmtool.core.workers import pool
 from cmtool.metrics.geometric import chamfer_of, driving_side, legal_oneway, sd_adherence
 from cmtool.metrics.lanes import pair_distances, scores_at
 from cmtool.metrics.topology import STATISTICS, keypoint_graph, scene_statistics
@@ -77,8 +76,8 @@ def scene_scores(generated, reference, controls: np.ndarray | None, sides: list[
             done(len(part_rows["validity"]))
 
     if workers > 1 and n >= POOL_MIN_SCENES:
-        with ProcessPoolExecutor(workers, mp_context=get_context("spawn")) as pool:
-            collect(pool.map(_score_chunk, chunks))
+        with pool(workers, "spawn") as processes:
+            collect(processes.imap(_score_chunk, chunks))
     else:
         collect(map(_score_chunk, chunks))
     pooled = {side: {k: np.concatenate(v) if v else np.zeros(0) for k, v in statistics[side].items()}

@@ -43,11 +43,14 @@ def load_controls(path) -> np.ndarray:
             raise CmtoolError(f"{path}: no SD pictures in the folder")
         return np.stack([read_sd_image(f)[0] for f in files])
     if path.suffix == ".npy" and path.is_file():
-        stack = np.load(path, allow_pickle=False)
+        try:  # mapped, not read: the header's dtype and shape are checked before the data is loaded
+            stack = np.load(path, mmap_mode="r", allow_pickle=False)
+        except (OSError, ValueError) as e:
+            raise CmtoolError(f"{path}: not a .npy array of SD rasters ({e})") from None
         if stack.ndim != 4 or stack.shape[1:] != (128, 128, 3) or stack.dtype != np.uint8:
             raise CmtoolError(f"{path}: expected a uint8 array of shape (N, 128, 128, 3), got {stack.dtype} "
                               f"{stack.shape}")
-        return stack
+        return np.array(stack)
     raise CmtoolError(f"{path}: expected a folder of SD pictures or a .npy stack of SD rasters")
 
 

@@ -23,7 +23,9 @@ import hashlib
 import json
 import math
 import os
+import re
 import shutil
+from collections import Counter
 from pathlib import Path
 
 import torch
@@ -31,7 +33,7 @@ from safetensors import SafetensorError
 from safetensors.torch import load_file, save_file
 
 from cmtool.core.errors import CmtoolError
-from cmtool.core.jsonio import file_mode, read_json
+from cmtool.core.jsonio import file_mode, os_reason, read_json
 
 FORMAT = "cmtool.checkpoint"
 CONFIG, WEIGHTS, INDEX = "config.json", "model.safetensors", "model.safetensors.index.json"
@@ -109,25 +111,38 @@ def save_checkpoint(target: Path, config: dict, weights: dict[str, torch.Tensor]
     target.parent.mkdir(parents=True, exist_ok=True)
     tmp = target.with_name(f".{target.name}.tmp-{os.getpid()}")
     shutil.rmtree(tmp, ignore_errors=True)
-    tmp.mkdir()
-    if max_file_bytes and sum(t.nbytes for t in weights.values()) + 4096 > max_file_bytes:
-        _write_shards(tmp, weights, max_file_bytes)
-    else:
-        _write_tensors(tmp / WEIGHTS, weights)
-    if state is not None:
-        _write_tensors(tmp / STATE, state)
-        _write_json(tmp / STATE_META, state_meta or {})
-    _write_json(tmp / CONFIG, {"format": FORMAT, "version": 1, **config})
-    _fsync_dir(tmp)
+    try:
+        tmp.mkdir()
+        if max_file_bytes and sum(t.nbytes for t in weights.values()) + 4096 > max_file_bytes:
+            _write_shards(tmp, weights, max_file_bytes)
+        else:
+            _write_tensors(tmp / WEIGHTS, weights)
+        if state is not None:
+            _write_tensors(tmp / STATE, state)
+            _write_json(tmp / STATE_META, state_meta or {})
+        _write_json(tmp / CONFIG, {"format": FORMAT, "version": 1, **config})
+        _fsync_dir(tmp)
+    except BaseException as e:  # a full disk, a signal: no half-written checkpoint folder stays behind
+        shutil.rmtree(tmp, ignore_errors=True)
+        if isinstance(e, (OSError, SafetensorError)):
+            why = os_reason(e) if isinstance(e, OSError) else str(e)
+            raise CmtoolError(f"cannot write the checkpoint {target}: {why}") from None
+        raise
+    replace_folder(tmp, target)
+    _fsync_dir(target.parent)
+    return target
+
+
+def replace_folder(new: Path, target: Path) -> None:
+    """Rename the finished folder ``new`` to ``target``; an existing ``target`` is renamed aside first and then
+    deleted, so ``target`` holds the old set or the new one, never a mixture."""
     if target.exists():
         old = target.with_name(f".{target.name}.old-{os.getpid()}")
         os.rename(target, old)
-        os.rename(tmp, target)
+        os.rename(new, target)
         shutil.rmtree(old)
     else:
-        os.rename(tmp, target)
-    _fsync_dir(target.parent)
-    return target
+        os.rename(new, target)
 
 
 def step_dir(run_dir: Path, step: int) -> Path:
@@ -189,8 +204,16 @@ def weight_files(checkpoint: Path) -> list[Path]:
         names = sorted(set(read_json(checkpoint / INDEX)["weight_map"].values()))
     except (CmtoolError, KeyError, TypeError, AttributeError):
         raise CmtoolError(f"{checkpoint / INDEX}: not a weight index (expected a weight_map of files)") from None
+    odd = [n for n in names if not (isinstance(n, str) and _WEIGHT_FILE.fullmatch(n))]
+    if odd or len(names) > MAX_WEIGHT_FILES:
+        raise CmtoolError(f"{checkpoint / INDEX}: not a weight index of this folder ("
+                          + (f"file {str(odd[0])[:80]!r}" if odd else f"{len(names)} files") + ")")
     files = [checkpoint / n for n in names]
     return files if all(f.is_file() for f in files) else []
+
+
+_WEIGHT_FILE = re.compile(r"model-\d{5}-of-\d{5}\.safetensors")  # the names _write_shards gives, in this folder
+MAX_WEIGHT_FILES = 1000
 
 
 def weights_digest(*checkpoints: Path) -> str:
@@ -248,9 +271,49 @@ _FIELDS = {  # top-level config fields the commands read: (valid?, what they mus
 
 def load_tensors(path: Path) -> dict[str, torch.Tensor]:
     try:
+        _check_header(Path(path))
         return load_file(str(path))
-    except (SafetensorError, OSError, ValueError) as e:
-        raise CmtoolError(f"{path}: unreadable weights ({e})") from None
+    except (SafetensorError, OSError, ValueError, KeyError, TypeError) as e:
+        raise CmtoolError(f"{path}: unreadable weights ({type(e).__name__}: {e})") from None
+
+
+def _unique(pairs: list[tuple[str, object]]) -> dict:
+    """A JSON object whose keys are all different."""
+    twice = [k for k, c in Counter(k for k, _ in pairs).items() if c > 1]
+    if twice:
+        raise ValueError(f"the header names {twice[0]!r} twice")
+    return dict(pairs)
+
+
+_DTYPE_BYTES = {"F64": 8, "F32": 4, "F16": 2, "BF16": 2, "I64": 8, "I32": 4, "I16": 2, "I8": 1, "U8": 1, "BOOL": 1}
+MAX_HEADER = 100 << 20  # bytes, as the safetensors reader allows
+
+
+def _check_header(path: Path) -> None:
+    """Refuse a safetensors file whose header names a tensor twice, or whose tensors overlap, leave gaps, run past
+    the file or do not fit their shapes (the safetensors reader lets some of these through)."""
+    size = path.stat().st_size
+    with open(path, "rb") as f:
+        n = int.from_bytes(f.read(8), "little")
+        if size < 8 or not 2 <= n <= min(size - 8, MAX_HEADER):
+            raise ValueError(f"a header of {n} bytes in a file of {size}")
+        header = json.loads(f.read(n), object_pairs_hook=_unique)
+    spans = []
+    for name, info in header.items():
+        if name == "__metadata__":
+            continue
+        begin, end = info["data_offsets"]
+        if end - begin != math.prod(info["shape"]) * _DTYPE_BYTES.get(info["dtype"], 0):
+            raise ValueError(f"tensor {name!r}: {end - begin} bytes for shape {info['shape']} of {info['dtype']}")
+        spans.append((begin, end, name))
+    at = 0
+    for begin, end, name in sorted(spans):
+        if begin != at:
+            raise ValueError(f"tensor {name!r} starts at byte {begin}, " +
+                             ("overlapping the one before" if begin < at else f"leaving a gap after byte {at}"))
+        at = end
+    if at != size - 8 - n:
+        raise ValueError(f"the tensors take {at} bytes, the file holds {size - 8 - n}")
 
 
 def read_weights(checkpoint: Path) -> dict[str, torch.Tensor]:
@@ -258,9 +321,13 @@ def read_weights(checkpoint: Path) -> dict[str, torch.Tensor]:
     files = weight_files(checkpoint)
     if not files:
         raise CmtoolError(f"{checkpoint}: no weights ({WEIGHTS}, or {INDEX} and every file it lists)")
-    tensors = {}
+    tensors, placed = {}, {}
     for f in files:
-        tensors.update(load_tensors(f))
+        part = load_tensors(f)
+        tensors.update(part)
+        placed.update(dict.fromkeys(part, f.name))
+    if files[0].name != WEIGHTS and placed != read_json(checkpoint / INDEX)["weight_map"]:
+        raise CmtoolError(f"{checkpoint / INDEX}: lists other weights than its files hold")
     return tensors
 
 

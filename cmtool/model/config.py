@@ -8,6 +8,24 @@ from dataclasses import dataclass, replace
 from cmtool.core.errors import CmtoolError
 
 
+def check_sizes(config, section: str, limits: dict[str, int]) -> None:
+    """Refuse a model size beyond ``limits`` (field -> largest value): far past any model cmtool trains, and a
+    number that would take hours to build or more memory than a machine has."""
+    for key, most in limits.items():
+        values = getattr(config, key)
+        for value in values if isinstance(values, tuple) else (values,):
+            if value > most:
+                raise CmtoolError(f"{section}.{key}: {value} is more than cmtool builds (at most {most})")
+
+
+RVAE_LIMITS = {"in_channels": 64, "raster_px": 4096, "latent_channels": 4096, "latent_size": 256, "d_model": 16384,
+               "decoder_layers": 64, "heads": 1024, "ffn": 65536, "num_lines": 10_000, "num_lights": 10_000,
+               "num_points": 10_000}
+DIT_LIMITS = {"depth": 256, "hidden": 16384, "heads": 1024, "latent_channels": 4096, "latent_size": 256,
+              "num_classes": 100_000}
+CONTROL_LIMITS = {"num_blocks": 256, "in_channels": 64, "image_px": 4096, "widths": 16384}
+
+
 @dataclass
 class RVAEConfig:
     """RVAE hyper-parameters (plain fields: built from a TOML table)."""
@@ -83,6 +101,7 @@ class DiTConfig:
             raise CmtoolError(f"dit.hidden: {config.hidden} must be divisible by 4 and by heads ({config.heads})")
         if config.mlp_ratio <= 0:
             raise CmtoolError(f"dit.mlp_ratio: must be > 0, got {config.mlp_ratio}")
+        check_sizes(config, "dit", DIT_LIMITS | {"mlp_ratio": 64})
         return config
 
 
@@ -116,3 +135,4 @@ class ControlConfig:
 
     def __post_init__(self) -> None:
         self.widths = tuple(self.widths)
+        check_sizes(self, "control", CONTROL_LIMITS)

@@ -19,6 +19,8 @@ config as ``dit_training``), so ``cmtool info`` shows how the shipped models wer
 from __future__ import annotations
 
 import json
+import os
+import shutil
 from pathlib import Path
 
 import torch
@@ -67,6 +69,22 @@ def pack(controlmap, out: Path, rvae=None, encoder=None) -> dict:
             pass  # the DiT run is gone; its weights are inside the ControlMap anyway
 
     out = Path(out)
+    stage = out.with_name(f".{out.name}.pack-{os.getpid()}")  # written whole, then swapped in for the old set
+    shutil.rmtree(stage, ignore_errors=True)
+    try:
+        manifest = _write_set(src, config, rvae_src, rvae_config, dit_training, encoder, stage)
+    except CmtoolError as e:  # a full disk: named as the folder the user gave
+        shutil.rmtree(stage, ignore_errors=True)
+        raise CmtoolError(str(e).replace(str(stage), str(out))) from None
+    except BaseException:
+        shutil.rmtree(stage, ignore_errors=True)
+        raise
+    ckpt.replace_folder(stage, out)
+    return manifest
+
+
+def _write_set(src: Path, config: dict, rvae_src: Path, rvae_config: dict, dit_training, encoder, out: Path) -> dict:
+    """Write the release set into the folder ``out``; returns its manifest."""
     half = {k: v.half() if v.is_floating_point() else v for k, v in ckpt.read_weights(src).items()}
     cm_config = {k: v for k, v in config.items() if k not in ("format", "version")}
     cm_config.update(rvae="../rvae", packed_from=config.get("packed_from", str(src)),

@@ -23,7 +23,7 @@ from torch import Tensor, nn
 
 from cmtool.core.errors import CmtoolError
 from cmtool.core.geometry import bernstein_basis
-from cmtool.model.config import RVAEConfig
+from cmtool.model.config import RVAE_LIMITS, RVAEConfig, check_sizes
 from cmtool.model.graph import GraphDecoder
 
 ELEMENTS = ("lines", "green", "red")
@@ -110,6 +110,7 @@ class RVAE(nn.Module):
 
     def __init__(self, config: RVAEConfig, encoder: bool = True):
         super().__init__()
+        check_sizes(config, "rvae", RVAE_LIMITS)
         self.config = config
         self.trunk = self.to_latent = None  # without an encoder (the released decoder-only weights)
         if encoder:

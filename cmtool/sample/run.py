@@ -27,6 +27,7 @@ from cmtool.core import dist as D
 from cmtool.core.errors import CmtoolError
 from cmtool.core.geometry import polyline_length
 from cmtool.core.jsonio import OutputSet, json_text
+from cmtool.core.outputs import target
 from cmtool.core.progress import Progress
 from cmtool.data.layouts import layout_raster
 from cmtool.data.scene import Scene
@@ -144,6 +145,9 @@ def run_sample(gen: MapGenerator, jobs: list[Job], settings: SampleSettings, out
         raise CmtoolError(f"the {info.world} processes of a torchrun record no denoising steps: add --no-log")
     if not info.main:
         return generate_maps(gen, jobs, settings, None, progress, info)
+    for job in jobs:  # refused before any work: a map's file that would replace an input (an SD picture in OUT)
+        for suffix in MAP_FILES:
+            target(out / f"{job.name}{suffix}")
     outputs = OutputSet()
     rec = None
     created = not out.exists()
@@ -160,7 +164,7 @@ def run_sample(gen: MapGenerator, jobs: list[Job], settings: SampleSettings, out
             if viewer is None:
                 close_recording(rec, rrd, outputs)
             else:
-                rec.flush()
+                rec.flush(timeout_sec=FLUSH_S)
                 if viewer == "serve":  # the stream owns the server: keep it until the process ends
                     SERVING.append(rec)
                 else:
@@ -272,6 +276,9 @@ def _meta(gen: MapGenerator, job: Job, settings: SampleSettings) -> dict:
             **({"layout": gen.layout if job.layout is not None else NO_LAYOUT} if gen.layout != NO_LAYOUT else {})}
 
 
+FLUSH_S = 30.0  # the longest a finished run waits for a live viewer to take the rest of the recording
+
+
 def _partial(rrd: Path) -> Path:
     return rrd.with_name(f".{rrd.name}.partial")
 
@@ -297,26 +304,58 @@ def _viewer_sink(rec: rr.RecordingStream, viewer: str) -> rr.GrpcSink | rr.GrpcS
         return served()
     spawn = viewer == "spawn"
     url = f"rerun+http://127.0.0.1:{VIEWER_PORT}/proxy" if spawn else viewer
-    parts = urlsplit(url.removeprefix("rerun+"))
-    if parts.scheme not in ("http", "https") or not parts.hostname:
-        raise CmtoolError(f"--connect {viewer}: expected a Rerun gRPC URL like rerun+http://127.0.0.1:9876/proxy")
     if spawn:
         try:
             rec.spawn(port=VIEWER_PORT, connect=False)
         except Exception as e:  # no viewer executable
             raise CmtoolError(f"--spawn: could not start the Rerun viewer ({e})") from None
-    deadline = time.monotonic() + (10.0 if spawn else 2.0)
+    check_viewer(url, "--spawn" if spawn else f"--connect {viewer}", wait_s=10.0 if spawn else 2.0)
+    return rr.GrpcSink(url)
+
+
+def check_viewer(url: str, name: str, wait_s: float = 2.0) -> None:
+    """Refuse (naming the option ``name``) a viewer URL that is not a Rerun gRPC URL, where nothing listens within
+    ``wait_s``, or where a server listens that does not answer as a gRPC server does."""
+    host, port = _grpc_address(url)
+    deadline = time.monotonic() + wait_s
     while True:
         try:
-            socket.create_connection((parts.hostname, parts.port or 9876), timeout=1.0).close()
-            return rr.GrpcSink(url)
+            answers = _answers_http2(host, port)
+            break
         except OSError:
             if time.monotonic() > deadline:
-                why = ("the viewer did not start (is there a display?); write an .rrd and open it with "
-                       "`rerun FILE.rrd` instead" if spawn else "is a viewer running there? `rerun` starts one")
-                raise CmtoolError(f"{'--spawn' if spawn else '--connect ' + viewer}: cannot reach a Rerun viewer at "
-                                  f"{url}: {why}") from None
+                why = ("the viewer did not start (is there a display?); write an .rrd and open it with `rerun "
+                       "FILE.rrd` instead" if name == "--spawn" else "is a viewer running there? `rerun` starts one")
+                raise CmtoolError(f"{name}: cannot reach a Rerun viewer at {url}: {why}") from None
             time.sleep(0.2)
+    if not answers:
+        raise CmtoolError(f"{name}: {host}:{port} accepts connections but does not answer as a Rerun viewer (gRPC) "
+                          f"does")
+
+
+def _grpc_address(url: str) -> tuple[str, int]:
+    """(host, port) of a Rerun gRPC URL (rerun+http://HOST:PORT/proxy, port 9876 when left out)."""
+    parts = urlsplit(url)
+    try:
+        port = parts.port or 9876
+    except ValueError:
+        port = None
+    if parts.scheme not in ("rerun", "rerun+http", "rerun+https") or not parts.hostname or port is None:
+        raise CmtoolError(f"--connect {url}: expected a Rerun gRPC URL like rerun+http://127.0.0.1:9876/proxy "
+                          f"(a port from 1 to 65535)")
+    return parts.hostname, port
+
+
+def _answers_http2(host: str, port: int, wait_s: float = 2.0) -> bool:
+    """Whether a server at ``host:port`` answers an HTTP/2 greeting (as a gRPC server does) within ``wait_s``;
+    an OSError when nothing listens there."""
+    with socket.create_connection((host, port), timeout=1.0) as s:
+        s.sendall(b"PRI * HTTP/2.0\r\n\r\nSM\r\n\r\n" + bytes([0, 0, 0, 4, 0, 0, 0, 0, 0]))  # preface, SETTINGS
+        s.settimeout(wait_s)
+        try:
+            return len(s.recv(9)) > 0
+        except socket.timeout:
+            return False
 
 
 def log_run_header(rec, gen: MapGenerator, jobs: list[Job], settings: SampleSettings, command: str) -> None:
@@ -341,6 +380,9 @@ def log_run_header(rec, gen: MapGenerator, jobs: list[Job], settings: SampleSett
         if truth is not None:
             log_lanes(rec, f"{job.prefix}truth/", truth.lanes, truth.green_lights, truth.red_lights, truth.successors,
                       static=True)
+
+
+MAP_FILES = (".json", ".gt.json", ".png")  # the files of a map named NAME: NAME.json, NAME.gt.json, NAME.png
 
 
 def write_maps(out: Path, maps: list[SampledMap], title, outputs: OutputSet, grid: Path | None = None) -> None:

@@ -26,6 +26,7 @@ from torch.utils.data import DataLoader, Dataset
 from cmtool.core import dist as D
 from cmtool.core.errors import CmtoolError
 from cmtool.core.jsonio import read_json
+from cmtool.core.memory import check_fits
 from cmtool.core.progress import Progress
 from cmtool.model import checkpoint as ckpt
 from cmtool.train.data import StepBatches
@@ -123,14 +124,38 @@ def _state_tensors(model, opt) -> tuple[dict[str, torch.Tensor], dict]:
     return tensors, {"param_groups": sd["param_groups"]}
 
 
-def _load_state(model, opt, tensors: dict[str, torch.Tensor], meta: dict) -> None:
-    model.load_state_dict({k[6:]: v for k, v in tensors.items() if k.startswith("model/")})
-    state: dict[int, dict] = {}
-    for k, v in tensors.items():
-        if k.startswith("opt/"):
-            _, i, name = k.split("/", 2)
-            state.setdefault(int(i), {})[name] = v
-    opt.load_state_dict({"state": state, "param_groups": meta["param_groups"]})
+def _check_size(stage: Stage) -> None:
+    """Refuse, before anything is allocated, a model whose weights, gradients, optimiser moments and EMA copy would
+    not fit in memory (its parameters counted on the meta device; a stage that starts from a checkpoint's weights
+    cannot be built there and was checked when that checkpoint was saved)."""
+    try:
+        with torch.device("meta"):
+            params = sum(p.numel() for p in stage.model().parameters())
+    except NotImplementedError:
+        return
+    where = stage.recipe.path or "the recipe"
+    if params > ckpt.MAX_PARAMS:
+        raise CmtoolError(f"{where}: a model of {params / 1e9:.1f} billion parameters, more than cmtool trains "
+                          f"({ckpt.MAX_PARAMS / 1e9:.0f} billion)")
+    check_fits(5 * 4 * params, f"{where}: training a model of {params / 1e6:,.0f} million parameters")
+
+
+def _load_state(model, opt, checkpoint: Path) -> None:
+    """The raw weights and optimiser state of a checkpoint's training state; damaged state is a one-line error that
+    names its files."""
+    tensors, meta = ckpt.load_tensors(checkpoint / ckpt.STATE), read_json(checkpoint / ckpt.STATE_META)
+    try:
+        model.load_state_dict({k[6:]: v for k, v in tensors.items() if k.startswith("model/")})
+        state: dict[int, dict] = {}
+        for k, v in tensors.items():
+            if k.startswith("opt/"):
+                _, i, name = k.split("/", 2)
+                state.setdefault(int(i), {})[name] = v
+        opt.load_state_dict({"state": state, "param_groups": meta["param_groups"]})
+    except (KeyError, TypeError, ValueError, RuntimeError) as e:
+        why = f"no {e}" if isinstance(e, KeyError) else str(e).splitlines()[0]
+        raise CmtoolError(f"{checkpoint / ckpt.STATE} / {ckpt.STATE_META}: damaged training state ({why}); resume "
+                          f"from an earlier checkpoint (delete this one) or start anew") from None
 
 
 def _resume_point(run_dir: Path, resume: bool, kind: str, model_config: dict) -> tuple[Path, dict] | None:
@@ -162,6 +187,7 @@ def train(stage: Stage, run_dir: Path, resume: bool = False, progress: bool = Tr
     if t.batch_size % info.world:
         raise CmtoolError(f"train.batch_size {t.batch_size} is not divisible by the {info.world} processes")
     torch.manual_seed(t.seed)  # identical initial weights on every rank
+    _check_size(stage)
     model = stage.model().to(info.device)
     params = [p for p in model.parameters() if p.requires_grad]
     opt = _optimizer(params, t)
@@ -172,7 +198,7 @@ def train(stage: Stage, run_dir: Path, resume: bool = False, progress: bool = Tr
     point = _resume_point(run_dir, resume, stage.kind, base_config)
     if point is not None:
         last, config = point
-        _load_state(model, opt, ckpt.load_tensors(last / ckpt.STATE), read_json(last / ckpt.STATE_META))
+        _load_state(model, opt, last)
         ckpt.load_weights(ema.module, last)
         ema.n_averaged.fill_(config["step"])
         start, record = config["step"], config["training"]

@@ -114,6 +114,7 @@ def served(port: int = GRPC_PORT) -> rr.GrpcServerSink:
 def serve_web_viewer(grpc_port: int = GRPC_PORT, web_port: int = WEB_PORT) -> str:
     """Serve Rerun's web viewer from this process, pointed at the gRPC server on ``grpc_port``; returns what to
     tell the user: the address to open, also through an SSH tunnel from a laptop."""
+    _check_free(grpc_port)  # both at once, before any work: the gRPC server starts later
     _check_free(web_port)
     rr.serve_web_viewer(web_port=web_port, open_browser=False, connect_to=f"rerun+http://localhost:{grpc_port}/proxy")
     host = socket.gethostname()
@@ -124,9 +125,13 @@ def serve_web_viewer(grpc_port: int = GRPC_PORT, web_port: int = WEB_PORT) -> st
 
 
 def _check_free(port: int) -> None:
+    """Refuse at once a port that another process holds (listening or only bound), which Rerun would wait on."""
     with socket.socket() as s:
-        if s.connect_ex(("127.0.0.1", port)) == 0:
-            raise CmtoolError(f"--serve: port {port} is in use (another cmtool --serve or a Rerun viewer?)")
+        s.setsockopt(socket.SOL_SOCKET, socket.SO_REUSEADDR, 1)
+        try:
+            s.bind(("0.0.0.0", port))
+        except OSError:
+            raise CmtoolError(f"--serve: port {port} is in use (another cmtool --serve or a Rerun viewer?)") from None
 
 
 def log_ego_frame(rec: rr.RecordingStream, path: str) -> None:

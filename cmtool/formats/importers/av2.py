@@ -36,8 +36,12 @@ def import_av2(path: str | os.PathLike, city: str | None = None) -> HDMap:
     hd = HDMap(city=city or code, drives_on="right", source=f"av2:{path.name}")
 
     segments = _records(data["lane_segments"], path, "lane_segments")
+    seen: set[str] = set()
     for seg in segments:
         try:
+            if str(seg["id"]) in seen:
+                raise ValueError("its id is the id of an earlier lane segment")
+            seen.add(str(seg["id"]))
             lane_type = LANE_TYPES.get(seg["lane_type"])
             if lane_type is None:
                 continue
@@ -61,6 +65,8 @@ def import_av2(path: str | os.PathLike, city: str | None = None) -> HDMap:
         except (KeyError, TypeError, ValueError) as e:
             raise CmtoolError(f"{path}: lane segment {_name(seg)}: malformed ({type(e).__name__}: {e})") from None
 
+    if not hd.lanes:
+        raise CmtoolError(f"{path}: no lane segments of the kinds cmtool reads ({', '.join(LANE_TYPES)})")
     # AV2 neighbours may run in the opposite direction; HDMap neighbours are same-direction lanes.
     for lane in hd.lanes.values():
         for side in ("left_neighbor", "right_neighbor"):

@@ -1,0 +1,23 @@
+"""Worker processes that stop with their command: a pool whose workers leave Ctrl-C to the command (which stops
+them) and end on SIGTERM as a command does, removing what they were writing, without a traceback each."""
+
+from __future__ import annotations
+
+import multiprocessing
+import signal
+
+
+def pool(processes: int, start: str | None = None) -> multiprocessing.pool.Pool:
+    """A process pool (``start``: "fork", "spawn" or the platform's default); leaving its ``with`` block, also by an
+    error or a signal, terminates the workers."""
+    context = multiprocessing.get_context(start)
+    return context.Pool(processes, initializer=_worker_signals)
+
+
+def _worker_signals() -> None:
+    signal.signal(signal.SIGINT, signal.SIG_IGN)
+    signal.signal(signal.SIGTERM, _stop)
+
+
+def _stop(signum, frame):
+    raise SystemExit(128 + signum)  # unwinds (temporary files removed); multiprocessing prints no traceback for it
