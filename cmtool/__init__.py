@@ -5,8 +5,8 @@ package and from the layers below it, never from a layer above or beside it (``t
 checks every import, those inside functions included): no two packages import each other. From the
 bottom:
 
-- ``core``: ground utilities (errors, JSON I/O, geometry, geographic projection, progress, TOML
-  tables, processes under torchrun);
+- ``core``: ground utilities (errors, JSON I/O, what a command may write, memory checks, worker pools,
+  geometry, geographic projection, progress, TOML tables, processes under torchrun);
 - ``maps``: the map model (HD maps, SD maps, lane graphs, lane neighbours, road graphs);
 - ``formats``: importers (Argoverse 2, Lanelet2, nuPlan, OpenStreetMap) and exporters (Lanelet2,
   OpenDRIVE, GeoJSON);
