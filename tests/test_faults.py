@@ -957,11 +957,17 @@ def _children(pid: int) -> list[int]:
     return found
 
 
-def _running(pid: int) -> bool:
-    try:
-        return Path(f"/proc/{pid}/stat").read_text().rsplit(")", 1)[1].split()[0] != "Z"
-    except OSError:
-        return False
+def _running_with(text: str) -> list[int]:
+    """The live (not zombie) processes whose command line holds ``text``."""
+    found = []
+    for proc in Path("/proc").glob("[0-9]*"):
+        try:
+            if text in (proc / "cmdline").read_bytes().decode(errors="replace") and \
+                    (proc / "stat").read_text().rsplit(")", 1)[1].split()[0] != "Z":
+                found.append(int(proc.name))
+        except OSError:
+            continue
+    return found
 
 
 @pytest.mark.parametrize("sig", ["SIGTERM", "SIGINT"])
@@ -989,9 +995,9 @@ def test_a_signal_stops_a_build_and_its_workers(tmp_path, sig):
         os.killpg(proc.pid, signal.SIGINT)
     code = proc.wait(timeout=60)
     deadline = time.monotonic() + 15
-    while [w for w in workers if _running(w)] and time.monotonic() < deadline:
+    while _running_with(str(out)) and time.monotonic() < deadline:
         time.sleep(0.1)
-    alive = [w for w in workers if _running(w)]
+    alive = _running_with(str(out))  # the workers seen, and any the pool started while it stopped
     assert not alive, f"workers {alive} outlived the command"
     err = proc.stderr.read()  # every writer of the pipe has ended
     assert code == (143 if sig == "SIGTERM" else 130) and "Traceback" not in err, err

@@ -3,8 +3,11 @@ them) and end on SIGTERM as a command does, removing what they were writing, wit
 
 from __future__ import annotations
 
+import ctypes
 import multiprocessing
 import signal
+
+PR_SET_PDEATHSIG = 1  # prctl(2)
 
 
 def pool(processes: int, start: str | None = None) -> multiprocessing.pool.Pool:
@@ -17,6 +20,11 @@ def pool(processes: int, start: str | None = None) -> multiprocessing.pool.Pool:
 def _worker_signals() -> None:
     signal.signal(signal.SIGINT, signal.SIG_IGN)
     signal.signal(signal.SIGTERM, _stop)
+    try:  # Linux: the worker ends with the process that started it, however that ends (killed, or stopped while
+        # multiprocessing's own termination waited on a worker)
+        ctypes.CDLL(None, use_errno=True).prctl(PR_SET_PDEATHSIG, signal.SIGTERM)
+    except (OSError, AttributeError):
+        pass
 
 
 def _stop(signum, frame):
