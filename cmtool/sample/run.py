@@ -13,6 +13,7 @@ a failed run leaves earlier files as they were.
 from __future__ import annotations
 
 import math
+import os
 import socket
 import time
 from dataclasses import dataclass
@@ -26,7 +27,7 @@ import rerun as rr
 from cmtool.core import dist as D
 from cmtool.core.errors import CmtoolError
 from cmtool.core.geometry import polyline_length
-from cmtool.core.jsonio import OutputSet, json_text
+from cmtool.core.jsonio import OutputSet, json_text, os_reason
 from cmtool.core.outputs import target
 from cmtool.core.progress import Progress
 from cmtool.data.layouts import layout_raster
@@ -291,10 +292,29 @@ def sampling_recording(rrd: Path | None, viewer: str | None) -> rr.RecordingStre
     rec = rr.RecordingStream(APP_IDS["sample"])
     sinks = [_viewer_sink(rec, viewer)]
     if rrd is not None:
-        rrd.parent.mkdir(parents=True, exist_ok=True)
+        _room_for(rrd)
         sinks.append(rr.FileSink(str(_partial(rrd))))
     rec.set_sinks(*sinks)
     return rec
+
+
+PROBE_BYTES = 1 << 20
+
+
+def _room_for(rrd: Path) -> None:
+    """Refuse a recording that Rerun's own file writer would fail to write (a full disk, a size limit, no
+    permission): that writer blocks for ever when a write fails, so a megabyte is written and removed first."""
+    probe = _partial(rrd)
+    try:
+        probe.parent.mkdir(parents=True, exist_ok=True)
+        with open(probe, "wb") as f:
+            f.write(bytes(PROBE_BYTES))
+            f.flush()
+            os.fsync(f.fileno())
+    except OSError as e:
+        raise CmtoolError(f"cannot write {rrd}: {os_reason(e)}") from None
+    finally:
+        probe.unlink(missing_ok=True)
 
 
 def _viewer_sink(rec: rr.RecordingStream, viewer: str) -> rr.GrpcSink | rr.GrpcServerSink:
