@@ -154,3 +154,13 @@ def moved_start(points: np.ndarray, to: np.ndarray, fade_m: float) -> np.ndarray
     moved = points + weight * (to - points[0])
     moved[0] = to
     return moved
+
+
+def padded(lines: list[np.ndarray]) -> tuple[np.ndarray, np.ndarray]:
+    """Lines of different vertex counts as one (m, L, 2) array, each padded with copies of its last point, and their
+    vertex counts: for computing on many lines at once."""
+    count = np.array([len(line) for line in lines])
+    out = np.repeat(np.array([line[-1] for line in lines])[:, None], count.max(), axis=1)
+    for k, line in enumerate(lines):
+        out[k, :len(line)] = line
+    return out, count

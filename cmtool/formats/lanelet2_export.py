@@ -30,7 +30,7 @@ from xml.sax.saxutils import quoteattr
 import numpy as np
 
 from cmtool.core.geo import scene_to_latlon
-from cmtool.core.geometry import offset, resample
+from cmtool.core.geometry import offset, padded, resample
 from cmtool.core.jsonio import write_text_atomic
 from cmtool.core.unionfind import UnionFind
 from cmtool.maps.lanegraph import controlled_lanes, stop_line
@@ -249,11 +249,8 @@ def _reads_reversed(bounds: list[list[np.ndarray]]) -> np.ndarray:
 def _sides_padded(lines: list[np.ndarray], p: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
     """:func:`_sides` of each line and point ``p[k]`` at once: (m, S) side values at every segment and whether the
     segment is one :func:`_sides` reports (nearest within 1 mm; padding never)."""
-    count = np.array([len(line) for line in lines])
-    padded = np.repeat(np.array([line[-1] for line in lines])[:, None], count.max(), axis=1)
-    for k, line in enumerate(lines):
-        padded[k, :len(line)] = line
-    a, ab, q = padded[:, :-1], np.diff(padded, axis=1), p[:, None, :]
+    points, count = padded(lines)
+    a, ab, q = points[:, :-1], np.diff(points, axis=1), p[:, None, :]
     t = np.clip(np.sum((q - a) * ab, axis=2) / np.maximum(np.sum(ab * ab, axis=2), 1e-18), 0.0, 1.0)
     distance = np.linalg.norm(a + t[:, :, None] * ab - q, axis=2)
     real = np.arange(ab.shape[1])[None, :] < (count - 1)[:, None]

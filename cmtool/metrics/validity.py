@@ -41,7 +41,7 @@ from scipy.sparse import csr_matrix
 from scipy.sparse.csgraph import breadth_first_order, connected_components
 from scipy.spatial import cKDTree
 
-from cmtool.core.geometry import polyline_length, unit
+from cmtool.core.geometry import padded, polyline_length, unit
 from cmtool.maps.neighbours import infer_neighbours, same_directions
 
 MAX_GAP_M, MAX_TURN_DEG = 1.5, 60.0
@@ -166,19 +166,10 @@ def _min_radii(lanes: list[np.ndarray]) -> tuple[np.ndarray, np.ndarray]:
     order = sorted(range(len(lanes)), key=lambda k: len(lanes[k]))
     for start in range(0, len(order), CHUNK_LANES):
         batch = order[start:start + CHUNK_LANES]
-        r, w = _min_radius(*_padded([lanes[k] for k in batch]))
+        r, w = _min_radius(*padded([lanes[k] for k in batch]))
         radius[batch] = r
         where[batch] = np.where(np.isfinite(r)[:, None], w, where[batch])
     return radius, where
-
-
-def _padded(lines: list[np.ndarray]) -> tuple[np.ndarray, np.ndarray]:
-    """Lines as one (m, L, 2) array, each padded with copies of its last point, and their vertex counts."""
-    count = np.array([len(line) for line in lines])
-    out = np.repeat(np.array([line[-1] for line in lines])[:, None], count.max(), axis=1)
-    for k, line in enumerate(lines):
-        out[k, :len(line)] = line
-    return out, count
 
 
 def _min_radius(p: np.ndarray, count: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
