@@ -81,7 +81,7 @@ def test_timesteps():
             SCHEDULE.timesteps(bad)
 
 
-@pytest.mark.parametrize("sampler, eta", [("ddpm", 0.0), ("ddim", 0.5), ("dpm++2m-sde", 0.0)])
+@pytest.mark.parametrize("sampler, eta", [("ddpm", 0.0), ("ddpm-trailing", 0.0), ("ddim", 0.5), ("dpm++2m-sde", 0.0)])
 def test_same_seed_same_samples(models, sampler, eta):
     dit, _ = models
     run = lambda seed: sample(dit, SCHEDULE, Y, steps=6, sampler=sampler, eta=eta, generator=gen(seed))
@@ -116,7 +116,7 @@ def test_ddim_eta1_matches_ddpm(models):
     assert torch.allclose(a, b, atol=1e-3, rtol=1e-3)
 
 
-@pytest.mark.parametrize("sampler", ["ddim", "ddpm", "dpm++2m", "dpm++2m-sde"])
+@pytest.mark.parametrize("sampler", ["ddim", "ddpm", "ddpm-trailing", "dpm++2m", "dpm++2m-sde"])
 def test_cfg_zero_reproduces_the_base_model_exactly(models, sampler):
     dit, cm = models
     kw = dict(steps=6, sampler=sampler, eta=0.7)
@@ -143,6 +143,32 @@ def test_callback_sees_every_step_and_the_residuals(models):
     sample(cm, SCHEDULE, Y, control=CTRL, cfg=0.0, steps=3, generator=gen(), callback=plain.append)
     assert len(plain) == 3 and all(i.eps_cond is None and i.residuals is None for i in plain)
     assert all(torch.equal(i.eps, i.eps_uncond) for i in plain)
+
+
+def test_guidance_at_w1_is_one_pass_of_the_conditioned_rows(models):
+    """At w = 1 the guided prediction is the conditioned one: one pass of the B conditioned rows, no unconditioned
+    pass; each step's prediction equals the two-pass formula within float rounding."""
+    _, cm = models
+    infos: list[StepInfo] = []
+    calls = {"cfg": 0}
+    two_pass = cm.forward_cfg
+
+    def counted(*args, **kwargs):
+        calls["cfg"] += 1
+        return two_pass(*args, **kwargs)
+
+    cm.forward_cfg = counted
+    try:
+        sample(cm, SCHEDULE, Y, control=CTRL, cfg=1.0, steps=4, generator=gen(4), callback=infos.append)
+    finally:
+        del cm.forward_cfg
+    assert calls["cfg"] == 0 and len(infos) == 4
+    tokens = cm.encode_control(CTRL)
+    for info in infos:
+        assert info.eps_uncond is None and torch.equal(info.eps, info.eps_cond) and len(info.residuals) == 2
+        with torch.no_grad():
+            cond, uncond, _ = cm.forward_cfg(info.x_t, torch.full((2,), info.t), Y, tokens=tokens)
+        assert torch.allclose(info.eps, uncond + 1.0 * (cond - uncond), atol=1e-5)
 
 
 @pytest.mark.parametrize("cfg", [-0.1, float("nan"), float("inf")])
@@ -258,7 +284,26 @@ def test_logsnr_timesteps_are_distinct_and_denser_near_the_data():
     assert SCHEDULE.timesteps(10, "logsnr")[-2] < SCHEDULE.timesteps(10)[-2] / 10
 
 
-@pytest.mark.parametrize("sampler", ["ddpm", "ddim", "dpm++2m-sde"])
+def test_trailing_timesteps_leave_out_t0_and_the_last_step_lands_on_the_clean_estimate(models):
+    for n in (1, 2, 3, 7, 50, 999, 1000):
+        ts = SCHEDULE.timesteps(n, "trailing")
+        assert len(ts) == n and ts[0] == 999 and all(a > b for a, b in zip(ts, ts[1:]))
+        assert ts[-1] == round(1000 / n) - 1  # a whole interval above t = 0 (t = 0 only at 1000 steps)
+    assert SCHEDULE.timesteps(2, "trailing") == [999, 499] and SCHEDULE.timesteps(2, "trailing", top=300) == [300, 149]
+    with pytest.raises(CmtoolError, match="trailing steps"):
+        SCHEDULE.timesteps(5, "trailing", top=3)
+    _, cm = models
+    infos: list[StepInfo] = []
+    x = sample(cm, SCHEDULE, Y, control=CTRL, cfg=1.0, steps=2, sampler="ddpm-trailing", generator=gen(2),
+               callback=infos.append)
+    assert [i.t for i in infos] == [999, 499] and torch.equal(x, infos[-1].x0)
+    calls = []  # from a start noised 0.3 of the way up, both steps run below it
+    sample(cm, SCHEDULE, Y, control=CTRL, cfg=1.0, steps=2, sampler="ddpm-trailing", init=torch.zeros_like(x),
+           strength=0.3, generator=gen(2), callback=lambda info: calls.append(info.t))
+    assert calls == [300, 149]
+
+
+@pytest.mark.parametrize("sampler", ["ddpm", "ddpm-trailing", "ddim", "dpm++2m-sde"])
 def test_sdedit_keeps_more_of_the_start_the_lower_the_strength(models, sampler):
     dit, cm = models
     init = torch.randn(2, *dit.latent_shape, generator=gen(5))

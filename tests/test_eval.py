@@ -121,7 +121,7 @@ def test_ablations_write_tables_pictures_and_recording(sampling_ckpt, tiny_data,
     swap = json.loads((tmp_path / "ablate_city_swap.json").read_text())
     rows = swap["rows"]
     assert [r["label"] for r in rows] == ["SGP", "LAV"] and [r["drives_on"] for r in rows] == ["left", "right"]
-    assert swap["sampler"] == sweep["sampler"] == "ddpm"  # the default: every step draws fresh noise ...
+    assert swap["sampler"] == sweep["sampler"] == "ddpm-trailing"  # the default: every step draws fresh noise ...
     again = tmp_path / "again"
     code, _, err = in_process(capsys, "ablate", "city-swap", *common[:-3], "--out", again, "--quiet",
                               "--labels", "SGP,LAV")

@@ -86,3 +86,31 @@ def test_legal_oneway_judges_lanes_along_one_way_roads_by_their_heading():
     assert legal_oneway([line(20.0)], forward) == (pytest.approx(math.nan, nan_ok=True), 0.0)
     assert math.isnan(legal_oneway(lanes, straight_road())[0])
     assert math.isnan(legal_oneway([], forward)[0])
+
+
+def test_headings_of_all_pieces_equal_np_gradient_of_each():
+    from cmtool.metrics.geometric import _headings
+
+    rng = np.random.default_rng(2)
+    pieces = [np.cumsum(rng.normal(0, 1, (int(rng.integers(2, 12)), 2)), axis=0) for _ in range(300)]
+    points, dirs = _headings(pieces)
+    gradient = np.concatenate([np.gradient(p, axis=0) for p in pieces])
+    np.testing.assert_array_equal(points, np.concatenate(pieces))
+    np.testing.assert_array_equal(dirs, gradient / np.maximum(np.linalg.norm(gradient, axis=1, keepdims=True), 1e-9))
+
+
+def test_remembered_rasters_and_lanes_answer_only_for_equal_ones():
+    """The scores remember the last rasters and lane sets they saw: a raster or lanes changed in place, or another
+    frame size, are measured anew."""
+    from cmtool.metrics import geometric
+
+    sd, lanes = straight_road(oneway=1), [line(-1.75), line(1.75)[::-1]]
+    first = legal_oneway(lanes, sd), geometric.legal_oneway_by_lane(lanes, sd)[0].tolist(), sd_adherence(lanes, sd)
+    assert first[0] == (0.5, pytest.approx(120.0, abs=2.0)) and first[1] == [1.0, 0.0]
+    assert (legal_oneway(lanes, sd), geometric.legal_oneway_by_lane(lanes, sd)[0].tolist(), sd_adherence(lanes, sd)) \
+        == first
+    lanes[1][:] = lanes[1][::-1].copy()  # turned round in place: now legal
+    assert legal_oneway(lanes, sd)[0] == 1.0
+    sd[..., 0] = 0  # the roads gone
+    assert math.isnan(legal_oneway(lanes, sd)[0]) and math.isnan(sd_adherence(lanes, sd)["sd_coverage"])
+    assert sd_adherence(lanes, straight_road(), frame_m=128.0) != sd_adherence(lanes, straight_road())

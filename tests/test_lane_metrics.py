@@ -86,3 +86,27 @@ def test_distances_equal_the_brute_force_reference_on_varied_scenes():
     assert distance_to_polylines(np.zeros((0, 2)), [STRAIGHT]).shape == (0,)
     assert not near_polylines(np.zeros((3, 2)), [], 1.0).any()
     assert near_polylines(np.zeros((0, 2)), [STRAIGHT], 1.0).shape == (0,)
+
+
+def test_settled_points_get_the_answers_geos_gives_every_point():
+    """near_polylines and within_distance settle most points by a KD-tree of segment pieces: the same answers as GEOS's
+    dwithin and its nearest distances for every point, also on points a hair either side of tol from axis-aligned
+    lanes and on a pixel grid exactly tol from lane vertices."""
+    import shapely
+
+    from cmtool.metrics.lanes import _tree, within_distance
+
+    rng = np.random.default_rng(7)
+    for _ in range(80):
+        lanes = [np.round(lane, 3) for lane in random_lanes(rng, int(rng.integers(1, 30)))]
+        lanes.append(np.array([[-20.125, 4.125], [20.125, 4.125], [20.125, -9.0]]))  # on the grid
+        tol = float(rng.choice([1.0, 3.0, 5.0, rng.uniform(0.5, 5.0)]))
+        grid = np.stack(np.meshgrid(np.arange(-32, 32, 0.5) + 0.125, np.arange(-32, 32, 0.5) + 0.125), -1).reshape(-1, 2)
+        points = np.concatenate([grid[rng.random(len(grid)) < 0.2], rng.uniform(-40, 40, (300, 2)),
+                                 [[0.0, 4.125 + tol], [0.0, np.nextafter(4.125 + tol, 9)], [0.0, 4.125 - tol]]])
+        dwithin = np.zeros(len(points), bool)
+        dwithin[_tree(lanes).query(shapely.points(points), predicate="dwithin", distance=tol)[0]] = True
+        np.testing.assert_array_equal(near_polylines(points, lanes, tol), dwithin)
+        np.testing.assert_array_equal(within_distance(points, lanes, tol), distance_to_polylines(points, lanes) <= tol)
+    assert not within_distance(np.zeros((3, 2)), [], 1.0).any()
+    assert within_distance(np.zeros((0, 2)), [STRAIGHT], 1.0).shape == (0,)

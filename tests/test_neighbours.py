@@ -86,3 +86,57 @@ def test_routability_counts_lane_changes_between_same_direction_neighbours():
     assert report.routable_with_changes == pytest.approx(2 / 6)  # 0 <-> 1; never into the oncoming lane 2
     assert check(LaneGraph(lanes=lanes)).routable_with_changes == pytest.approx(2 / 6)  # inferred when not recorded
     assert check(LaneGraph(lanes=lanes, left_neighbors=[])).routable_with_changes == 0.0
+
+
+def random_road_lanes(rng):
+    """Bent lanes over a 64 m frame, some with a neighbour or two beside them, either way (millimetre coordinates)."""
+    lanes = []
+    for _ in range(int(rng.integers(2, 30))):
+        p0, a, length, bend = rng.uniform(-30, 30, 2), rng.uniform(-np.pi, np.pi), rng.uniform(3, 40), rng.normal(0, 0.3)
+        t = np.linspace(0, 1, int(rng.integers(2, 21)))[:, None]
+        d, side = np.array([np.cos(a), np.sin(a)]), np.array([-np.sin(a), np.cos(a)])
+        lane = np.round(p0 + length * t * d + bend * length * t * (1 - t) * side, 3)
+        lanes.append(lane)
+        for _ in range(int(rng.integers(0, 3))):
+            lanes.append(np.round((lane + rng.uniform(2, 6) * rng.choice([-1, 1]) * side)[::rng.choice([-1, 1])], 3))
+    return lanes
+
+
+def test_one_search_for_both_sides_finds_what_a_search_per_side_finds():
+    """find_neighbours searches once for both sides and lane_widths measures every pair at once: the same pairs and
+    widths, bit for bit, as a search per side with np.median per pair, same_direction per pair and a LineString pair
+    per gap (as before), on 100 random scenes."""
+    import shapely
+
+    from cmtool.maps import neighbours
+
+    def per_side(lanes, widths, side):
+        a, b, offset, beside = neighbours._beside_all(lanes, widths, None)
+        best = {}
+        for i, j, o, m in zip(a.tolist(), b.tolist(), offset, beside):
+            if side * np.median(o[m]) > 0 and (i not in best or np.median(np.abs(o[m])) < best[i][0]):
+                best[i] = (np.median(np.abs(o[m])), j)
+        return sorted((i, j) for i, (_, j) in best.items())
+
+    def gap(a, b):
+        points = shapely.line_interpolate_point(shapely.LineString(a), np.linspace(0.1, 0.9, 9), normalized=True)
+        return float(shapely.distance(points, shapely.LineString(b)).mean())
+
+    rng, pairs = np.random.default_rng(3), 0
+    for _ in range(100):
+        lanes = random_road_lanes(rng)
+        widths = None if rng.random() < 0.5 else rng.uniform(2.5, 5, len(lanes))
+        left, right = per_side(lanes, widths, 1), per_side(lanes, widths, -1)
+        assert infer_neighbours(lanes, widths) == left and infer_neighbours(lanes, widths, side=-1) == right
+        oncoming = sorted({(min(i, j), max(i, j)) for i, j in left + right if not same_direction(lanes, i, j)})
+        same = [(i, j) for i, j in left if same_direction(lanes, i, j)]
+        assert find_neighbours(lanes, widths) == (same, oncoming)
+        spacing = [[] for _ in lanes]
+        for i, j in same:
+            spacing[i].append(gap(lanes[i], lanes[j]))
+            spacing[j].append(gap(lanes[i], lanes[j]))
+        every = [g for s in spacing for g in s]
+        expected = np.clip([np.mean(s) if s else (np.median(every) if every else 3.5) for s in spacing], 2.5, 5.0)
+        np.testing.assert_array_equal(lane_widths(lanes, same), expected)
+        pairs += len(same) + len(oncoming)
+    assert pairs > 300

@@ -107,6 +107,21 @@ def test_a_crossing_gets_connectors_and_no_u_turns():
     assert check(_graph(hd)).score > 0.9
 
 
+def test_a_layout_without_connectors_is_the_full_one_without_them():
+    from cmtool.data.layouts import without_connectors
+
+    sd = SDMap(roads=[road("ew", [[-100, 0], [0, 0], [100, 0]], lanes=2),
+                      road("ns", [[0, -100], [0, 0], [0, 100]], lanes=4, road_class="secondary"),
+                      road("on", [[100, 0], [150, 30]], lanes=2)])
+    full, roads = without_connectors(rule_layout(sd)), rule_layout(sd, connectors=False)
+    assert list(roads.lanes) == list(full.lanes) and any(lane.successors for lane in roads.lanes.values())
+    for k, lane in roads.lanes.items():
+        other = full.lanes[k]
+        assert np.array_equal(lane.centerline, other.centerline) and lane.successors == other.successors
+        assert (lane.predecessors, lane.left_neighbor, lane.right_neighbor) == (
+            other.predecessors, other.left_neighbor, other.right_neighbor)
+
+
 def test_ends_near_a_road_meet_it_and_bridges_do_not():
     t = rule_layout(SDMap(roads=[road("main", [[-80, 0], [80, 0]]), road("side", [[0, 2.0], [0, 80]])]))
     assert any(l.is_intersection for l in t.lanes.values())  # the side road stopped 2 m short: a T-junction

@@ -319,24 +319,54 @@ def test_bench_sample_prints_both_times_and_the_ratio(sampling_ckpt, capsys):
     assert ratio > 0
 
 
+def test_bench_sample_prints_the_quality_speed_table(sampling_ckpt, tiny_data, capsys):
+    """`bench sample --data`: one row per sampler and step count, scored on the dataset's test scenes."""
+    code, out, err = in_process(capsys, "bench", "sample", "--ckpt", sampling_ckpt["controlmap"], "--data", tiny_data,
+                                "--n", 4, "--table-steps", "1,2", "--samplers", "ddpm,dpm++2m-sde", "--batch", 4)
+    assert code == 0, err
+    rows = [line.split("|")[1:-1] for line in out.splitlines() if line.startswith("| ") and "sampler" not in line]
+    assert [(r[0].strip(), int(r[1])) for r in rows] == [("ddpm", 1), ("ddpm", 2), ("dpm++2m-sde", 1),
+                                                         ("dpm++2m-sde", 2)]
+    for r in rows:
+        values = [float(v) for v in r[2:]]
+        assert values[0] > 0 and all(0 <= v <= 1 for v in values[2:]), r
+    # one step of either sampler is the same first step from the same noise: the same maps
+    assert rows[0][4:] == rows[2][4:]
+    code, _, err = in_process(capsys, "bench", "sample", "--ckpt", sampling_ckpt["controlmap"], "--data", tiny_data,
+                              "--table-steps", "2,x")
+    assert code == 2 and "--table-steps" in err
+    code, _, err = in_process(capsys, "bench", "sample", "--ckpt", sampling_ckpt["controlmap"], "--data", tiny_data,
+                              "--features", "--n", 4)
+    assert code == 2 and "64 scenes" in err
+
+
 def test_lane_graph_meta_records_how_it_was_made(sampled):
     graph = LaneGraph.from_json(json.loads((sampled["out"] / "sd_bos_s0.json").read_text()))
     assert {"source", "checkpoint", "seed", "cfg", "city_cfg", "steps", "sampler", "smooth"} <= set(graph.meta)
     assert graph.meta["city_cfg"] == 1.0 and graph.meta["smooth"] == DEFAULT_SMOOTH
-    assert graph.meta["steps"] == STEPS and graph.meta["sampler"] == DEFAULT_SAMPLER == "ddpm"
+    assert graph.meta["steps"] == STEPS and graph.meta["sampler"] == DEFAULT_SAMPLER == "ddpm-trailing"
 
 
 def test_steps_default_to_the_samplers_own_count(sampling_ckpt, tmp_path, capsys):
     """Without --steps, every sampling command takes its sampler's count (DEFAULT_STEPS); --steps overrides it."""
     cm = sampling_ckpt["controlmap"]
-    runs = (("sde", "dpm++2m-sde", []), ("ddpm", "ddpm", []), ("three", "dpm++2m-sde", ["--steps", 3]))
+    runs = (("sde", "dpm++2m-sde", []), ("ddpm", "ddpm", []), ("three", "dpm++2m-sde", ["--steps", 3]),
+            ("default", DEFAULT_SAMPLER, []))
     for name, sampler, steps in runs:
         code, _, err = in_process(capsys, "sample", "--ckpt", cm, "--sd", SD_PNG, "--sampler", sampler, *steps,
                                   "--no-log", "--quiet", "--out", tmp_path / name)
         assert code == 0, err
         meta = read_jsonl(tmp_path / name / "sd_bos.json")[0].meta
         assert (meta["sampler"], meta["steps"]) == (sampler, steps[1] if steps else DEFAULT_STEPS[sampler])
-    assert DEFAULT_STEPS["ddpm"] == 50 and DEFAULT_STEPS["dpm++2m-sde"] == 15
+    assert DEFAULT_STEPS["ddpm"] == 50 and DEFAULT_STEPS["dpm++2m-sde"] == 15 and DEFAULT_STEPS[DEFAULT_SAMPLER] == 2
+    assert sorted(p.name for p in (tmp_path / "default").iterdir()) == ["sd_bos.json", "sd_bos.png"]
+    code, out, err = in_process(capsys, "sample", "--ckpt", cm, "--sd", SD_PNG, "--no-log", "--no-pictures",
+                                "--out", tmp_path / "bare")
+    assert code == 0 and "wrote 1 lane graph to" in out, err
+    assert [p.name for p in (tmp_path / "bare").iterdir()] == ["sd_bos.json"]
+    code, _, err = in_process(capsys, "sample", "--ckpt", cm, "--sd", SD_PNG, "--no-pictures", "--grid",
+                              tmp_path / "g.png", "--out", tmp_path / "refused")
+    assert code == 1 and "--grid" in err and not (tmp_path / "refused").exists()
     code, out, err = in_process(capsys, "bench", "sample", "--ckpt", cm, "--batch", 2, "--repeats", 1, "--sampler",
                                 "dpm++2m-sde")
     assert code == 0 and "15 dpm++2m-sde steps" in out, err
@@ -419,3 +449,38 @@ def test_bf16_sampling_stays_within_a_stated_tolerance_of_fp32(tmp_path, capsys)
                               "--precision", "bf16", "--no-log", "--quiet", "--out", tmp_path)
     assert code == 0, err
     assert json.loads((tmp_path / "sd_bos.json").read_text())["meta"]["precision"] == "bf16"
+
+
+QUALITY_TOLERANCE = 0.05  # of each mean on 64 scenes (the 512-scene comparison in docs/speed.md holds 0.02)
+
+
+def test_the_default_sampler_keeps_the_quality_of_50_ddpm_steps(tmp_path_factory):
+    """The default sampler and step count make maps of the quality of 50 DDPM steps from the same initial noise: on
+    the 64 held-out scenes of recipes/data_ci.toml the shipped weights' mean validity, lane F1 at 1 m against the
+    ground truth and legal one-way share are each at most QUALITY_TOLERANCE below DDPM-50's."""
+    from cmtool.data.cache import build_dataset, load_dataset
+    from cmtool.diffusion.settings import SamplerSettings
+    from cmtool.metrics.lanes import lane_scores
+    from cmtool.model.release import bundled_checkpoint
+    from cmtool.sample.generator import MapGenerator
+    from cmtool.train.recipe import load_recipe
+
+    data = tmp_path_factory.mktemp("quality") / "ci"
+    build_dataset(load_recipe(REPO / "recipes" / "data_ci.toml"), data, workers=1, progress=False)
+    scenes = [s for s in load_dataset(data, "test")]
+    gen = MapGenerator.load(bundled_checkpoint(), "cpu")
+    labels, sds = [gen.known_label(s.city) for s in scenes], np.stack([s.sd for s in scenes])
+    assert (DEFAULT_SAMPLER, DEFAULT_STEPS[DEFAULT_SAMPLER]) != ("ddpm", 50) and len(scenes) == 64
+
+    def quality(sampler: str, steps: int) -> dict[str, float]:
+        maps = gen.generate_all(sds, labels, SamplerSettings(sampler=sampler, steps=steps, batch=64))
+        oneway = [legal_oneway(m.lanes, s.sd) for m, s in zip(maps, scenes)]
+        judged = [(v, w) for v, w in oneway if w > 0]
+        return {"validity": float(np.mean([check(m).score for m in maps])),
+                "lane_f1": float(np.mean([lane_scores(m.lanes, s.to_lanegraph().lanes)["f1"]
+                                          for m, s in zip(maps, scenes)])),
+                "legal_oneway": float(np.average([v for v, _ in judged], weights=[w for _, w in judged]))}
+
+    reference, default = quality("ddpm", 50), quality(DEFAULT_SAMPLER, DEFAULT_STEPS[DEFAULT_SAMPLER])
+    for key in reference:
+        assert default[key] >= reference[key] - QUALITY_TOLERANCE, (key, default, reference)

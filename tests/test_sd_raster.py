@@ -3,7 +3,9 @@ import numpy as np
 import pytest
 
 from cmtool.core.errors import CmtoolError
-from cmtool.data.sd_raster import convert_sd_image, decode_sd, direction_value, rasterize_sd, sd_raster_from_image
+from cmtool.data.sd_raster import (
+    SDRasterizer, convert_sd_image, decode_sd, direction_value, rasterize_sd, sd_raster_from_image,
+)
 from cmtool.maps.sdmap import Road, SDMap
 
 
@@ -64,6 +66,16 @@ def test_oneway_drawn_over_twoway():
     r = rasterize_sd(sd, 0.0, 0.0, np.pi / 2)
     assert r[64, 64, 2] > 0 and r[64, 64, 1] == 32  # the crossing keeps the one-way road's values
     assert r[64, 10, 1] == 128 and r[64, 10, 2] == 0
+
+
+def test_one_rasterizer_draws_every_pose_as_rasterize_sd():
+    curve = [[50 * np.cos(t), 50 * np.sin(t)] for t in np.linspace(0, np.pi, 40)]
+    sd = SDMap(roads=[road(curve, oneway=1, lanes=2), road([[-60, 10], [60, 10]], lanes=4),
+                      road([[0, -60], [0, 60]], oneway=-1), road([[500, 500], [600, 500]])])
+    draw = SDRasterizer(sd)
+    for x, y, yaw in ((0.0, 0.0, 0.0), (40.0, 20.0, 1.0), (-30.0, 5.0, -2.5), (300.0, 300.0, 0.0)):
+        assert np.array_equal(draw(x, y, yaw), rasterize_sd(sd, x, y, yaw))
+    assert np.array_equal(draw(0.0, 0.0, 0.3, frame_m=200.0, size=512), rasterize_sd(sd, 0.0, 0.0, 0.3, 200.0, 512))
 
 
 def test_far_roads_and_frame_size():

@@ -205,3 +205,21 @@ def test_duplicate_search_finds_what_comparing_every_pair_finds():
                 if slow(lines[p], lines[q])]
     assert 30 < len(expected) < 250  # the copies make some duplicates, not all
     assert duplicate_pairs(lines, ids) == expected
+
+
+def test_successor_joints_of_all_edges_equal_those_of_each_edge():
+    """The gap and turn of every successor edge at once: the numbers of np.linalg.norm and np.dot of each edge, bit
+    for bit, so the reports and their details stay as they were."""
+    from cmtool.core.geometry import unit
+    from cmtool.metrics.validity import _joints
+
+    rng = np.random.default_rng(1)
+    lanes = [np.round(np.cumsum(rng.normal(0, rng.choice([0.01, 1.0, 10.0]), (int(rng.integers(2, 6)), 2)), axis=0), 3)
+             for _ in range(400)]
+    succ = [(int(i), int(j)) for i, j in rng.integers(0, len(lanes), (3000, 2))]
+    gaps, turns = _joints(lanes, succ)
+    for (i, j), gap, turn in zip(succ, gaps.tolist(), turns.tolist()):
+        a, b = lanes[i], lanes[j]
+        assert gap == float(np.linalg.norm(a[-1] - b[0]))
+        assert turn == float(np.degrees(np.arccos(np.clip(np.dot(unit(a[-1] - a[-2]), unit(b[1] - b[0])), -1.0, 1.0))))
+    assert [len(x) for x in _joints(lanes, [])] == [0, 0]

@@ -2,11 +2,11 @@
 
 from __future__ import annotations
 
-
 import click
 
 from cmtool.cli.common import (FEATURE_PRECISION_OPTION, PRECISION_OPTION, WORKERS_OPTION, Finite, InPath, _device,
                                _generator, sampler_options)
+from cmtool.diffusion.settings import SAMPLERS, TABLE_STEPS
 
 
 @click.group()
@@ -21,12 +21,23 @@ def bench():
 @sampler_options
 @click.option("--cfg", default=1.0, show_default=True, type=Finite(min=0), help="Guidance weight.")
 @click.option("--batch", default=64, show_default=True, type=click.IntRange(2, 4096),
-              help="The large batch to compare.")
+              help="The large batch to compare (with --data: the batch of every row).")
 @click.option("--repeats", default=3, show_default=True, type=click.IntRange(1, 1000), help="Timed runs per setting.")
+@click.option("--data", type=InPath(file_okay=False),
+              help="Instead: the quality-speed table of every sampler over --table-steps, on this dataset's first --n "
+                   "test scenes (`cmtool data build`).")
+@click.option("--n", default=64, show_default=True, type=click.IntRange(1, 100_000), help="With --data: scenes.")
+@click.option("--table-steps", default=",".join(map(str, TABLE_STEPS)), show_default=True,
+              help="With --data: the step counts, comma-separated.")
+@click.option("--samplers", default=",".join(SAMPLERS), show_default=True,
+              help="With --data: the samplers, comma-separated.")
+@click.option("--features", is_flag=True, help="With --data: GT Recall too (ResNet-50 features; --n of 64 or more).")
 @click.option("--device", help="torch device [default: cuda when available, else cpu].")
 @PRECISION_OPTION
-def bench_sample_cmd(ckpt, sd_path, steps, sampler, cfg, batch, repeats, device, precision):
-    """Time sampling: per-step logging against --no-log at batch 1, and batch 1 against a large batch."""
+def bench_sample_cmd(ckpt, sd_path, steps, sampler, cfg, batch, repeats, data, n, table_steps, samplers, features,
+                     device, precision):
+    """Time sampling: per-step logging against --no-log at batch 1, and batch 1 against a large batch; with --data,
+    the quality-speed table of the samplers instead (the same noise per scene for every row)."""
     import torch
 
     from cmtool.eval.bench_sample import LOG_LIMIT, bench_sample, default_sd
@@ -35,17 +46,63 @@ def bench_sample_cmd(ckpt, sd_path, steps, sampler, cfg, batch, repeats, device,
 
     settings = SampleSettings(steps=steps, cfg=cfg, sampler=sampler)
     settings.check()
-    sd = image_inputs([sd_path])[0].sd if sd_path else default_sd()
+    counts, names = _step_list(table_steps), _sampler_list(samplers)
     gen = _generator(ckpt, device, precision=precision)
     dev = gen.device
     params = sum(p.numel() for p in gen.model.parameters())
-    click.echo(f"{gen.path}: {gen.config['kind']}, {params / 1e6:.1f}M parameters; {dev} "
-               f"({torch.get_num_threads()} threads, {precision}); {steps} {settings.sampler} steps, cfg {cfg}")
+    head = f"{gen.path}: {gen.config['kind']}, {params / 1e6:.1f}M parameters; {dev} ({torch.get_num_threads()} " \
+           f"threads, {precision})"
+    if data is not None:
+        _table(gen, head, data, n, counts, names, cfg, batch, features, device)
+        return
+    sd = image_inputs([sd_path])[0].sd if sd_path else default_sd()
+    click.echo(f"{head}; {steps} {settings.sampler} steps, cfg {cfg}")
     r = bench_sample(gen, sd, settings, batch=batch, repeats=repeats)
     verdict = "within" if r["log_ratio"] <= LOG_LIMIT else "OVER"
     click.echo(f"full logging / --no-log at batch 1: {r['log_ratio']:.3f} ({verdict} the {LOG_LIMIT:.2f} limit)")
     click.echo(f"batch {batch} / batch 1, time per map: {1 / r['batch_speedup']:.3f} "
                f"({r['batch_speedup']:.1f}x faster per map)")
+
+
+def _table(gen, head: str, data, n: int, counts: list[int], names: list[str], cfg: float, batch: int, features: bool,
+           device) -> None:
+    """``bench sample --data``: the quality-speed table."""
+    from cmtool.data.cache import load_dataset
+    from cmtool.eval.bench_sample import sampler_table
+    from cmtool.metrics.features import FeatureExtractor
+
+    if not gen.has_control:
+        raise click.UsageError("--data: the quality-speed table needs a ControlMap checkpoint")
+    for steps in counts:
+        gen.schedule.timesteps(steps)  # a count the schedule cannot do fails before any work
+    dataset = load_dataset(data, "test")
+    scenes = [dataset.scene(i) for i in range(min(n, len(dataset)))]
+    if features and len(scenes) < 64:
+        raise click.UsageError(f"--features: GT Recall needs at least 64 scenes (batches of 64), got {len(scenes)}")
+    extractor = FeatureExtractor("resnet50-seeded", None, _device(device)) if features else None
+    click.echo(f"{head}; {len(scenes)} test scenes of {data}, cfg {cfg}, batch {batch}; seconds per map: denoising, "
+               "decoding and lane graphs")
+    sampler_table(gen, scenes, cfg, names, counts, batch, extractor=extractor, report=click.echo)
+
+
+def _step_list(text: str) -> list[int]:
+    try:
+        counts = [int(v) for v in text.split(",")]
+    except ValueError:
+        counts = []
+    if not counts or min(counts) < 1:
+        raise click.BadParameter(f"expected positive whole numbers separated by commas, got {text!r}",
+                                 param_hint="--table-steps")
+    return counts
+
+
+def _sampler_list(text: str) -> list[str]:
+    names = [v.strip() for v in text.split(",")]
+    unknown = [v for v in names if v not in SAMPLERS]
+    if unknown:
+        raise click.BadParameter(f"unknown sampler {unknown[0]!r} (choose {', '.join(SAMPLERS)})",
+                                 param_hint="--samplers")
+    return names
 
 
 @bench.command("dit")

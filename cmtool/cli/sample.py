@@ -73,12 +73,13 @@ Large sets in several processes (CPU or GPUs), the same maps as one process:
                                           "leaves against a one-way SD road, and SD roads without a lane get the "
                                           "rules' lanes; docs/sampling.md).")
 @click.option("--no-log", is_flag=True, help="No recording (fastest).")
+@click.option("--no-pictures", is_flag=True, help="No picture per map (the lane graphs only; faster).")
 @click.option("--device", help="torch device [default: cuda when available, else cpu].")
 @PRECISION_OPTION
 @click.option("--quiet", is_flag=True, help="No progress line.")
 def sample(ckpt, sd_paths, osm, center, heading, from_hd, pose, area, px_m, num, candidates, seed, steps, sampler, eta,
            city, cfg, city_cfg, init, strength, encoder_path, smooth, batch, out, rrd, grid, spawn, connect_url, serve,
-           raw, no_log, device, precision, quiet):
+           raw, no_log, no_pictures, device, precision, quiet):
     import shlex
 
     from cmtool.core import dist as D
@@ -90,6 +91,8 @@ def sample(ckpt, sd_paths, osm, center, heading, from_hd, pose, area, px_m, num,
         raise CmtoolError(f"give one kind of SD input, not {' and '.join(kinds)}")
     if no_log and (rrd or spawn or connect_url or serve):
         raise CmtoolError("--no-log cannot be combined with --rrd, --spawn, --connect or --serve")
+    if no_pictures and grid:
+        raise CmtoolError("--grid stacks the maps' pictures: leave out --no-pictures")
     if spawn + bool(connect_url) + serve > 1:
         raise CmtoolError("give one of --spawn, --connect and --serve")
     if connect_url:
@@ -97,6 +100,8 @@ def sample(ckpt, sd_paths, osm, center, heading, from_hd, pose, area, px_m, num,
 
         check_viewer(connect_url, f"--connect {connect_url}")
     if area is not None:
+        if no_pictures:
+            raise CmtoolError("--area writes one picture of the area: leave out --no-pictures")
         return _area(ckpt, sd_paths, px_m, osm, center, from_hd, pose, area, num, candidates, seed, steps, sampler,
                      eta, city, cfg, city_cfg, init, strength, encoder_path, smooth, batch, out, rrd, grid, spawn,
                      connect_url, serve, raw, no_log, device, precision, quiet)
@@ -124,14 +129,15 @@ def sample(ckpt, sd_paths, osm, center, heading, from_hd, pose, area, px_m, num,
     command = shlex.join(["cmtool", *sys.argv[1:]])
     try:
         maps = run_sample(gen, jobs, settings, out, None if no_log else rrd, viewer, command, progress=not quiet,
-                          grid=grid, info=info)
+                          grid=grid, info=info, pictures=not no_pictures)
     finally:
         D.cleanup()
     if not info.main:
         return
     click.echo(summary_table(maps))
-    click.echo(f"wrote {len(maps)} lane graph{'s' if len(maps) > 1 else ''} and picture{'s' if len(maps) > 1 else ''} "
-               f"to {out}" + ("" if no_log or rrd is None else f"; recording {rrd}"))
+    plural = "s" if len(maps) > 1 else ""
+    click.echo(f"wrote {len(maps)} lane graph{plural}{'' if no_pictures else f' and picture{plural}'} to {out}"
+               + ("" if no_log or rrd is None else f"; recording {rrd}"))
     if serve:
         import time
 

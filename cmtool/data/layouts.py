@@ -35,7 +35,10 @@ def cropped_layouts(frames, method: str, roads_only: bool = False, **crop) -> li
     scenes = []
     for sd_map, pose, side in frames:
         if id(sd_map) not in croppers:
-            hd = LAYOUTS[method](sd_map, side)
+            if method == "rules" and roads_only:  # no connectors laid out only to be dropped
+                hd = rule_layout(sd_map, side, connectors=False)
+            else:
+                hd = LAYOUTS[method](sd_map, side)
             croppers[id(sd_map)] = SceneCropper(without_connectors(hd) if roads_only else hd)
         scenes.append(croppers[id(sd_map)].extract(pose, **crop))
     return scenes

@@ -73,8 +73,9 @@ class _Edge:
     leaving: dict[int, list[str]] = field(default_factory=dict)  # node -> lanes leaving from there, near side first
 
 
-def rule_layout(sd: SDMap, side: str | None = None) -> HDMap:
-    """The rule-based HD map of ``sd`` (module doc); ``side``: "right" or "left" [default: the city's]."""
+def rule_layout(sd: SDMap, side: str | None = None, connectors: bool = True) -> HDMap:
+    """The rule-based HD map of ``sd`` (module doc); ``side``: "right" or "left" [default: the city's];
+    ``connectors`` False: without the connector lanes through junctions (nor the road lanes' links to them)."""
     side = side or drives_on(sd.city)
     hd = HDMap(city=sd.city or "", drives_on=side, source=f"rules:{sd.source}" if sd.source else "rules",
                meta={"rules": "cmtool.data.rules"})
@@ -92,11 +93,12 @@ def rule_layout(sd: SDMap, side: str | None = None) -> HDMap:
     for node, ends in at_node.items():
         if node not in junction and len(ends) == 2:
             _join(hd, [edges[i] for i, _ in ends], node)
-    groups = defaultdict(set)
-    for node, j in junction.items():
-        groups[j].add(node)
-    for j, nodes in groups.items():
-        _connect(hd, edges, nodes, f"j{j}", side)
+    if connectors:
+        groups = defaultdict(set)
+        for node, j in junction.items():
+            groups[j].add(node)
+        for j, nodes in groups.items():
+            _connect(hd, edges, nodes, f"j{j}", side)
     return hd
 
 

@@ -59,13 +59,14 @@ class Scene:
     widths: np.ndarray | None = None  # (L,) lane widths of the source, when cropped from an HD map
     neighbors: np.ndarray | None = None  # (E, 2) line pairs the source records as neighbours (either order)
 
-    def to_lanegraph(self) -> LaneGraph:
+    def to_lanegraph(self, neighbours: bool = True) -> LaneGraph:
         """The scene in the lane graph interchange format (cmtool.maps.lanegraph), with the source's
-        lane neighbours and widths when it was cropped from an HD map, else neighbours from geometry."""
+        lane neighbours and widths when it was cropped from an HD map, else neighbours from geometry;
+        ``neighbours`` False: none recorded (for a caller that needs the lanes alone, as finding them takes long)."""
         lanes = [l.astype(np.float64) for l in self.lines[self.line_mask]]
         widths = None if self.widths is None else self.widths[self.line_mask]
         recorded = None if self.neighbors is None else self.neighbors.tolist()
-        left, oncoming = find_neighbours(lanes, widths, recorded)
+        left, oncoming = find_neighbours(lanes, widths, recorded) if neighbours else (None, None)
         return LaneGraph(
             lanes=lanes,
             successors=[(int(i), int(j)) for i, j in self.edges],

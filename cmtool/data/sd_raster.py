@@ -20,6 +20,8 @@ a raster with R only (:func:`sd_raster_from_image`).
 from __future__ import annotations
 
 import os
+from itertools import groupby
+from operator import itemgetter
 from pathlib import Path
 
 import cv2
@@ -66,32 +68,45 @@ def mirror_sd(sd: np.ndarray) -> np.ndarray:
 
 def rasterize_sd(sd: SDMap, x: float, y: float, yaw: float, frame_m: float = FRAME_M, size: int = SIZE) -> np.ndarray:
     """Draw the roads of ``sd`` around the ego pose (x, y, yaw) into a (size, size, 3) uint8 RGB raster."""
-    img = np.zeros((size, size, 3), dtype=np.uint8)
-    px = frame_m / size
-    half = frame_m / 2.0
-    reach = half * np.sqrt(2.0) + THICKNESS_PX * px
-    for oneway in (False, True):
-        for road in sd.roads:
-            if bool(road.oneway) != oneway:
+    return SDRasterizer(sd)(x, y, yaw, frame_m, size)
+
+
+class SDRasterizer:
+    """Draws SD rasters of one SD map at many poses (:func:`rasterize_sd`; the roads are gathered once)."""
+
+    def __init__(self, sd: SDMap):
+        roads = sorted(sd.roads, key=lambda r: bool(r.oneway))  # two-way roads first, one-way roads over them
+        self.lines = [road.travel_polyline() for road in roads]
+        self.oneway = [bool(road.oneway) for road in roads]
+        self.lanes = [lane_value(road.lanes) for road in roads]
+        self.lo = np.array([line.min(axis=0) for line in self.lines]).reshape(-1, 2)
+        self.hi = np.array([line.max(axis=0) for line in self.lines]).reshape(-1, 2)
+
+    def __call__(self, x: float, y: float, yaw: float, frame_m: float = FRAME_M, size: int = SIZE) -> np.ndarray:
+        img = np.zeros((size, size, 3), dtype=np.uint8)
+        px = frame_m / size
+        half = frame_m / 2.0
+        reach = half * np.sqrt(2.0) + THICKNESS_PX * px
+        near = np.flatnonzero(~((self.lo > [x + reach, y + reach]).any(axis=1)
+                                | (self.hi < [x - reach, y - reach]).any(axis=1)))
+        if not len(near):
+            return img
+        cuts = np.cumsum([len(self.lines[k]) for k in near])[:-1]
+        ego = to_frame(np.concatenate([self.lines[k] for k in near]), x, y, yaw)
+        strokes = []  # (colour, pixel polyline) in drawing order
+        for k, line, pts in zip(near, np.split(ego, cuts), np.split(ego_to_pixel(ego, px, frame_m), cuts)):
+            g = self.lanes[k]
+            if not self.oneway[k]:
+                strokes.append(((ROAD_VALUE, g, 0), pts))
                 continue
-            line = road.travel_polyline()
-            lo, hi = line.min(axis=0), line.max(axis=0)
-            if np.any(lo > [x + reach, y + reach]) or np.any(hi < [x - reach, y - reach]):
-                continue
-            ego = to_frame(line, x, y, yaw)
-            pts = ego_to_pixel(ego, px, frame_m)
-            g = lane_value(road.lanes)
-            if not oneway:
-                cv2.polylines(img, [pts], False, (ROAD_VALUE, g, 0), THICKNESS_PX, cv2.LINE_8, CV_SHIFT)
-                continue
-            d = np.diff(ego, axis=0)
-            values = direction_value(np.arctan2(d[:, 1], d[:, 0]))
-            near = (np.minimum(ego[:-1], ego[1:]) <= half + 1.0).all(axis=1)
-            near &= (np.maximum(ego[:-1], ego[1:]) >= -half - 1.0).all(axis=1)
-            for k in np.flatnonzero(near):
-                b = values[k]
-                cv2.polylines(img, [pts[k:k + 2]], False, (ROAD_VALUE, g, int(b)), THICKNESS_PX, cv2.LINE_8, CV_SHIFT)
-    return img
+            d = np.diff(line, axis=0)
+            values = direction_value(np.arctan2(d[:, 1], d[:, 0])).tolist()
+            inside = (np.minimum(line[:-1], line[1:]) <= half + 1.0).all(axis=1)
+            inside &= (np.maximum(line[:-1], line[1:]) >= -half - 1.0).all(axis=1)
+            strokes += [((ROAD_VALUE, g, values[s]), pts[s:s + 2]) for s in np.flatnonzero(inside)]
+        for colour, group in groupby(strokes, key=itemgetter(0)):  # one call per run of one colour
+            cv2.polylines(img, [pts for _, pts in group], False, colour, THICKNESS_PX, cv2.LINE_8, CV_SHIFT)
+        return img
 
 
 def is_sd_raster(img: np.ndarray) -> bool:

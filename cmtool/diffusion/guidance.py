@@ -2,7 +2,8 @@
 
 SD-map guidance (ControlMap paper, eq. 1): ``eps = eps_uncond + w (eps_cond - eps_uncond)``, where the
 conditioned prediction uses the SD map and the unconditioned one is the frozen base DiT; ``w = 0``
-runs the base DiT alone and reproduces its samples exactly.
+runs the base DiT alone and reproduces its samples exactly, and ``w = 1`` is the conditioned prediction alone,
+which one pass of the conditioned rows gives (no unconditioned pass: half the rows of a guided step).
 
 City-label guidance (DiT-style, optional): with ``city_cfg = s != 1`` one more base pass with the null
 label gives ``eps_null``, and both predictions move by ``(s - 1) (eps_uncond - eps_null)``, so that
@@ -23,7 +24,7 @@ class Prediction:
 
     eps: Tensor
     eps_cond: Tensor | None
-    eps_uncond: Tensor
+    eps_uncond: Tensor | None  # None at w = 1, where no unconditioned pass runs
     residuals: list[Tensor] | None  # the control residual each injected DiT block received
 
 
@@ -33,6 +34,10 @@ def guided_eps(model: nn.Module, x: Tensor, t: Tensor, y: Tensor, *, tokens: Ten
     (a ControlMap's encoded SD rasters) one batched guided pass, else the base model alone; ``null`` (labels of
     the null class) for city-label guidance when ``city_cfg != 1``. Under bf16 autocast the model answers in
     bf16; the prediction is float32."""
+    if tokens is not None and cfg == 1 and city_cfg == 1:
+        eps_cond, residuals = model.forward_cond(x, t, y, tokens=tokens)
+        eps_cond = eps_cond.float()
+        return Prediction(eps_cond, eps_cond, None, residuals)
     if tokens is not None:
         eps_cond, eps_uncond, residuals = model.forward_cfg(x, t, y, tokens=tokens)
         eps_cond, eps_uncond = eps_cond.float(), eps_uncond.float()

@@ -2,7 +2,10 @@
 (:mod:`cmtool.diffusion.guidance`), with a record of each step for whoever watches (:class:`StepInfo`).
 
 Sampling runs on ``steps`` timesteps of the training schedule (:mod:`cmtool.diffusion.schedule`);
-DDPM uses the respaced betas ``1 - abar_t / abar_prev`` (``steps == train_steps`` is plain DDPM),
+DDPM uses the respaced betas ``1 - abar_t / abar_prev`` (``steps == train_steps`` is plain DDPM);
+``ddpm-trailing`` is DDPM on trailing timesteps, whose last step jumps to the clean estimate from a whole
+interval above t = 0 instead of spending a pass at t = 0 (two of its steps make maps of the quality of
+three, docs/speed.md);
 DDIM interpolates between deterministic (``eta = 0``) and ancestral (``eta = 1``). ``dpm++2m`` is
 DPM-Solver++(2M) (Lu et al., 2022): a second-order multistep solver on the clean estimates in log-SNR
 time, deterministic; ``dpm++2m-sde`` its stochastic form, which adds fresh noise every step as DDPM
@@ -21,7 +24,7 @@ from torch import Tensor, nn
 
 from cmtool.diffusion.guidance import guided_eps
 from cmtool.diffusion.schedule import NoiseSchedule
-from cmtool.diffusion.settings import DEFAULT_SAMPLER, SAMPLERS, SamplingError
+from cmtool.diffusion.settings import SAMPLERS, SPACINGS, SamplingError
 from cmtool.model.controlmap import ControlMap
 
 
@@ -41,7 +44,7 @@ class StepInfo:
 
 @torch.no_grad()
 def sample(model: nn.Module, schedule: NoiseSchedule, y: Tensor, *, control: Tensor | None = None,
-           cfg: float = 1.0, city_cfg: float = 1.0, steps: int = 50, sampler: str = DEFAULT_SAMPLER,
+           cfg: float = 1.0, city_cfg: float = 1.0, steps: int = 50, sampler: str = "ddpm",
            eta: float = 0.0, generator: torch.Generator | None = None, noise: Tensor | None = None,
            init: Tensor | None = None, strength: float = 1.0,
            callback: Callable[[StepInfo], None] | None = None) -> Tensor:
@@ -55,8 +58,9 @@ def sample(model: nn.Module, schedule: NoiseSchedule, y: Tensor, *, control: Ten
 
     ``init`` (a clean latent, e.g. an encoded rule layout) starts the denoising from it instead of from
     pure noise (SDEdit, Meng et al., ICLR 2022): it is noised to the timestep ``strength`` of the way
-    up the schedule (with ``noise`` as the noise) and only the sampler's timesteps from there down run;
-    ``strength = 1`` is plain sampling, small strengths keep ``init`` nearly as it is.
+    up the schedule (with ``noise`` as the noise) and only the sampler's timesteps from there down run
+    (``ddpm-trailing`` spreads all its steps below it); ``strength = 1`` is plain sampling, small strengths keep
+    ``init`` nearly as it is.
     """
     if not (math.isfinite(cfg) and cfg >= 0):
         raise SamplingError(f"cfg: guidance scale must be finite and >= 0, got {cfg}")
@@ -75,10 +79,12 @@ def sample(model: nn.Module, schedule: NoiseSchedule, y: Tensor, *, control: Ten
         raise SamplingError(f"strength: must be in (0, 1], got {strength}")
     if init is not None and tuple(init.shape) != shape:
         raise SamplingError(f"init: expected shape {shape}, got {tuple(init.shape)}")
-    ts = schedule.timesteps(steps, "logsnr" if sampler.startswith("dpm++") else "linear")
-    if init is not None:
+    spacing = SPACINGS.get(sampler, "linear")
+    ts = schedule.timesteps(steps, spacing)
+    if init is not None:  # the steps below the strength; trailing steps are all spread below it
         top = round(strength * (schedule.train_steps - 1))
-        ts = [t for t in ts if t <= top] or [top]
+        ts = schedule.timesteps(min(steps, top + 1), spacing, top) if spacing == "trailing" else \
+            [t for t in ts if t <= top] or [top]
     guided = control is not None and cfg > 0
     tokens = model.encode_control(control) if guided else None
     base = model.base if isinstance(model, ControlMap) else model
@@ -101,7 +107,7 @@ def sample(model: nn.Module, schedule: NoiseSchedule, y: Tensor, *, control: Ten
             x = _dpm_step(x, x0, previous if second else None, ab_t, ab_prev, ab_last,
                           sampler.endswith("sde"), generator)
             previous, ab_last = x0, ab_t
-        else:
+        else:  # ddpm, ddpm-trailing
             x = _ddpm_step(x, pred.eps, ab_t, ab_prev, generator)
         if callback is not None:
             callback(StepInfo(i, t, x_t, x0, pred.eps_cond, pred.eps_uncond, pred.eps, pred.residuals))

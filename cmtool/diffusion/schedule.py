@@ -55,11 +55,19 @@ class NoiseSchedule:
         ab = self._at(self.alphas_cumprod, t, x_t)
         return (x_t - (1 - ab).sqrt() * eps) / ab.sqrt()
 
-    def timesteps(self, num_steps: int, spacing: str = "linear") -> list[int]:
-        """``num_steps`` distinct timesteps descending from ``train_steps - 1`` to 0: evenly spaced in t
-        (``linear``), or in log-SNR (``logsnr``, DPM-Solver's spacing: many more steps near the data)."""
+    def timesteps(self, num_steps: int, spacing: str = "linear", top: int | None = None) -> list[int]:
+        """``num_steps`` distinct timesteps descending from ``train_steps - 1``: to 0, evenly spaced in t
+        (``linear``) or in log-SNR (``logsnr``, DPM-Solver's spacing: many more steps near the data); or evenly
+        spaced in t with the last a whole interval above 0 (``trailing``, Lin et al., WACV 2024): the sampler
+        then jumps from it to the clean estimate, where a pass at t = 0 would barely change the latent; ``top``: the
+        trailing steps start there instead (a start noised part of the way, SDEdit)."""
         if not 1 <= num_steps <= self.train_steps:
             raise SamplingError(f"steps: must be in 1..{self.train_steps}, got {num_steps}")
+        if spacing == "trailing":
+            span = self.train_steps if top is None else top + 1
+            if num_steps > span:
+                raise SamplingError(f"steps: at most {span} trailing steps start at timestep {top}, got {num_steps}")
+            return [int(t) - 1 for t in np.linspace(span, 0, num_steps + 1).round()[:-1]]
         if spacing == "linear" or num_steps == 1:
             return [int(t) for t in np.linspace(self.train_steps - 1, 0, num_steps).round()]
         ab = self.alphas_cumprod.numpy()

@@ -31,12 +31,13 @@ def find_neighbours(lanes, widths=None, recorded=None) -> tuple[list[tuple[int, 
     """(left neighbours, oncoming pairs) of a map's lanes (see the module docstring). With ``recorded``
     pairs (an imported map's neighbours, in either order), the left neighbours are those of them that
     run beside each other; without, all that the geometry finds."""
-    left, right = infer_neighbours(lanes, widths), infer_neighbours(lanes, widths, side=-1)
-    both = left + right
-    oncoming = sorted({(min(i, j), max(i, j)) for (i, j), same in zip(both, same_directions(lanes, both)) if not same})
+    left, right = _searched(lanes, widths, None, (1, -1))
+    same = dict(zip(left + right, same_directions(lanes, left + right).tolist()))
+    oncoming = sorted({(min(i, j), max(i, j)) for (i, j), s in same.items() if not s})
     if recorded is not None:
         left = infer_neighbours(lanes, widths, candidates=recorded)
-    return [(i, j) for (i, j), same in zip(left, same_directions(lanes, left)) if same], oncoming
+        same = dict(zip(left, same_directions(lanes, left).tolist()))
+    return [(i, j) for i, j in left if same[i, j]], oncoming
 
 
 def relaned(graph, lanes, successors, meta: dict | None = None):
@@ -64,19 +65,24 @@ def infer_neighbours(lanes, widths=None, candidates=None, side: int = 1) -> list
     between two lane centres; ``candidates`` (pairs in either order) limits the search to those
     pairs, with no lateral limit: how imported maps keep their recorded neighbours.
     """
-    n = len(lanes)
-    if n < 2:
-        return []
-    key = None
-    if candidates is None and n >= CACHE_MIN_LANES:  # a huge map's export and checks ask several times
-        key = _content_key(lanes, widths, side)
-        if key in _FOUND:
-            return list(_FOUND[key])
-    found = _infer(lanes, widths, candidates, side)
-    if key is not None:
-        _FOUND.clear() if len(_FOUND) >= 4 else None
-        _FOUND[key] = list(found)
-    return found
+    return _searched(lanes, widths, candidates, (side,))[0]
+
+
+def _searched(lanes, widths, candidates, sides) -> list[list[tuple[int, int]]]:
+    """:func:`infer_neighbours` on each of ``sides``, from one search."""
+    if len(lanes) < 2:
+        return [[] for _ in sides]
+    keys = None
+    if candidates is None and len(lanes) >= CACHE_MIN_LANES:  # a huge map's export and checks ask several times
+        keys = [_content_key(lanes, widths, side) for side in sides]
+        if all(key in _FOUND for key in keys):
+            return [list(_FOUND[key]) for key in keys]
+    found = _beside_all(lanes, widths, candidates)
+    out = [_nearest(*found, side) for side in sides]
+    if keys is not None:
+        _FOUND.clear() if len(_FOUND) + len(keys) > 4 else None
+        _FOUND.update((key, list(pairs)) for key, pairs in zip(keys, out))
+    return out
 
 
 CACHE_MIN_LANES = 5_000  # maps from this many lanes keep their last few neighbour searches, keyed by content
@@ -95,6 +101,13 @@ def _content_key(lanes, widths, side: int) -> bytes:
 
 
 def _infer(lanes, widths, candidates, side: int) -> list[tuple[int, int]]:
+    """:func:`infer_neighbours`, unremembered."""
+    return _nearest(*_beside_all(lanes, widths, candidates), side)
+
+
+def _beside_all(lanes, widths, candidates):
+    """The pairs (a, b) of lanes beside each other, either side, with the signed offsets of b seen from a's samples
+    and where b lies beside a (:func:`_beside_pairs`): (a, b, offset, beside)."""
     n = len(lanes)
     geoms = _lines(lanes)
     points, tangents = _samples(geoms)
@@ -111,16 +124,29 @@ def _infer(lanes, widths, candidates, side: int) -> list[tuple[int, int]]:
         batches = iter([(np.concatenate([pairs[:, 0], pairs[:, 1]]), np.concatenate([pairs[:, 1], pairs[:, 0]]))])
         lateral = (0.0, np.inf)
     found = [_beside_pairs(geoms, points, spots, tangents, w, a, b, lateral) for a, b in batches]
-    if not found or sum(len(f[0]) for f in found) == 0:
-        return []
-    a, b, offset, beside = (np.concatenate([f[k] for f in found]) for k in range(4))
-    there = np.array([side * np.median(o[m]) > 0 if m.any() else False for o, m in zip(offset, beside)], bool)
-    gap = np.array([np.median(np.abs(o[m])) if m.any() else np.inf for o, m in zip(offset, beside)])
+    return tuple(np.concatenate([f[k] for f in found]) for k in range(4))
+
+
+def _nearest(a, b, offset, beside, side: int) -> list[tuple[int, int]]:
+    """The pairs (i, j) of :func:`_beside_all` where j lies on i's ``side`` (by the median offset where beside),
+    and no lane beside i on that side lies nearer (by the median gap; the first found of equals)."""
+    there = side * _medians(offset, beside) > 0
+    gap = _medians(np.abs(offset), beside)
     best: dict[int, tuple[float, int]] = {}  # i -> (gap, j): only the nearest lane on that side
-    for i, j, g in zip(a[there], b[there], gap[there]):
-        if int(i) not in best or g < best[int(i)][0]:
-            best[int(i)] = (float(g), int(j))
+    for i, j, g in zip(a[there].tolist(), b[there].tolist(), gap[there].tolist()):
+        if i not in best or g < best[i][0]:
+            best[i] = (g, j)
     return sorted((i, j) for i, (_, j) in best.items())
+
+
+def _medians(values: np.ndarray, mask: np.ndarray) -> np.ndarray:
+    """``np.median`` of each row of ``values`` where ``mask`` holds (NaN where it holds nowhere), the same numbers
+    from one sort."""
+    count = mask.sum(axis=1)
+    ordered = np.sort(np.where(mask, values, np.inf), axis=1)
+    rows = np.arange(len(values))
+    low, high = ordered[rows, (count - 1) // 2], ordered[rows, count // 2]
+    return np.where(count > 0, (low + high) / 2.0, np.nan)
 
 
 NEAR_BATCH = 4096  # lanes whose candidate pairs are sought and tested together
@@ -136,20 +162,21 @@ def _near(tree, middles, lanes: np.ndarray, reach: float) -> tuple[np.ndarray, n
 
 def _beside_pairs(geoms, points, spots, tangents, w, a, b, lateral):
     """The candidate pairs (a, b) that lie beside each other along most of both lanes, with the signed offsets of b
-    seen from a's samples and where b lies beside a: (a, b, offset, beside)."""
-    middle = SAMPLES // 2
+    seen from a's samples and where b lies beside a: (a, b, offset, beside). Each test looks both ways at once."""
+    middle, m = SAMPLES // 2, len(a)
     width = 0.5 * (w[a] + w[b])
-    gaps = [shapely.distance(spots[i, middle], geoms[j]) / width for i, j in ((a, b), (b, a))]
-    keep = (a != b) & np.all([(g >= lateral[0]) & (g <= lateral[1]) for g in gaps], axis=0)
+    gap = shapely.distance(spots[np.r_[a, b], middle], geoms[np.r_[b, a]]) / np.r_[width, width]
+    near = (gap >= lateral[0]) & (gap <= lateral[1])
+    keep = (a != b) & near[:m] & near[m:]
     a, b, width = a[keep], b[keep], width[keep]
-    keep = _may_be_beside(geoms, spots, a, b, width, lateral)
+    m = len(a)
+    keep = _may_be_beside(geoms, spots, np.r_[a, b], np.r_[b, a], np.r_[width, width], lateral)
+    keep = keep[:m] & keep[m:]
     a, b, width = a[keep], b[keep], width[keep]
-    keep = _may_be_beside(geoms, spots, b, a, width, lateral)
-    a, b, width = a[keep], b[keep], width[keep]
-    offset, beside = _beside(geoms, points, spots, tangents, a, b, width, lateral)
-    _, beside_back = _beside(geoms, points, spots, tangents, b, a, width, lateral)
-    ok = (beside.mean(1) >= MIN_SHARE) & (beside_back.mean(1) >= MIN_SHARE)
-    return a[ok], b[ok], offset[ok], beside[ok]
+    m = len(a)
+    offset, beside = _beside(geoms, points, spots, tangents, np.r_[a, b], np.r_[b, a], np.r_[width, width], lateral)
+    ok = (beside[:m].mean(1) >= MIN_SHARE) & (beside[m:].mean(1) >= MIN_SHARE)
+    return a[ok], b[ok], offset[:m][ok], beside[:m][ok]
 
 
 def _may_be_beside(geoms, spots, a, b, width, lateral) -> np.ndarray:
@@ -207,10 +234,9 @@ def same_direction(lanes, i: int, j: int) -> bool:
 def same_directions(lanes, pairs) -> np.ndarray:
     """:func:`same_direction` of each pair ``(i, j)``, in one pass of vectorised GEOS calls."""
     pairs = np.asarray(pairs, np.int64).reshape(-1, 2)
-    used = np.unique(pairs)  # only the lanes of the pairs: one pair of a huge map must not build them all
-    geoms = np.empty(max(len(lanes), 1), dtype=object)
-    geoms[used] = _lines([lanes[k] for k in used.tolist()]) if len(used) else []
-    a, b = geoms[pairs[:, 0]], geoms[pairs[:, 1]]
+    used, index = np.unique(pairs, return_inverse=True)  # only the lanes of the pairs: one pair of a huge map must
+    geoms = _lines([lanes[k] for k in used.tolist()])[index.reshape(-1, 2)]  # not build them all
+    a, b = geoms[:, 0], geoms[:, 1]
     half = 0.5 * shapely.length(a)
     sb = shapely.line_locate_point(b, shapely.line_interpolate_point(a, half))
     return np.einsum("...k,...k", _tangent(a, half), _tangent(b, sb)) > 0.0
@@ -246,8 +272,7 @@ def lane_widths(lanes, left_neighbors, widths=None, default: float = LANE_WIDTH_
     if widths is not None:
         return np.asarray(widths, np.float64)
     spacing: list[list[float]] = [[] for _ in range(len(lanes))]
-    for i, j in left_neighbors:
-        g = _gap(lanes[i], lanes[j])
+    for (i, j), g in zip(left_neighbors, _gaps(lanes, left_neighbors).tolist()):
         spacing[i].append(g)
         spacing[j].append(g)
     every = [g for s in spacing for g in s]
@@ -256,12 +281,18 @@ def lane_widths(lanes, left_neighbors, widths=None, default: float = LANE_WIDTH_
     return np.clip(out, 2.5, 5.0)
 
 
-def _gap(a, b) -> float:
-    """Mean distance from the middle 80% of lane a to lane b."""
-    ga, gb = _lines([a, b])
-    pts = shapely.line_interpolate_point(ga, np.linspace(0.1, 0.9, SAMPLES), normalized=True)
-    return float(shapely.distance(pts, gb).mean())
+def _gaps(lanes, pairs) -> np.ndarray:
+    """Of each pair (i, j): the mean distance from the middle 80% of lane i to lane j."""
+    pairs = np.asarray(pairs, np.int64).reshape(-1, 2)
+    used, index = np.unique(pairs, return_inverse=True)
+    geoms = _lines([lanes[k] for k in used.tolist()])[index.reshape(-1, 2)]
+    pts = shapely.line_interpolate_point(geoms[:, :1], np.linspace(0.1, 0.9, SAMPLES), normalized=True)
+    return shapely.distance(pts, geoms[:, 1:]).mean(axis=1)
 
 
 def _lines(lanes) -> np.ndarray:
-    return np.array([shapely.LineString(np.asarray(l, np.float64)) for l in lanes], dtype=object)
+    """The lanes as shapely LineStrings, made in one call."""
+    if not len(lanes):
+        return np.empty(0, object)
+    coords = np.concatenate([np.asarray(l, np.float64) for l in lanes])
+    return shapely.linestrings(coords, indices=np.repeat(np.arange(len(lanes)), [len(l) for l in lanes]))

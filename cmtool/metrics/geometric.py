@@ -15,16 +15,19 @@ beyond the paper). Lanes are ego-frame polylines in metres; SD rasters follow th
 
 from __future__ import annotations
 
+import hashlib
 import math
+from dataclasses import dataclass, field
+from functools import cached_property
 from typing import Sequence
 
 import cv2
 import numpy as np
 from scipy.spatial import cKDTree
 
-from cmtool.core.geometry import as_polyline, resample_step
+from cmtool.core.geometry import as_polyline
 from cmtool.data.sd_raster import decode_direction
-from cmtool.metrics.lanes import near_polylines, pair_distances, sample_points
+from cmtool.metrics.lanes import near_polylines, pair_distances, resampled
 
 STEP_M = 0.5  # lane resampling step for all point-based scores
 
@@ -52,25 +55,81 @@ def sd_adherence(lanes: Sequence[np.ndarray], sd: np.ndarray, road_tol: float = 
                  frame_m: float = 64.0, step: float = STEP_M) -> dict[str, float]:
     """``sd_coverage``: share of SD road within ``road_tol`` of a lane (NaN without roads);
     ``lane_on_sd``: share of lane length within ``lane_tol`` of an SD road (NaN without lanes)."""
-    road = sd[..., 0] > 0
+    roads = _roads(sd, frame_m)
     coverage = math.nan
-    if road.any():
-        coverage = float(np.mean(near_polylines(pixel_centres(road, frame_m), lanes, road_tol))) \
-            if len(lanes) else 0.0
-    points = sample_points(lanes, step)
+    if len(roads.rows):
+        coverage = float(np.mean(near_polylines(roads.centres, lanes, road_tol))) if len(lanes) else 0.0
+    points = np.concatenate(_resampled(lanes, step)) if len(lanes) else np.zeros((0, 2))
     on_sd = math.nan
     if len(points):
-        if road.any():
-            px = frame_m / road.shape[0]
-            far = cv2.distanceTransform((~road).astype(np.uint8), cv2.DIST_L2, cv2.DIST_MASK_PRECISE) * px
-            row, col = _pixel_of(points, road.shape[0], frame_m)
-            inside = (row >= 0) & (row < road.shape[0]) & (col >= 0) & (col < road.shape[1])
+        if len(roads.rows):
+            row, col = _pixel_of(points, sd.shape[0], frame_m)
+            inside = (row >= 0) & (row < sd.shape[0]) & (col >= 0) & (col < sd.shape[1])
             dist = np.full(len(points), np.inf)
-            dist[inside] = far[row[inside], col[inside]]
+            dist[inside] = roads.far[row[inside], col[inside]]
             on_sd = float(np.mean(dist <= lane_tol))
         else:
             on_sd = 0.0
     return {"sd_coverage": coverage, "lane_on_sd": on_sd}
+
+
+@dataclass
+class _Roads:
+    """The road pixels of an SD raster ``sd`` (a copy) of ``frame_m`` metres a side: their rows, columns and centres
+    (ego-frame metres), and, made when first asked for, a KD-tree of the centres, the distance (m) from each pixel to
+    the nearest road pixel and :func:`_oneway_points`' answers for the last few lane sets."""
+    sd: np.ndarray
+    frame_m: float
+    rows: np.ndarray
+    cols: np.ndarray
+    centres: np.ndarray
+    judged: dict = field(default_factory=dict)
+
+    @cached_property
+    def tree(self) -> cKDTree:
+        return cKDTree(self.centres)
+
+    @cached_property
+    def far(self) -> np.ndarray:
+        road = (self.sd[..., 0] > 0).astype(np.uint8)
+        return cv2.distanceTransform(1 - road, cv2.DIST_L2, cv2.DIST_MASK_PRECISE) * (self.frame_m / road.shape[0])
+
+
+def _roads(sd: np.ndarray, frame_m: float) -> _Roads:
+    """The :class:`_Roads` of an SD raster, remembered for the last few rasters (found by comparing them, faster than
+    a digest): the scores of a map and of its repair ask about one raster several times."""
+    for roads in _ROADS:
+        if roads.frame_m == frame_m and roads.sd.shape == sd.shape and np.array_equal(roads.sd, sd):
+            return roads
+    road = sd[..., 0] > 0
+    rows, cols = np.nonzero(road)
+    _ROADS.insert(0, _Roads(np.array(sd), frame_m, rows, cols, pixel_centres(road, frame_m)))
+    del _ROADS[REMEMBERED:]
+    return _ROADS[0]
+
+
+REMEMBERED = 4  # SD rasters (and lane sets resampled, and judged on each raster) remembered
+_ROADS: list[_Roads] = []
+_RESAMPLED: dict[tuple, list[np.ndarray]] = {}
+
+
+def _remembered(store: dict, key, make):
+    """``make()``, remembered in ``store`` by ``key`` for the last few keys (shared, not copied: read only)."""
+    if key not in store:
+        if len(store) >= REMEMBERED:
+            store.clear()
+        store[key] = make()
+    return store[key]
+
+
+def _digest(lanes) -> bytes:
+    """A digest of lanes' shapes, types and coordinates: equal only for equal lanes."""
+    digest = hashlib.blake2b(digest_size=32)
+    for lane in lanes:
+        lane = np.ascontiguousarray(lane)
+        digest.update(f"{lane.shape}{lane.dtype.str}".encode())
+        digest.update(lane)
+    return digest.digest()
 
 
 def driving_side(lanes: Sequence[np.ndarray], sd: np.ndarray, drives_on: str, reach: float = 6.0,
@@ -173,32 +232,42 @@ def _oneway_points(lanes, sd: np.ndarray, reach: float, frame_m: float,
                    step: float) -> tuple[np.ndarray, np.ndarray] | None:
     """The judged points of :func:`legal_oneway`: each one's lane index and whether it runs the legal way (None
     without one-way road pixels or lanes)."""
-    road = sd[..., 0] > 0
-    pieces = [(k, p) for k, p in enumerate(resample_step(as_polyline(l), step) for l in lanes) if len(p) >= 2]
-    if not (road & (sd[..., 2] > 0)).any() or not pieces:
+    roads, pieces = _roads(sd, frame_m), _resampled(lanes, step)
+    if not pieces or not (sd[roads.rows, roads.cols, 2] > 0).any():
         return None
-    points, dirs = _headings([p for _, p in pieces])
-    lane = np.repeat([k for k, _ in pieces], [len(p) for _, p in pieces])
-    rows, cols = np.nonzero(road)
-    _, nearest = cKDTree(pixel_centres(road, frame_m)).query(points, distance_upper_bound=reach)
-    found = nearest < len(rows)
-    value = np.zeros(len(points), np.uint8)
-    value[found] = sd[rows[nearest[found]], cols[nearest[found]], 2]
-    theta = decode_direction(value)
-    cos = dirs[:, 0] * np.cos(theta) + dirs[:, 1] * np.sin(theta)
-    judged = (value > 0) & (np.abs(cos) >= math.cos(math.radians(45.0)))
-    return lane[judged], cos[judged] > 0
+
+    def make() -> tuple[np.ndarray, np.ndarray]:
+        points, dirs = _headings(pieces)
+        lane = np.repeat(np.arange(len(pieces)), [len(p) for p in pieces])
+        _, nearest = roads.tree.query(points, distance_upper_bound=reach)
+        found = nearest < len(roads.rows)
+        value = np.zeros(len(points), np.uint8)
+        value[found] = sd[roads.rows[nearest[found]], roads.cols[nearest[found]], 2]
+        theta = decode_direction(value)
+        cos = dirs[:, 0] * np.cos(theta) + dirs[:, 1] * np.sin(theta)
+        judged = (value > 0) & (np.abs(cos) >= math.cos(math.radians(45.0)))
+        return lane[judged], cos[judged] > 0
+
+    return _remembered(roads.judged, (_digest(lanes), float(reach), float(step)), make)
 
 
 def _resampled(lanes: Sequence[np.ndarray], step: float) -> list[np.ndarray]:
-    """The lanes resampled every ``step`` metres (those of at least 2 points)."""
-    return [p for p in (resample_step(as_polyline(l), step) for l in lanes) if len(p) >= 2]
+    """The lanes resampled every ``step`` metres (:func:`cmtool.metrics.lanes.resampled`, at least 2 points each),
+    remembered for the last few lane sets."""
+    return _remembered(_RESAMPLED, (_digest(lanes), float(step)),
+                       lambda: resampled([as_polyline(l) for l in lanes], step))
 
 
 def _headings(pieces: list[np.ndarray]) -> tuple[np.ndarray, np.ndarray]:
-    """All points of the resampled lanes (N, 2) and their unit travel directions (N, 2)."""
+    """All points of the resampled lanes (N, 2) and their unit travel directions (N, 2): ``np.gradient`` along each
+    piece, computed on all at once."""
     points = np.concatenate(pieces)
-    dirs = np.concatenate([np.gradient(p, axis=0) for p in pieces])
+    end = np.cumsum([len(p) for p in pieces])
+    start = end - [len(p) for p in pieces]
+    dirs = np.empty_like(points)
+    dirs[1:-1] = (points[2:] - points[:-2]) / 2.0
+    dirs[start] = points[start + 1] - points[start]
+    dirs[end - 1] = points[end - 1] - points[end - 2]
     return points, dirs / np.maximum(np.linalg.norm(dirs, axis=1, keepdims=True), 1e-9)
 
 

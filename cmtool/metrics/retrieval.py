@@ -6,7 +6,6 @@ from __future__ import annotations
 
 import numpy as np
 import torch
-from scipy.stats import binom
 
 
 def _pairwise(a: np.ndarray, b: np.ndarray) -> torch.Tensor:
@@ -46,6 +45,8 @@ def batch_recall(generated: np.ndarray, targets: np.ndarray, batch: int = 64, k:
     own = np.take_along_axis(sim, np.arange(batch)[None, :, None].repeat(len(sim), 0), axis=2)  # (batches, batch, 1)
     rank = (sim > own).sum(axis=2)  # targets strictly more similar than the own one
     hits = int((rank < k).sum())
+    from scipy.stats import binom  # here: scipy.stats takes half a second to import
+
     p_value = float(binom.sf(hits - 1, n, k / batch)) if n else float("nan")
     return {"recall": hits / n if n else float("nan"), "hits": hits, "n": n, "batch": batch, "k": k,
             "p_value": p_value, "chance": k / batch}

@@ -41,8 +41,9 @@ from scipy.sparse import csr_matrix
 from scipy.sparse.csgraph import breadth_first_order, connected_components
 from scipy.spatial import cKDTree
 
-from cmtool.core.geometry import padded, polyline_length, unit
+from cmtool.core.geometry import padded, unit
 from cmtool.maps.neighbours import infer_neighbours, same_directions
+from cmtool.metrics.lanes import equal_count_batches
 
 MAX_GAP_M, MAX_TURN_DEG = 1.5, 60.0
 MIN_LENGTH_M, MIN_RADIUS_M = 2.0, 4.0
@@ -116,7 +117,9 @@ def check(graph) -> Validity:
     shapes = _shapes(lanes)
     simple = shapely.is_simple(shapes)
     radius, where = _min_radii(lanes)
-    lengths = np.array([polyline_length(lane) for lane in lanes])
+    lengths = np.zeros(n)
+    for which, batch in equal_count_batches(lanes):  # polyline_length of each, the same sums
+        lengths[which] = np.linalg.norm(np.diff(batch, axis=1), axis=2).sum(axis=1)
     for i in np.flatnonzero(~joined | ~simple | (radius < MIN_RADIUS_M) | (lengths < MIN_LENGTH_M)).tolist():
         lane, length = lanes[i], lengths[i]
         if not joined[i] and not touches[i]:
@@ -127,12 +130,11 @@ def check(graph) -> Validity:
             report.problems.append(Problem("self_intersection", [i], lane[len(lane) // 2].tolist()))
         if radius[i] < MIN_RADIUS_M:
             report.problems.append(Problem("kink", [i], where[i].tolist(), f"radius {radius[i]:.2f} m"))
-    for i, j in succ:
-        gap = float(np.linalg.norm(lanes[i][-1] - lanes[j][0]))
-        turn = _turn_deg(lanes[i], lanes[j])
-        if gap > MAX_GAP_M or turn > MAX_TURN_DEG:
-            report.problems.append(Problem("bad_successor", [i, j], lanes[i][-1].tolist(),
-                                           f"gap {gap:.2f} m, turn {turn:.0f} deg"))
+    gaps, turns = _joints(lanes, succ)
+    for k in np.flatnonzero((gaps > MAX_GAP_M) | (turns > MAX_TURN_DEG)).tolist():
+        (i, j), gap, turn = succ[k], float(gaps[k]), float(turns[k])
+        report.problems.append(Problem("bad_successor", [i, j], lanes[i][-1].tolist(),
+                                       f"gap {gap:.2f} m, turn {turn:.0f} deg"))
     _add_crossings(report, lanes, shapes, succ)
     report.routable_pairs, report.largest_scc, sampled = _routability(n, succ)
     report.routable_with_changes, _, sampled_changes = _routability(n, succ + lane_changes(graph))
@@ -213,14 +215,20 @@ def _thinned(line: np.ndarray, count: np.ndarray, spacing: float, corner: float)
 def _spaced(line: np.ndarray, count: np.ndarray, spacing: float, kept: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
     """The vertices of padded lines at least ``spacing`` from the one kept before, and those ``kept`` marks; the last
     vertex replaces a kept one closer than that (unless marked). Returns the lines compacted (padded with their last
-    point) and their new vertex counts."""
-    rows, last = np.arange(len(line)), np.zeros(len(line), int)
-    keep = np.zeros(line.shape[:2], bool)
-    keep[:, 0] = True
-    for i in range(1, line.shape[1]):
-        take = (i < count) & (kept[:, i] | (np.linalg.norm(line[:, i] - line[rows, last], axis=1) >= spacing))
-        keep[:, i] = take
-        last = np.where(take, i, last)
+    point) and their new vertex counts. Lines whose vertices all lie ``spacing`` apart keep them all; the others are
+    walked vertex by vertex, together."""
+    rows = np.arange(len(line))
+    keep = np.arange(line.shape[1])[None, :] < count[:, None]
+    loose = np.flatnonzero(np.any(keep[:, 1:] & (np.linalg.norm(np.diff(line, axis=1), axis=2) < spacing), axis=1))
+    walk, marked, inside = line[loose], keep[loose] & kept[loose], keep[loose]
+    taken, at, walking = np.zeros_like(inside), np.zeros(len(loose), int), np.arange(len(loose))
+    taken[:, 0] = True
+    for i in range(1, line.shape[1] if len(loose) else 1):
+        step = walk[:, i] - walk[walking, at]  # from the last vertex kept; its length as np.linalg.norm takes it
+        taken[:, i] = take = marked[:, i] | (inside[:, i] & (np.sqrt(np.square(step).sum(axis=1)) >= spacing))
+        at[take] = i
+    keep[loose], last = taken, count - 1
+    last[loose] = at
     end, short = count - 1, last != count - 1
     replace = short & (keep.sum(axis=1) > 1) & ~kept[rows, last]
     keep[rows[replace], last[replace]] = False
@@ -233,9 +241,14 @@ def _spaced(line: np.ndarray, count: np.ndarray, spacing: float, kept: np.ndarra
     return out, new_count
 
 
-def _turn_deg(a: np.ndarray, b: np.ndarray) -> float:
-    da, db = unit(a[-1] - a[max(-2, -len(a))]), unit(b[min(1, len(b) - 1)] - b[0])
-    return float(np.degrees(np.arccos(np.clip(np.dot(da, db), -1.0, 1.0))))
+def _joints(lanes: list[np.ndarray], succ: list[tuple[int, int]]) -> tuple[np.ndarray, np.ndarray]:
+    """Of each successor edge (i, j): the gap (m) from the end of lane i to the start of lane j, and the angle (degrees)
+    between their directions there (``np.vecdot`` takes ``np.dot`` of each pair: the numbers of one edge alone)."""
+    ends = np.array([lane[[0, 1, -2, -1]] for lane in lanes])
+    i, j = np.array(succ, np.int64).reshape(-1, 2).T
+    gap = ends[i, 3] - ends[j, 0]
+    out, into = unit(ends[i, 3] - ends[i, 2]), unit(ends[j, 1] - ends[j, 0])
+    return np.sqrt(np.vecdot(gap, gap)), np.degrees(np.arccos(np.clip(np.vecdot(out, into), -1.0, 1.0)))
 
 
 def _add_crossings(report: Validity, lanes: list[np.ndarray], shapes: np.ndarray, succ: list[tuple[int, int]]) -> None:
@@ -307,7 +320,9 @@ def _routability(n: int, succ: list[tuple[int, int]]) -> tuple[float, int, bool]
     lanes reached from ``SAMPLED_SOURCES`` sampled sources instead."""
     if n < 2:
         return 1.0, n, False
-    adj = csr_matrix((np.ones(len(succ)), ([i for i, _ in succ], [j for _, j in succ])), shape=(n, n))
+    key = np.unique(np.array(succ, np.int64).reshape(-1, 2) @ [n, 1])  # each edge once, by row, then column
+    adj = csr_matrix((np.ones(len(key)), key % n, np.r_[0, np.cumsum(np.bincount(key // n, minlength=n))]),
+                     shape=(n, n))  # made from its rows directly (the canonical form csgraph needs), not via COO
     _, weak = connected_components(adj, directed=True, connection="weak")
     size = np.bincount(weak)
     huge = size[weak] > EXACT_COMPONENT
@@ -315,7 +330,7 @@ def _routability(n: int, succ: list[tuple[int, int]]) -> tuple[float, int, bool]
     local = np.empty(n, np.int64)
     local[order] = np.arange(n) - (np.cumsum(size) - size)[weak[order]]
     count, labels = connected_components(adj, directed=True, connection="strong")
-    pairs = _reach_pairs(count, labels, local, huge, succ) + _sampled_pairs(adj, weak, huge)
+    pairs = _reach_pairs(count, labels, local, huge, succ) + (_sampled_pairs(adj, weak, huge) if huge.any() else 0)
     return pairs / (n * (n - 1)), int(np.bincount(labels).max()), bool(huge.any())
 
 

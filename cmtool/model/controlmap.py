@@ -125,6 +125,11 @@ class ControlMap(nn.Module):
         eps, residuals = self._run(torch.cat([x, x]), torch.cat([t, t]), torch.cat([y, y]), tokens)
         return eps[:b], eps[b:], residuals
 
+    def forward_cond(self, x: Tensor, t: Tensor, y: Tensor, *, tokens: Tensor) -> tuple[Tensor, list[Tensor]]:
+        """The conditioned rows of :meth:`forward_cfg` alone, ``(eps_cond, residuals)``: all that guidance at
+        w = 1 needs (``eps_uncond + 1 (eps_cond - eps_uncond) = eps_cond``), at the cost of one pass."""
+        return self._run(x, t, y, tokens)
+
     def _run(self, x: Tensor, t: Tensor, y: Tensor, tokens: Tensor) -> tuple[Tensor, list[Tensor]]:
         """Base pass over all rows; the first ``len(tokens)`` rows get the control residuals."""
         n = tokens.shape[0]

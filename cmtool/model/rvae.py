@@ -18,7 +18,6 @@ from functools import partial
 
 import numpy as np
 import torch
-import torchvision
 from torch import Tensor, nn
 
 from cmtool.core.errors import CmtoolError
@@ -51,6 +50,8 @@ def encoder_trunk(backbone: str, in_channels: int, raster_px: int, latent_size: 
         strides = ", ".join(str(full >> k) for k in range(stages - 1, -1, -1))
         raise CmtoolError(f"rvae.raster_px: {raster_px} cannot be reduced to latent_size {latent_size} by "
                           f"{stages} encoder stages: raster_px / latent_size must be {strides}")
+    import torchvision  # here: 2-3 s to import, and a sampler's RVAE often holds no encoder
+
     net = getattr(torchvision.models, backbone)(weights=None, norm_layer=partial(nn.GroupNorm, 32))
     net.conv1 = nn.Conv2d(in_channels, 64, kernel_size=7, stride=2, padding=3, bias=False)
     kept = _STAGES[:stages]

@@ -20,11 +20,10 @@ import math
 
 import numpy as np
 
-from cmtool.core.geometry import resample_step
 from cmtool.maps.lanegraph import LaneGraph, infer_successors
 from cmtool.maps.neighbours import relaned
 from cmtool.metrics.geometric import legal_oneway_by_lane
-from cmtool.metrics.lanes import distance_to_polylines
+from cmtool.metrics.lanes import resampled, within_distance
 
 COVER_M = 3.0  # a rule lane farther than this from the map's lanes along most of its length is added
 
@@ -42,8 +41,10 @@ def guarantee(graph: LaneGraph, sd: np.ndarray | None, rules: LaneGraph | None =
             lanes[k] = lanes[k][::-1].copy()
     added = []
     if rules is not None and rules.lanes:
-        near = [distance_to_polylines(resample_step(np.asarray(l, np.float64), 1.0), lanes) for l in rules.lanes]
-        added = [k for k, d in enumerate(near) if np.mean(d > COVER_M) > 0.5]
+        samples = resampled([np.asarray(l, np.float64) for l in rules.lanes], 1.0)
+        owner = np.repeat(np.arange(len(samples)), [len(p) for p in samples])
+        far = np.bincount(owner, ~within_distance(np.concatenate(samples), lanes, COVER_M)) / np.bincount(owner)
+        added = np.flatnonzero(far > 0.5).tolist()
     if not turned and not added:
         return graph
     first = len(lanes)

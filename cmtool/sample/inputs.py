@@ -15,7 +15,7 @@ import numpy as np
 
 from cmtool.core.errors import CmtoolError
 from cmtool.core.jsonio import json_lines
-from cmtool.data.sd_raster import FRAME_M, IMAGE_SUFFIXES, rasterize_sd, read_sd_image
+from cmtool.data.sd_raster import FRAME_M, IMAGE_SUFFIXES, SDRasterizer, read_sd_image
 from cmtool.maps.lanegraph import LaneGraph
 from cmtool.maps.sdmap import SDMap
 
@@ -62,12 +62,13 @@ def osm_inputs(path, centers: list[tuple[float, float, float]]) -> list[ControlI
 
     sd_map = osm_sd_map(path)
     proj = LocalProjection(sd_map.meta["lat0"], sd_map.meta["lon0"])
+    rasterize = SDRasterizer(sd_map)
     inputs = []
     for k, (lat, lon, heading) in enumerate(centers):
         if not (-90.0 <= lat <= 90.0 and -180.0 <= lon <= 180.0):
             raise CmtoolError(f"--center {lat},{lon}: latitude must be in [-90, 90] and longitude in [-180, 180]")
         x, y = proj.to_metres(lat, lon)
-        sd = rasterize_sd(sd_map, float(x), float(y), math.radians(90.0 - heading))
+        sd = rasterize(float(x), float(y), math.radians(90.0 - heading))
         if not sd[..., 0].any():
             raise CmtoolError(f"{path}: no roads within the {FRAME_M:.0f} m frame around {lat:.6f},{lon:.6f} "
                               f"(nearest road {_nearest_road(sd_map, x, y):.0f} m away)")
@@ -110,12 +111,12 @@ def hd_inputs(path, poses: list[tuple[float, float, float]] | None, seed: int = 
     if poses is None:
         picked = FrameSampler(sd_map).sample(1, np.random.default_rng(seed))
         poses = [(f.pose.x, f.pose.y, math.degrees(f.pose.yaw)) for f in picked]
-    cropper = SceneCropper(hd)
+    cropper, rasterize = SceneCropper(hd), SDRasterizer(sd_map)
     stem = Path(path).name.split(".")[0]
     inputs = []
     for k, (x, y, yaw) in enumerate(poses):
         pose = Pose(x, y, math.radians(yaw))
-        sd = rasterize_sd(sd_map, pose.x, pose.y, pose.yaw)
+        sd = rasterize(pose.x, pose.y, pose.yaw)
         truth = cropper.extract(pose).to_lanegraph()
         if not sd[..., 0].any() and not truth.lanes:
             raise CmtoolError(f"{path}: no roads within the {FRAME_M:.0f} m frame at pose {x:g},{y:g},{yaw:g}; "

@@ -4,7 +4,8 @@ Maps are generated in batches; every input gets ``num`` maps. A batch's randomne
 ``seed`` and the number of its first map, so the same command (inputs, options, checkpoint,
 device) gives the same maps, also when the processes of a ``torchrun`` share the batches.
 Outputs per map in ``out``: ``<name>.json`` (the lane graph, successors inferred), ``<name>.png``
-(SD | generated | ground truth when known) and ``<name>.gt.json`` (the ground truth, when known);
+(SD | generated | ground truth when known; none with ``pictures`` off) and ``<name>.gt.json`` (the ground truth,
+when known);
 plus one ``.rrd`` with every denoising step of every map (:mod:`cmtool.viz.trajectory`). The files
 are written as one set: each to a temporary file, all renamed into place when the run succeeds, so
 a failed run leaves earlier files as they were.
@@ -15,7 +16,9 @@ from __future__ import annotations
 import math
 import os
 import socket
+import threading
 import time
+from concurrent.futures import ThreadPoolExecutor
 from dataclasses import dataclass
 from functools import partial
 from pathlib import Path
@@ -23,6 +26,7 @@ from urllib.parse import urlsplit
 
 import numpy as np
 import rerun as rr
+import torch
 
 from cmtool.core import dist as D
 from cmtool.core.errors import CmtoolError
@@ -111,7 +115,7 @@ def plan(gen: MapGenerator, inputs: list[ControlInput], settings: SampleSettings
         gen.encode([])  # an RVAE without an encoder fails here, before any layout is made
         starts = layout_scenes(inputs, settings.init)
     if settings.guarantee and all(item.sd_map is not None for item in inputs):
-        rules = [s.to_lanegraph() for s in layout_scenes(inputs, "rules", roads_only=True)]
+        rules = [s.to_lanegraph(neighbours=False) for s in layout_scenes(inputs, "rules", roads_only=True)]
     if gen.layout != NO_LAYOUT:  # an SD picture has no map to lay lanes out on: its layout channels stay empty
         mapped = [k for k, item in enumerate(inputs) if item.sd_map is not None and item.pose is not None]
         if settings.init == gen.layout:
@@ -136,10 +140,11 @@ def plan(gen: MapGenerator, inputs: list[ControlInput], settings: SampleSettings
 
 def run_sample(gen: MapGenerator, jobs: list[Job], settings: SampleSettings, out: Path, rrd: Path | None = None,
                viewer: str | None = None, command: str = "", progress: bool = True,
-               grid: Path | None = None, info: D.DistInfo = D.SINGLE) -> list[SampledMap] | None:
+               grid: Path | None = None, info: D.DistInfo = D.SINGLE, pictures: bool = True) -> list[SampledMap] | None:
     """Generate every job's map, write its files to ``out`` and (unless ``rrd`` and ``viewer`` are
     None) record every step; ``viewer`` is "spawn", "serve" (the recording is served from this process until it
-    ends) or a Rerun gRPC URL to stream to live; ``grid`` is a PNG that gets all maps' pictures stacked. Under
+    ends) or a Rerun gRPC URL to stream to live; ``grid`` is a PNG that gets all maps' pictures stacked;
+    ``pictures``: a picture per map (else the lane graphs only). Under
     ``torchrun`` (``info``, several processes, no recording) the main process writes the files and returns the maps,
     the others only generate their share and return None."""
     if info.world > 1 and (rrd is not None or viewer is not None):
@@ -157,10 +162,15 @@ def run_sample(gen: MapGenerator, jobs: list[Job], settings: SampleSettings, out
         if rrd is not None or viewer is not None:
             rec = sampling_recording(rrd, viewer)
             log_run_header(rec, gen, jobs, settings, command)
-        maps = choose(generate_maps(gen, jobs, settings, rec, progress, info), settings.candidates)
         strength = f", city cfg {settings.city_cfg:g}" if settings.city_cfg != 1 else ""
-        write_maps(out, maps, lambda g: f"generated: {g.city or 'no city'}, w = {settings.cfg:g}{strength}", outputs,
-                   grid)
+        files = MapFiles(out, lambda g: f"generated: {g.city or 'no city'}, w = {settings.cfg:g}{strength}", outputs,
+                         pictures, grid)
+        early = settings.candidates == 1  # each map's files staged as soon as it is checked, else the chosen ones
+        maps = choose(generate_maps(gen, jobs, settings, rec, progress, info, files.stage if early else None),
+                      settings.candidates)
+        if not early:
+            files.stage([m.job for m in maps], [m.graph for m in maps])
+        files.finish()
         if rec is not None:
             if viewer is None:
                 close_recording(rec, rrd, outputs)
@@ -187,17 +197,22 @@ def run_sample(gen: MapGenerator, jobs: list[Job], settings: SampleSettings, out
 
 
 def generate_maps(gen: MapGenerator, jobs: list[Job], settings: SampleSettings, rec, progress: bool,
-                  info: D.DistInfo = D.SINGLE) -> list[SampledMap] | None:
-    """Sample, decode and (when ``rec`` is a recording) log every step of the jobs' maps, in batches. Under
-    ``torchrun`` (``info``) the processes take turns at the batches and the main process gets all maps (the others
-    None)."""
+                  info: D.DistInfo = D.SINGLE, finish=None) -> list[SampledMap] | None:
+    """Sample, decode and (when ``rec`` is a recording) log every step of the jobs' maps, in batches; ``finish`` (on
+    the main process) gets each batch's jobs and checked maps. Under ``torchrun`` (``info``) the processes take turns
+    at the batches and the main process gets all maps (the others None); one process without a recording checks and
+    finishes each batch beside the denoising of the next (:func:`_pipelined`)."""
     maps = []
     with Progress(len(jobs), "sample", "maps", enabled=progress and len(jobs) > 1 and info.main) as bar:
+        if info.world == 1 and rec is None:
+            return _pipelined(gen, jobs, settings, bar, finish)
         for mine in D.rounds(list(range(0, len(jobs), settings.batch)), info):
             made = [(start, batch_maps(gen, jobs[start:start + settings.batch], start, settings, rec))
                     for start in mine]
             for part in D.gather(made, info) or []:
                 for start, batch in part:
+                    if finish is not None:
+                        finish(jobs[start:start + len(batch)], [graph for graph, _ in batch])
                     maps += [SampledMap(jobs[start + k], graph, seconds) for k, (graph, seconds) in enumerate(batch)]
                     bar.update(len(batch))
     return maps if info.main else None
@@ -213,28 +228,110 @@ def batch_maps(gen: MapGenerator, batch: list[Job], start: int, settings: Sample
     if rec is not None:
         logger = TrajectoryLogger(rec, [j.prefix for j in batch], partial(gen.decode, preview=True), settings.cfg,
                                   ego=not placed)
-    sds = [j.source.sd for j in batch]
-    sd = None if all(s is None for s in sds) else np.stack(sds)
     began = time.perf_counter()
-    init = gen.encode([j.init for j in batch]) if settings.init != NO_INIT else None
-    graphs = gen.generate(sd, [j.label for j in batch], settings, start, city_cfg=settings.city_cfg, eta=settings.eta,
-                          init=init, strength=settings.strength, layouts=[j.layout for j in batch],
-                          metas=[_meta(gen, j, settings) for j in batch], callback=logger)
-    for k, (job, graph) in enumerate(zip(batch, graphs)):
-        score_map(graph, job.source.sd)
-        if settings.guarantee and job.source.sd is not None:
-            raw = raw_scores(graph)
-            graphs[k] = graph = guarantee(graph, job.source.sd, job.rules)
-            score_map(graph, job.source.sd)
-            graph.meta["raw"] = raw
-            graph.meta.setdefault("guarantee", {"turned": 0, "added": 0})
-    if logger is not None:
-        logger.flush()
+    graphs = _denoised(gen, batch, start, settings, logger)
+    flushing = _Background(logger.flush) if logger is not None else None  # beside the checks below
+    check_maps(batch, graphs, settings)
+    if flushing is not None:
+        flushing.join()
         for job, graph in zip(batch, graphs) if not placed else ():
             log_lanes(rec, job.prefix, graph.lanes, graph.green_lights, graph.red_lights, graph.successors,
                       static=True)
     seconds = (time.perf_counter() - began) / len(batch)
     return [(graph, seconds) for graph in graphs]
+
+
+def _denoised(gen: MapGenerator, batch: list[Job], start: int, settings: SampleSettings,
+              logger: TrajectoryLogger | None) -> list[LaneGraph]:
+    """The jobs' lane graphs as the model made them (:meth:`MapGenerator.generate`), ``logger`` getting every step."""
+    sds = [j.source.sd for j in batch]
+    sd = None if all(s is None for s in sds) else np.stack(sds)
+    init = gen.encode([j.init for j in batch]) if settings.init != NO_INIT else None
+    return gen.generate(sd, [j.label for j in batch], settings, start, city_cfg=settings.city_cfg, eta=settings.eta,
+                        init=init, strength=settings.strength, layouts=[j.layout for j in batch],
+                        metas=[_meta(gen, j, settings) for j in batch], callback=logger)
+
+
+def check_maps(batch: list[Job], graphs: list[LaneGraph], settings: SampleSettings, finish=None) -> None:
+    """Score each map in its meta (:func:`score_map`) and, unless ``settings.guarantee`` is off, replace it in
+    ``graphs`` by its guaranteed form (:func:`cmtool.sample.guarantee.guarantee`), the model's own scores kept; then
+    hand the jobs and maps to ``finish``."""
+    for k, (job, graph) in enumerate(zip(batch, graphs)):
+        score_map(graph, job.source.sd)
+        if settings.guarantee and job.source.sd is not None:
+            raw = raw_scores(graph)
+            fixed = guarantee(graph, job.source.sd, job.rules)
+            if fixed is not graph:  # a map the guarantee left alone keeps its scores
+                graphs[k] = graph = fixed
+                score_map(graph, job.source.sd)
+            graph.meta["raw"] = raw
+            graph.meta.setdefault("guarantee", {"turned": 0, "added": 0})
+    if finish is not None:
+        finish(batch, graphs)
+
+
+def _pipelined(gen: MapGenerator, jobs: list[Job], settings: SampleSettings, bar: Progress,
+               finish=None) -> list[SampledMap]:
+    """:func:`generate_maps` in one process without a recording: each batch's maps are checked (:func:`check_maps`)
+    and finished in a second thread while this one denoises the next batch. The checks are mostly Python and torch's
+    kernels run outside the GIL, so the two overlap; torch keeps one core fewer while they do (the same maps: threads
+    change no result). A map's time is its share of its batch's denoising and checks."""
+    maps: list[SampledMap] = []
+    threads = torch.get_num_threads()
+    torch.set_num_threads(max(1, threads - 1))
+    try:
+        with ThreadPoolExecutor(1, thread_name_prefix="cmtool-checks") as checker:
+            pending = None
+            for start in range(0, len(jobs), settings.batch):
+                batch = jobs[start:start + settings.batch]
+                began = time.perf_counter()
+                graphs = _denoised(gen, batch, start, settings, None)
+                denoising = time.perf_counter() - began
+                _checked(maps, pending, bar)
+                pending = (batch, graphs, denoising, checker.submit(_timed, check_maps, batch, graphs, settings,
+                                                                     finish))
+            _checked(maps, pending, bar)
+    finally:
+        torch.set_num_threads(threads)
+    return maps
+
+
+def _timed(work, *args) -> float:
+    began = time.perf_counter()
+    work(*args)
+    return time.perf_counter() - began
+
+
+def _checked(maps: list[SampledMap], pending, bar: Progress) -> None:
+    """Wait for the checks of the ``pending`` batch (None: none) and append its maps to ``maps``."""
+    if pending is None:
+        return
+    batch, graphs, denoising, checks = pending
+    seconds = (denoising + checks.result()) / len(batch)
+    maps += [SampledMap(job, graph, seconds) for job, graph in zip(batch, graphs)]
+    bar.update(len(batch))
+
+
+class _Background(threading.Thread):
+    """``work()`` in a thread of its own; :meth:`join` raises what it raised. A recording's step previews are decoded
+    and sent this way while the sampling thread checks the maps: the decoder's torch kernels and Rerun's encoding
+    run outside the GIL, beside the checks' Python."""
+
+    def __init__(self, work):
+        super().__init__(daemon=True)
+        self.work, self.error = work, None
+        self.start()
+
+    def run(self) -> None:
+        try:
+            self.work()
+        except BaseException as e:  # handed to the sampling thread by join
+            self.error = e
+
+    def join(self, timeout=None) -> None:
+        super().join(timeout)
+        if self.error is not None:
+            raise self.error
 
 
 def choose(maps: list[SampledMap], candidates: int) -> list[SampledMap]:
@@ -405,34 +502,54 @@ def log_run_header(rec, gen: MapGenerator, jobs: list[Job], settings: SampleSett
 MAP_FILES = (".json", ".gt.json", ".png")  # the files of a map named NAME: NAME.json, NAME.gt.json, NAME.png
 
 
+class MapFiles:
+    """Stages the files of sampled maps in ``outputs`` (:meth:`stage`): each map's lane graph JSON, its ground truth
+    JSON when known and (``pictures``) its picture, headed ``title(graph)``; with ``grid``, :meth:`finish` stacks
+    all pictures into that PNG."""
+
+    def __init__(self, out: Path, title, outputs: OutputSet, pictures: bool = True, grid: Path | None = None):
+        self.out, self.title, self.outputs, self.pictures, self.grid = out, title, outputs, pictures, grid
+        self.bodies: list[np.ndarray] = []  # the pictures for the grid
+
+    def stage(self, jobs: list[Job], graphs: list[LaneGraph]) -> None:
+        for job, graph in zip(jobs, graphs):
+            self.outputs.write_text(self.out / f"{job.name}.json", json_text(graph.to_json()))
+            if job.source.truth is not None:
+                self.outputs.write_text(self.out / f"{job.name}.gt.json", json_text(job.source.truth.to_json()))
+            if self.pictures:
+                body = _picture_body(job, graph, self.title(graph))
+                write_png(self.out / f"{job.name}.png", np.concatenate([body, legend(body.shape[1])], axis=0),
+                          self.outputs)
+                if self.grid is not None:
+                    self.bodies.append(body)
+
+    def finish(self) -> None:
+        if self.grid is not None and self.bodies:
+            gap = np.full((4, self.bodies[0].shape[1], 3), 12, np.uint8)
+            stacked = np.concatenate([x for body in self.bodies for x in (body, gap)][:-1], axis=0)
+            write_png(self.grid, np.concatenate([stacked, legend(stacked.shape[1])], axis=0), self.outputs)
+
+
 def write_maps(out: Path, maps: list[SampledMap], title, outputs: OutputSet, grid: Path | None = None) -> None:
-    """Stage every map's files (:func:`_write_map`; ``title(graph)`` heads its panel) and, when ``grid`` is given,
-    all their pictures stacked into one PNG."""
-    bodies = [_write_map(out, m, title(m.graph), outputs) for m in maps]
-    if grid is not None:
-        gap = np.full((4, bodies[0].shape[1], 3), 12, np.uint8)
-        stacked = np.concatenate([x for body in bodies for x in (body, gap)][:-1], axis=0)
-        write_png(grid, np.concatenate([stacked, legend(stacked.shape[1])], axis=0), outputs)
+    """Stage every map's files and pictures (:class:`MapFiles`) and, when ``grid`` is given, all their pictures
+    stacked into one PNG."""
+    files = MapFiles(out, title, outputs, grid=grid)
+    files.stage([m.job for m in maps], [m.graph for m in maps])
+    files.finish()
 
 
-def _write_map(out: Path, m: SampledMap, title: str, outputs: OutputSet) -> np.ndarray:
-    """Stage a map's lane graph JSON, ground truth JSON (when known) and picture in ``outputs``.
-    Returns the picture without its legend."""
-    outputs.write_text(out / f"{m.job.name}.json", json_text(m.graph.to_json()))
-    truth = m.job.source.truth
-    if truth is not None:
-        outputs.write_text(out / f"{m.job.name}.gt.json", json_text(truth.to_json()))
+def _picture_body(job: Job, graph: LaneGraph, title: str) -> np.ndarray:
+    """A map's picture without its legend: SD input | the map | ground truth (those known), each titled."""
+    truth = job.source.truth
     panels = []
-    if m.job.source.sd is not None:
-        panels.append((f"SD input: {m.job.source.name}", sd_panel(m.job.source.sd, PANEL)))
-    panels.append((title, graph_panel(m.graph, PANEL)))
+    if job.source.sd is not None:
+        panels.append((f"SD input: {job.source.name}", sd_panel(job.source.sd, PANEL)))
+    panels.append((title, graph_panel(graph, PANEL)))
     if truth is not None:
         panels.append(("ground truth", graph_panel(truth, PANEL)))
     tiles = [np.concatenate([title_strip(t, PANEL), img], axis=0) for t, img in panels]
     gap = np.full((tiles[0].shape[0], 4, 3), 12, np.uint8)
-    body = np.concatenate([x for tile in tiles for x in (tile, gap)][:-1], axis=1)
-    write_png(out / f"{m.job.name}.png", np.concatenate([body, legend(body.shape[1])], axis=0), outputs)
-    return body
+    return np.concatenate([x for tile in tiles for x in (tile, gap)][:-1], axis=1)
 
 
 def summary_table(maps: list[SampledMap]) -> str:

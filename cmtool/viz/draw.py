@@ -8,6 +8,8 @@ Images are RGB uint8.
 
 from __future__ import annotations
 
+from functools import lru_cache
+
 import cv2
 import numpy as np
 
@@ -35,6 +37,12 @@ def _pix(points: np.ndarray, size: int, frame_m: float) -> np.ndarray:
     return ego_to_pixel(points, frame_m / size, frame_m)
 
 
+@lru_cache(maxsize=16)
+def _blank(height: int, width: int, colour: tuple[int, int, int]) -> np.ndarray:
+    """A picture of one colour, to copy (filling one anew takes up to a hundred times longer)."""
+    return np.full((height, width, 3), colour, np.uint8)
+
+
 def lanes_panel(scene, size: int = 256) -> np.ndarray:
     """The HD vectors of a :class:`~cmtool.data.scene.Scene` (see :func:`lanes_image`)."""
     return lanes_image(scene.lines[scene.line_mask], scene.green[scene.green_mask], scene.red[scene.red_mask],
@@ -50,35 +58,22 @@ def lanes_image(lines, green, red, edges, frame_m: float = 64.0, size: int = 256
     """HD vectors in ego metres: light lines (wide green / red bands, a lamp where each starts)
     under direction-coloured lanes with a dot at each lane start, an arrow head at each end, white
     successor arrows across joints and (``ego``) the ego as a white triangle."""
-    img = np.full((size, size, 3), BACKGROUND, np.uint8)
+    img = _blank(size, size, BACKGROUND).copy()
     fm = frame_m
     scale = size / fm
     bands = img.copy()
     stops = []
     for lights, colour in ((green, GREEN), (red, RED)):
-        for line in lights:
-            pix = _pix(line, size, fm)
-            cv2.polylines(bands, [pix.reshape(-1, 1, 2)], False, colour, max(3, int(round(2.2 * scale))),
+        pix = [_pix(line, size, fm) for line in lights]
+        if pix:  # one call draws them all, one after the other
+            cv2.polylines(bands, [p.reshape(-1, 1, 2) for p in pix], False, colour, max(3, int(round(2.2 * scale))),
                           cv2.LINE_AA, CV_SHIFT)
-            stops.append((tuple(pix[0]), colour))
-    img = cv2.addWeighted(bands, 0.55, img, 0.45, 0.0)
+        stops += [(tuple(p[0].tolist()), colour) for p in pix]
+    if stops:  # (the background blended with itself stays as it is)
+        img = cv2.addWeighted(bands, 0.55, img, 0.45, 0.0)
     lines = [np.asarray(l, np.float64) for l in lines]
-    lw = max(1, int(round(0.5 * scale)))
-    for line in lines:
-        d = np.diff(line, axis=0)
-        colours = heading_colours(np.arctan2(d[:, 1], d[:, 0]))
-        pix = _pix(line, size, fm)
-        for k in range(len(d)):
-            c = tuple(int(v) for v in colours[k])
-            cv2.line(img, tuple(pix[k]), tuple(pix[k + 1]), c, lw, cv2.LINE_AA, CV_SHIFT)
-        cv2.circle(img, tuple(pix[0]), int(1.2 * scale) << CV_SHIFT, (200, 200, 200), -1, cv2.LINE_AA, CV_SHIFT)
-        tip, tail = line[-1], line[-1] - 2.5 * _unit(line[-1] - line[max(-3, -len(line))])
-        cv2.arrowedLine(img, tuple(_pix(tail, size, fm)), tuple(_pix(tip, size, fm)), tuple(int(v) for v in colours[-1]),
-                        lw, cv2.LINE_AA, CV_SHIFT, tipLength=0.8)
-    for i, j in edges:
-        a, b = lines[i][max(-3, -len(lines[i]))], lines[j][min(2, len(lines[j]) - 1)]
-        cv2.arrowedLine(img, tuple(_pix(a, size, fm)), tuple(_pix(b, size, fm)), (255, 255, 255), 1, cv2.LINE_AA,
-                        CV_SHIFT, tipLength=0.35)
+    if lines:
+        _draw_lanes(img, lines, edges, fm, size)
     for centre, colour in stops:  # a lamp where each light line starts (at its stop line)
         cv2.circle(img, centre, int(1.3 * scale) << CV_SHIFT, (255, 255, 255), -1, cv2.LINE_AA, CV_SHIFT)
         cv2.circle(img, centre, int(0.9 * scale) << CV_SHIFT, colour, -1, cv2.LINE_AA, CV_SHIFT)
@@ -88,21 +83,52 @@ def lanes_image(lines, green, red, edges, frame_m: float = 64.0, size: int = 256
     return img
 
 
+def _draw_lanes(img: np.ndarray, lines: list[np.ndarray], edges, fm: float, size: int) -> None:
+    """The lanes of :func:`lanes_image` (float64 polylines) and their successor arrows, all converted to pixels and
+    colours in one go."""
+    scale = size / fm
+    lw = max(1, int(round(0.5 * scale)))
+    ends = np.cumsum([len(l) for l in lines])
+    starts = ends - [len(l) for l in lines]
+    points = np.concatenate(lines)
+    d = np.diff(points, axis=0)  # segment k runs from point k to k + 1 (those across two lanes go unused)
+    colours = heading_colours(np.arctan2(d[:, 1], d[:, 0]))
+    pix = _pix(points, size, fm)
+    tails = [l[-1] - 2.5 * _unit(l[-1] - l[max(-3, -len(l))]) for l in lines]
+    tails = list(map(tuple, _pix(np.array(tails), size, fm).tolist()))
+    points, colours = list(map(tuple, pix.tolist())), list(map(tuple, colours.tolist()))
+    for a, b, tail in zip(starts.tolist(), (ends - 1).tolist(), tails):
+        for k in range(a, b):
+            cv2.line(img, points[k], points[k + 1], colours[k], lw, cv2.LINE_AA, CV_SHIFT)
+        cv2.circle(img, points[a], int(1.2 * scale) << CV_SHIFT, (200, 200, 200), -1, cv2.LINE_AA, CV_SHIFT)
+        cv2.arrowedLine(img, tail, points[b], colours[b - 1], lw, cv2.LINE_AA, CV_SHIFT, tipLength=0.8)
+    for i, j in edges:
+        tail, tip = points[ends[i] + max(-3, -len(lines[i]))], points[starts[j] + min(2, len(lines[j]) - 1)]
+        cv2.arrowedLine(img, tail, tip, (255, 255, 255), 1, cv2.LINE_AA, CV_SHIFT, tipLength=0.35)
+
+
 def sd_panel(sd: np.ndarray, size: int = 256) -> np.ndarray:
     """The SD raster made readable: roads grey (brighter with more lanes, mid grey when the lane
     count is unknown), one-way roads in the hue of their travel direction."""
-    dec = decode_sd(sd)
-    road, lanes = dec["road"], dec["lanes"]
-    grey = np.where(lanes > 0, 70 + 25 * np.clip(lanes, 0, 7), 130).astype(np.uint8)
-    img = np.full(road.shape + (3,), BACKGROUND, np.uint8)
-    img[road] = grey[road][:, None]
-    oneway = ~np.isnan(dec["heading"])
-    img[oneway] = heading_colours(dec["heading"][oneway])
-    return cv2.resize(img, (size, size), interpolation=cv2.INTER_NEAREST)
+    colour = np.where(sd[..., 2] > 0, sd[..., 2].astype(np.uint16) + 256, sd[..., 1])  # a row of _sd_colours
+    colour[sd[..., 0] == 0] = 512
+    return cv2.resize(np.take(_sd_colours(), colour, axis=0), (size, size), interpolation=cv2.INTER_NEAREST)
+
+
+@lru_cache(maxsize=1)
+def _sd_colours() -> np.ndarray:
+    """(513, 3) uint8 colours of :func:`sd_panel`: a road pixel's by its G value (rows 0-255, grey by
+    :func:`decode_sd`'s lane count), a one-way road pixel's by its B value (rows 256-511, the hue of its heading),
+    the background (row 512)."""
+    values = np.arange(256, dtype=np.uint8)
+    dec = decode_sd(np.stack([np.full(256, 255, np.uint8), values, values], axis=-1))
+    grey = np.where(dec["lanes"] > 0, 70 + 25 * np.clip(dec["lanes"], 0, 7), 130).astype(np.uint8)
+    hue = heading_colours(np.nan_to_num(dec["heading"]))
+    return np.concatenate([np.repeat(grey[:, None], 3, axis=1), hue, [BACKGROUND]]).astype(np.uint8)
 
 
 def title_strip(text: str, width: int, height: int = 22) -> np.ndarray:
-    img = np.full((height, width, 3), (48, 48, 56), np.uint8)
+    img = _blank(height, width, (48, 48, 56)).copy()
     scale = 0.45
     while cv2.getTextSize(text, cv2.FONT_HERSHEY_SIMPLEX, scale, 1)[0][0] > width - 8 and len(text) > 4:
         text = text[:-4] + "..."
@@ -124,6 +150,12 @@ def grid(tiles: list[np.ndarray], columns: int, gap: int = 6) -> np.ndarray:
 def legend(width: int, row: int = 40) -> np.ndarray:
     """A strip explaining the colours: a hue wheel for lane heading (forward = up) and swatches,
     wrapped onto more rows of ``row`` px when ``width`` is too narrow for one."""
+    return _legend(width, row).copy()
+
+
+@lru_cache(maxsize=8)
+def _legend(width: int, row: int) -> np.ndarray:
+    """:func:`legend`, drawn once per size."""
     r = row // 2 - 3
     items = [("lane colour = heading (up: forward)", None), ("green light", GREEN), ("red light", RED),
              ("successor", (255, 255, 255)), ("SD: grey road (brighter = more lanes), colour = one-way", None)]

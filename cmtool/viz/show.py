@@ -15,6 +15,10 @@ from cmtool.viz.draw import grid, lanes_panel, legend, sd_panel, title_strip
 from cmtool.viz.recording import close_recording, log_scene, open_recording, scenes_blueprint
 
 PANEL = 256
+# zlib's fastest level on unfiltered rows: flat-coloured drawings come out faster and a third smaller than with
+# OpenCV's default settings (where its PNG writer lets the filter be chosen)
+PNG_OPTIONS = ([cv2.IMWRITE_PNG_COMPRESSION, 1, cv2.IMWRITE_PNG_FILTER, cv2.IMWRITE_PNG_FILTER_NONE]
+               if hasattr(cv2, "IMWRITE_PNG_FILTER") else [])
 
 
 def pick(count: int, n: int, seed: int = 0) -> list[int]:
@@ -38,7 +42,7 @@ def write_png(path, image: np.ndarray, outputs: OutputSet | None = None) -> None
     path = Path(path)
     if path.suffix.lower() != ".png":
         raise CmtoolError(f"{path}: a picture is written as PNG; give a path ending in .png")
-    ok, png = cv2.imencode(".png", cv2.cvtColor(image, cv2.COLOR_RGB2BGR))
+    ok, png = cv2.imencode(".png", cv2.cvtColor(image, cv2.COLOR_RGB2BGR), PNG_OPTIONS)
     if not ok:
         raise CmtoolError(f"{path}: could not encode the picture")
     if outputs is not None:

@@ -11,7 +11,8 @@ the ``diffusion_step`` (0 = pure noise) and ``timestep`` timelines:
 - ``diffusion/x0/lanes``, ``diffusion/x0/lights/{green,red}``: the predicted clean latent decoded by
   the RVAE (all steps' latents decoded in one batch per flush);
 - ``diffusion/eps/{cond,uncond,guided}``: L2 norms of the noise predictions, and
-  ``diffusion/eps/delta``, the norm of the guidance term ``w (eps_cond - eps_uncond)``;
+  ``diffusion/eps/delta``, the norm of the guidance term ``w (eps_cond - eps_uncond)`` (at w = 1 the guided
+  prediction is the conditioned one and no unconditioned pass runs: no ``uncond`` and ``delta``);
 - ``control/residual/block_{m}``: per-token L2 norm of the residual added to DiT block m (8 x 8
   Tensor, rows = latent rows, each step's value range spanning its own values, so the heatmap shows
   where the control acts at every step), and ``control/residual/block_{m}/norm``, its total L2 norm.
@@ -122,9 +123,12 @@ class TrajectoryLogger:
 
     def __call__(self, info: StepInfo) -> None:
         step = {"step": info.step, "t": info.t, "latent": info.x_t.detach().float().cpu(), "x0": info.x0.detach(),
-                "guided": _norms(info.eps), "uncond": _norms(info.eps_uncond)}
+                "guided": _norms(info.eps)}
+        if info.eps_uncond is not None:
+            step["uncond"] = _norms(info.eps_uncond)
         if info.eps_cond is not None:
             step["cond"] = _norms(info.eps_cond)
+        if info.eps_cond is not None and info.eps_uncond is not None:
             step["delta"] = _norms(info.eps - info.eps_uncond)
         if info.residuals is not None:
             side = int(round(info.residuals[0].shape[1] ** 0.5))
