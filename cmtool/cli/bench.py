@@ -31,7 +31,8 @@ def bench():
               help="With --data: the step counts, comma-separated.")
 @click.option("--samplers", default=",".join(SAMPLERS), show_default=True,
               help="With --data: the samplers, comma-separated.")
-@click.option("--features", is_flag=True, help="With --data: GT Recall too (ResNet-50 features; --n of 64 or more).")
+@click.option("--features", is_flag=True, help="With --data: GT Recall and the features' precision and recall too (ResNet-50; --n of 64 or "
+                   "more).")
 @click.option("--device", help="torch device [default: cuda when available, else cpu].")
 @PRECISION_OPTION
 def bench_sample_cmd(ckpt, sd_path, steps, sampler, cfg, batch, repeats, data, n, table_steps, samplers, features,

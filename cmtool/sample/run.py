@@ -16,7 +16,6 @@ from __future__ import annotations
 import math
 import os
 import socket
-import threading
 import time
 from concurrent.futures import ThreadPoolExecutor
 from dataclasses import dataclass
@@ -26,7 +25,6 @@ from urllib.parse import urlsplit
 
 import numpy as np
 import rerun as rr
-import torch
 
 from cmtool.core import dist as D
 from cmtool.core.errors import CmtoolError
@@ -201,10 +199,10 @@ def generate_maps(gen: MapGenerator, jobs: list[Job], settings: SampleSettings, 
     """Sample, decode and (when ``rec`` is a recording) log every step of the jobs' maps, in batches; ``finish`` (on
     the main process) gets each batch's jobs and checked maps. Under ``torchrun`` (``info``) the processes take turns
     at the batches and the main process gets all maps (the others None); one process without a recording checks and
-    finishes each batch beside the denoising of the next (:func:`_pipelined`)."""
+    finishes each batch beside the denoising of the next when there are several (:func:`_pipelined`)."""
     maps = []
     with Progress(len(jobs), "sample", "maps", enabled=progress and len(jobs) > 1 and info.main) as bar:
-        if info.world == 1 and rec is None:
+        if info.world == 1 and rec is None and len(jobs) > settings.batch:
             return _pipelined(gen, jobs, settings, bar, finish)
         for mine in D.rounds(list(range(0, len(jobs), settings.batch)), info):
             made = [(start, batch_maps(gen, jobs[start:start + settings.batch], start, settings, rec))
@@ -230,10 +228,9 @@ def batch_maps(gen: MapGenerator, batch: list[Job], start: int, settings: Sample
                                   ego=not placed)
     began = time.perf_counter()
     graphs = _denoised(gen, batch, start, settings, logger)
-    flushing = _Background(logger.flush) if logger is not None else None  # beside the checks below
     check_maps(batch, graphs, settings)
-    if flushing is not None:
-        flushing.join()
+    if logger is not None:
+        logger.flush()
         for job, graph in zip(batch, graphs) if not placed else ():
             log_lanes(rec, job.prefix, graph.lanes, graph.green_lights, graph.red_lights, graph.successors,
                       static=True)
@@ -274,25 +271,20 @@ def _pipelined(gen: MapGenerator, jobs: list[Job], settings: SampleSettings, bar
                finish=None) -> list[SampledMap]:
     """:func:`generate_maps` in one process without a recording: each batch's maps are checked (:func:`check_maps`)
     and finished in a second thread while this one denoises the next batch. The checks are mostly Python and torch's
-    kernels run outside the GIL, so the two overlap; torch keeps one core fewer while they do (the same maps: threads
-    change no result). A map's time is its share of its batch's denoising and checks."""
+    kernels run outside the GIL, so the two overlap (torch keeps all its threads: on 2 cores, 28-32 maps a second
+    against 23-24 with one thread fewer, docs/speed.md). A map's time is its share of its batch's denoising and
+    checks."""
     maps: list[SampledMap] = []
-    threads = torch.get_num_threads()
-    torch.set_num_threads(max(1, threads - 1))
-    try:
-        with ThreadPoolExecutor(1, thread_name_prefix="cmtool-checks") as checker:
-            pending = None
-            for start in range(0, len(jobs), settings.batch):
-                batch = jobs[start:start + settings.batch]
-                began = time.perf_counter()
-                graphs = _denoised(gen, batch, start, settings, None)
-                denoising = time.perf_counter() - began
-                _checked(maps, pending, bar)
-                pending = (batch, graphs, denoising, checker.submit(_timed, check_maps, batch, graphs, settings,
-                                                                     finish))
+    with ThreadPoolExecutor(1, thread_name_prefix="cmtool-checks") as checker:
+        pending = None
+        for start in range(0, len(jobs), settings.batch):
+            batch = jobs[start:start + settings.batch]
+            began = time.perf_counter()
+            graphs = _denoised(gen, batch, start, settings, None)
+            denoising = time.perf_counter() - began
             _checked(maps, pending, bar)
-    finally:
-        torch.set_num_threads(threads)
+            pending = (batch, graphs, denoising, checker.submit(_timed, check_maps, batch, graphs, settings, finish))
+        _checked(maps, pending, bar)
     return maps
 
 
@@ -310,28 +302,6 @@ def _checked(maps: list[SampledMap], pending, bar: Progress) -> None:
     seconds = (denoising + checks.result()) / len(batch)
     maps += [SampledMap(job, graph, seconds) for job, graph in zip(batch, graphs)]
     bar.update(len(batch))
-
-
-class _Background(threading.Thread):
-    """``work()`` in a thread of its own; :meth:`join` raises what it raised. A recording's step previews are decoded
-    and sent this way while the sampling thread checks the maps: the decoder's torch kernels and Rerun's encoding
-    run outside the GIL, beside the checks' Python."""
-
-    def __init__(self, work):
-        super().__init__(daemon=True)
-        self.work, self.error = work, None
-        self.start()
-
-    def run(self) -> None:
-        try:
-            self.work()
-        except BaseException as e:  # handed to the sampling thread by join
-            self.error = e
-
-    def join(self, timeout=None) -> None:
-        super().join(timeout)
-        if self.error is not None:
-            raise self.error
 
 
 def choose(maps: list[SampledMap], candidates: int) -> list[SampledMap]:
