@@ -300,10 +300,11 @@ def test_neighbour_searches_are_remembered_by_content(monkeypatch):
     lanes = [np.array([[0.0, 0.0], [20.0, 0.0]]), np.array([[0.0, 3.5], [20.0, 3.5]]),
              np.array([[20.0, 7.0], [0.0, 7.0]])]
     first = neighbours.infer_neighbours(lanes)
-    assert first == neighbours._infer(lanes, None, None, 1) and (0, 1) in first
+    assert first == neighbours._nearest(*neighbours._beside_all(lanes, None, None), 1) and (0, 1) in first
     assert neighbours.infer_neighbours(lanes) == first and len(neighbours._FOUND) == 1
     moved = [lane + [0.0, 10.0 * k] for k, lane in enumerate(lanes)]  # same shapes, other places: searched again
-    assert neighbours.infer_neighbours(moved) == neighbours._infer(moved, None, None, 1) == []
+    unremembered = neighbours._nearest(*neighbours._beside_all(moved, None, None), 1)
+    assert neighbours.infer_neighbours(moved) == unremembered == []
 
 
 def test_batched_sample_points_equal_resampling_lane_by_lane():

@@ -4,8 +4,8 @@ from __future__ import annotations
 
 import click
 
-from cmtool.cli.common import (FEATURE_PRECISION_OPTION, PRECISION_OPTION, WORKERS_OPTION, Finite, InPath, _device,
-                               _generator, sampler_options)
+from cmtool.cli.common import (FEATURE_PRECISION_OPTION, PRECISION_OPTION, WORKERS_OPTION, DatasetDir, Finite, InPath,
+                               _device, _generator, sampler_options)
 from cmtool.diffusion.settings import SAMPLERS, TABLE_STEPS
 
 
@@ -23,7 +23,7 @@ def bench():
 @click.option("--batch", default=64, show_default=True, type=click.IntRange(2, 4096),
               help="The large batch to compare (with --data: the batch of every row).")
 @click.option("--repeats", default=3, show_default=True, type=click.IntRange(1, 1000), help="Timed runs per setting.")
-@click.option("--data", type=InPath(file_okay=False),
+@click.option("--data", type=DatasetDir(),
               help="Instead: the quality-speed table of every sampler over --table-steps, on this dataset's first --n "
                    "test scenes (`cmtool data build`).")
 @click.option("--n", default=64, show_default=True, type=click.IntRange(1, 100_000), help="With --data: scenes.")
@@ -31,8 +31,8 @@ def bench():
               help="With --data: the step counts, comma-separated.")
 @click.option("--samplers", default=",".join(SAMPLERS), show_default=True,
               help="With --data: the samplers, comma-separated.")
-@click.option("--features", is_flag=True, help="With --data: GT Recall and the features' precision and recall too (ResNet-50; --n of 64 or "
-                   "more).")
+@click.option("--features", is_flag=True,
+              help="With --data: GT Recall and the features' precision and recall too (ResNet-50; --n of 64 or more).")
 @click.option("--device", help="torch device [default: cuda when available, else cpu].")
 @PRECISION_OPTION
 def bench_sample_cmd(ckpt, sd_path, steps, sampler, cfg, batch, repeats, data, n, table_steps, samplers, features,

@@ -22,7 +22,7 @@ import numpy as np
 
 from cmtool.diffusion.settings import SAMPLERS, TABLE_STEPS, SamplerSettings
 from cmtool.metrics.features import FeatureExtractor
-from cmtool.metrics.suite import evaluate
+from cmtool.metrics.suite import evaluate, shared_features
 from cmtool.sample.generator import MapGenerator
 from cmtool.sample.inputs import ControlInput
 from cmtool.sample.run import Job, SampleSettings, generate_maps, log_run_header, sampling_recording
@@ -99,11 +99,7 @@ def sampler_table(gen: MapGenerator, scenes, cfg: float = 1.0, samplers=SAMPLERS
     reference = [s.to_lanegraph() for s in scenes]
     shared = {}
     if extractor is not None:  # the ground truth's and the controls' features serve every row
-        from cmtool.metrics.features import sd_image
-        from cmtool.metrics.suite import reference_image_features
-
-        shared = {"reference_features": reference_image_features(reference, extractor),
-                  "control_features": extractor(np.stack([sd_image(sd) for sd in sds]))}
+        shared = shared_features(reference, sds, extractor)
     gen.generate_all(sds[:1], labels[:1], SamplerSettings(cfg=cfg, steps=1, sampler=samplers[0], batch=1))  # warm-up
     head = TABLE_HEAD + (FEATURE_HEAD if extractor is not None else "")
     report(head + "\n" + "|---" * (head.count("|") - 1) + "|")

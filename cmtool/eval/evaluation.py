@@ -39,9 +39,9 @@ from cmtool.data.scene import Scene
 from cmtool.diffusion.settings import SamplerSettings
 from cmtool.formats.sumo import netconvert_path
 from cmtool.maps.lanegraph import LaneGraph, write_jsonl
-from cmtool.metrics.features import FeatureExtractor, sd_image
+from cmtool.metrics.features import FeatureExtractor
 from cmtool.metrics.lanes import lane_scores
-from cmtool.metrics.suite import evaluate, reference_image_features, summary_table
+from cmtool.metrics.suite import evaluate, shared_features, summary_table
 from cmtool.metrics.validity import check
 from cmtool.model import checkpoint as ckpt
 from cmtool.model.controlmap import NO_LAYOUT
@@ -121,8 +121,7 @@ def run_eval(gen: MapGenerator, settings: EvalSettings, out: Path, extractor: Fe
     controls = np.stack([s.sd for s in scenes])
     shared = {}
     if extractor is not None:  # the ground truth's and the controls' features serve both methods
-        shared = {"reference_features": reference_image_features(reference, extractor),
-                  "control_features": extractor(np.stack([sd_image(sd) for sd in controls]))}
+        shared = shared_features(reference, controls, extractor)
     results = {m: evaluate(maps, reference, controls, extractor, features=extractor is not None,
                            progress=progress, workers=workers, **shared) for m, maps in generated.items()}
     truth = [check(g) for g in reference]

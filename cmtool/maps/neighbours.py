@@ -80,7 +80,8 @@ def _searched(lanes, widths, candidates, sides) -> list[list[tuple[int, int]]]:
     found = _beside_all(lanes, widths, candidates)
     out = [_nearest(*found, side) for side in sides]
     if keys is not None:
-        _FOUND.clear() if len(_FOUND) + len(keys) > 4 else None
+        if len(_FOUND) + len(keys) > 4:
+            _FOUND.clear()
         _FOUND.update((key, list(pairs)) for key, pairs in zip(keys, out))
     return out
 
@@ -98,11 +99,6 @@ def _content_key(lanes, widths, side: int) -> bytes:
     digest.update(b"none" if widths is None else np.asarray(widths, np.float64).tobytes())
     digest.update(str(side).encode())
     return digest.digest()
-
-
-def _infer(lanes, widths, candidates, side: int) -> list[tuple[int, int]]:
-    """:func:`infer_neighbours`, unremembered."""
-    return _nearest(*_beside_all(lanes, widths, candidates), side)
 
 
 def _beside_all(lanes, widths, candidates):
@@ -233,9 +229,7 @@ def same_direction(lanes, i: int, j: int) -> bool:
 
 def same_directions(lanes, pairs) -> np.ndarray:
     """:func:`same_direction` of each pair ``(i, j)``, in one pass of vectorised GEOS calls."""
-    pairs = np.asarray(pairs, np.int64).reshape(-1, 2)
-    used, index = np.unique(pairs, return_inverse=True)  # only the lanes of the pairs: one pair of a huge map must
-    geoms = _lines([lanes[k] for k in used.tolist()])[index.reshape(-1, 2)]  # not build them all
+    geoms = _pair_lines(lanes, pairs)
     a, b = geoms[:, 0], geoms[:, 1]
     half = 0.5 * shapely.length(a)
     sb = shapely.line_locate_point(b, shapely.line_interpolate_point(a, half))
@@ -283,11 +277,16 @@ def lane_widths(lanes, left_neighbors, widths=None, default: float = LANE_WIDTH_
 
 def _gaps(lanes, pairs) -> np.ndarray:
     """Of each pair (i, j): the mean distance from the middle 80% of lane i to lane j."""
-    pairs = np.asarray(pairs, np.int64).reshape(-1, 2)
-    used, index = np.unique(pairs, return_inverse=True)
-    geoms = _lines([lanes[k] for k in used.tolist()])[index.reshape(-1, 2)]
+    geoms = _pair_lines(lanes, pairs)
     pts = shapely.line_interpolate_point(geoms[:, :1], np.linspace(0.1, 0.9, SAMPLES), normalized=True)
     return shapely.distance(pts, geoms[:, 1:]).mean(axis=1)
+
+
+def _pair_lines(lanes, pairs) -> np.ndarray:
+    """The LineStrings (P, 2) of the lanes of each pair (i, j), each lane made once and only the lanes of the pairs
+    (one pair of a huge map must not build them all)."""
+    used, index = np.unique(np.asarray(pairs, np.int64).reshape(-1, 2), return_inverse=True)
+    return _lines([lanes[k] for k in used.tolist()])[index.reshape(-1, 2)]
 
 
 def _lines(lanes) -> np.ndarray:

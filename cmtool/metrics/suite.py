@@ -115,6 +115,13 @@ def reference_image_features(graphs, extractor: FeatureExtractor) -> np.ndarray:
     return extractor(np.stack([lanes_image(g.lanes, g.frame_m) for g in graphs]))
 
 
+def shared_features(reference, controls: np.ndarray, extractor: FeatureExtractor) -> dict[str, np.ndarray]:
+    """The ground truth's and the SD controls' features, for :func:`evaluate` calls on several sets of maps of the same
+    scenes (``reference_features``, ``control_features``)."""
+    return {"reference_features": reference_image_features(reference, extractor),
+            "control_features": extractor(np.stack([sd_image(sd) for sd in controls]))}
+
+
 def geometry(rows: dict[str, list], judged: list[float]) -> dict:
     """Per-scene geometric scores (``per_scene``, None where undefined) and their averages (with the number of
     scenes each average covers) from :func:`cmtool.metrics.scenes.scene_scores`' rows; ``legal_oneway`` is averaged
