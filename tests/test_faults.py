@@ -1070,3 +1070,19 @@ def test_a_stop_waits_at_most_the_grace_period():
     err = proc.communicate(timeout=120)[1]
     assert proc.returncode == 143 and "Traceback" not in err, err
     assert time.monotonic() - began < _Watchdog.GRACE_S + 5
+
+
+def test_workers_a_pool_terminates_are_not_the_users_signal():
+    """Leaving a pool while its workers are busy terminates them with SIGTERM; the command goes on past the watchdog's
+    grace period (issue 58: `train pipeline` and `data build` ended themselves with 143 ten seconds later)."""
+    import subprocess
+    import sys
+
+    script = ("import time\nfrom cmtool.cli import cli, main, _Watchdog\nfrom cmtool.core import workers\n"
+              "_Watchdog.GRACE_S = 1.0\n"
+              "@cli.command('work')\ndef work():\n"
+              "    with workers.pool(2, 'fork') as p:\n        p.map_async(time.sleep, [30, 30])\n        time.sleep(1)\n"
+              "    time.sleep(4)\n    print('finished', flush=True)\n"
+              "main(['work'])\n")
+    result = subprocess.run([sys.executable, "-c", script], cwd=REPO, capture_output=True, text=True, timeout=120)
+    assert result.returncode == 0 and result.stdout.strip() == "finished", result.stderr

@@ -94,7 +94,9 @@ def _terminate(signum, frame):
 class _Watchdog:
     """Ends the process GRACE_S after a SIGTERM or Ctrl-C that the command has not yet acted on: Python runs signal
     handlers between bytecodes, so a long call into C (GEOS on a huge map) would delay the clean stop for minutes.
-    Outputs stay whole either way (they are renamed into place only when complete)."""
+    Outputs stay whole either way (they are renamed into place only when complete). A forked child (a pool's
+    worker) shares the pipe, so it stops writing its own signals there: a worker the pool terminates would
+    otherwise read as the user's SIGTERM."""
 
     GRACE_S = 10.0
 
@@ -114,7 +116,17 @@ class _Watchdog:
                 sys.stderr.write("Terminated (the command did not stop in time).\n")
                 os._exit(143 if signal.SIGTERM in got else 130)
 
+    @staticmethod
+    def forget_in_child() -> None:
+        try:
+            signal.set_wakeup_fd(-1)
+        except ValueError:  # not Python's main thread: signals are not handled here at all
+            pass
+
     def stop(self) -> None:
         self.done.set()
         signal.set_wakeup_fd(self.previous)
         os.close(self.write)  # the watching thread reads the end of the pipe and ends
+
+
+os.register_at_fork(after_in_child=_Watchdog.forget_in_child)

@@ -14,17 +14,18 @@ def scene_seed(seed: int, scene: int) -> int:
     return seed * 1_000_003 + scene
 
 
-def step_generator(seed: int, device="cpu") -> torch.Generator:
+def step_generator(seed: int) -> torch.Generator:
     """The generator of the stochastic samplers' per-step noise when the initial noise ``x_T`` was
     drawn from ``torch.Generator().manual_seed(seed)``: a stream of its own, so that no step adds
     ``x_T`` back in. (The CPU generator keeps only a seed's low 32 bits, so an offset like
     ``seed + 2**40`` would not do; the seed is hashed instead.)"""
-    return torch.Generator(device).manual_seed(int(np.random.SeedSequence([seed, 1]).generate_state(1)[0]))
+    return torch.Generator().manual_seed(int(np.random.SeedSequence([seed, 1]).generate_state(1)[0]))
 
 
 def batch_noise(shape: tuple[int, ...], seed: int, first: int, device="cpu") -> tuple[torch.Tensor, torch.Generator]:
     """The initial latents (``shape``, batch first) of the batch whose first map is map (or scene) ``first`` of a run
-    seeded ``seed``, and the generator of the samplers' step noise: both from ``scene_seed(seed, first)`` alone."""
+    seeded ``seed``, and the generator of the samplers' step noise: both from ``scene_seed(seed, first)`` alone, and
+    both drawn on the CPU (a CUDA generator draws other numbers from the same seed)."""
     base = scene_seed(seed, first)
     x_t = torch.randn(shape, generator=torch.Generator().manual_seed(base))
-    return x_t.to(device), step_generator(base, device)
+    return x_t.to(device), step_generator(base)

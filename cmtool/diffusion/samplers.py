@@ -53,8 +53,8 @@ def sample(model: nn.Module, schedule: NoiseSchedule, y: Tensor, *, control: Ten
     ``model`` is a DiT (or any ``eps = model(x, t, y)`` with ``latent_shape``) or a ControlMap. With
     a ControlMap, a ``control`` image (B, 3, px, px) and ``cfg > 0``, each step makes one batched
     guided pass; ``cfg == 0`` or no control runs the base DiT only. ``city_cfg != 1`` adds a pass
-    with the null label (module doc). All randomness comes from ``generator`` (which must live on
-    ``y``'s device), including ``x_T`` unless ``noise`` is given.
+    with the null label (module doc). All randomness comes from ``generator`` (a CPU generator gives the same
+    noise on every device), including ``x_T`` unless ``noise`` is given.
 
     ``init`` (a clean latent, e.g. an encoded rule layout) starts the denoising from it instead of from
     pure noise (SDEdit, Meng et al., ICLR 2022): it is noised to the timestep ``strength`` of the way
@@ -89,7 +89,8 @@ def sample(model: nn.Module, schedule: NoiseSchedule, y: Tensor, *, control: Ten
     tokens = model.encode_control(control) if guided else None
     base = model.base if isinstance(model, ControlMap) else model
     null = torch.full_like(y, base.null_label) if city_cfg != 1 else None
-    x = noise.clone() if noise is not None else torch.randn(shape, generator=generator, device=y.device)
+    x = noise.to(y.device, copy=True) if noise is not None else _randn_like(torch.empty(shape, device=y.device),
+                                                                             generator)
     if init is not None:
         x = schedule.q_sample(init.to(x.device, x.dtype), torch.full((shape[0],), ts[0], device=x.device), x)
     previous, ab_last = None, 0.0  # the multistep solvers' clean estimate and abar of the step before
@@ -153,4 +154,7 @@ def _dpm_step(x: Tensor, x0: Tensor, x0_before: Tensor | None, ab_t: float, ab_p
 
 
 def _randn_like(x: Tensor, generator: torch.Generator | None) -> Tensor:
-    return torch.randn(x.shape, generator=generator, device=x.device, dtype=x.dtype)
+    """Noise like ``x`` drawn where ``generator`` lives (the CPU without one), so a seed gives the same noise on
+    every device."""
+    where = generator.device if generator is not None else "cpu"
+    return torch.randn(x.shape, generator=generator, device=where, dtype=x.dtype).to(x.device)

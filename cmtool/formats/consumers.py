@@ -46,8 +46,8 @@ def verify(fmt: str, graph, path: str | os.PathLike, lat0: float, lon0: float) -
     try:
         reader = importlib.import_module(wheel)
     except ImportError as e:
-        raise CmtoolError(f"--verify for {fmt} needs the {wheel} wheel (in the test extra, pip install -e '.[test]', "
-                          f"where it exists: Linux x86_64, Python 3.10 to 3.12): {e}") from None
+        raise CmtoolError(f"--verify for {fmt} needs the {wheel} wheel: pip install 'cmtool[verify]' (carla exists "
+                          f"for Linux x86_64, Python 3.10 to 3.12): {e}") from None
     try:
         if fmt == "opendrive":
             edges, seen = _carla(reader, Path(path).read_text(encoding="utf-8"))

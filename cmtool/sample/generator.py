@@ -68,6 +68,8 @@ class MapGenerator:
             if key not in config:
                 raise CmtoolError(f"{path / ckpt.CONFIG}: no {key!r}; not a finished {config['kind']} checkpoint")
         device = torch.device(device)
+        if device.type == "cuda":  # full fp32 in matmuls and convolutions: a seed names one map on every device
+            torch.backends.cuda.matmul.allow_tf32 = torch.backends.cudnn.allow_tf32 = False
         model, _ = ckpt.load_model(path, device)
         rvae_path = ckpt.linked(path, config["rvae"])
         rvae, rvae_config = ckpt.load_model(rvae_path, device)
