@@ -1,6 +1,7 @@
 """The command line as a user runs it: outputs, and one-line errors without tracebacks."""
 
 import json
+from pathlib import Path
 
 import numpy as np
 import pytest
@@ -103,3 +104,53 @@ def test_wrong_format_for_file(run_cli, tmp_path):
         pytest.skip("shared sample data not present")
     assert_one_line_error(run_cli("data", "import", "--format", "av2", lanelet, "--out", tmp_path / "o.json"),
                           "mapping_example.osm")
+
+
+def test_input_of_the_wrong_kind_says_what_was_given_and_what_is_expected(run_cli, tmp_path):
+    """Issue 58: a map where a picture is expected, a picture where a map is, and a point given as LON,LAT each end
+    in one line that says what was given and what is expected."""
+    import cv2
+
+    from cmtool.data.synth import generate_city
+    from cmtool.maps.lanegraph import LaneGraph
+
+    generate_city("LAV", seed=0, extent=200.0).save(tmp_path / "city.json")
+    (tmp_path / "map.json").write_text(json.dumps(LaneGraph(lanes=[np.array([[0.0, 0.0], [9.0, 0.0]])]).to_json()))
+    cv2.imwrite(str(tmp_path / "roads.png"), np.full((64, 64), 255, np.uint8))
+    assert_one_line_error(run_cli("sample", "--sd", "map.json", "--out", "o", cwd=tmp_path),
+                          "map.json is a lane graph (JSON); --sd takes a picture (a PNG/JPG SD raster or road "
+                          "drawing); for a map use --from-hd")
+    assert_one_line_error(run_cli("sample", "--sd", "city.json", "--area", "all", "--out", "o", cwd=tmp_path),
+                          "city.json is an HD map (JSON); --sd takes a picture")
+    assert_one_line_error(run_cli("export", "--format", "opendrive", "roads.png", "--origin", "49,8", "--out", "a.xodr",
+                                  cwd=tmp_path), "roads.png is a picture (PNG); this command takes a map file",
+                          "for a map of a picture use `cmtool sample --sd`")
+    osm = Path(__file__).resolve().parent / "fixtures" / "small.osm"  # roads at 40.44 N 79.99 W
+    assert_one_line_error(run_cli("sample", "--osm", osm, "--center", "-79.9895,40.441", "--out", tmp_path / "o"),
+                          "nearest road", "m away); did you swap latitude and longitude? (LAT,LON: 40.441,-79.9895)")
+    assert not (tmp_path / "o").exists() and not (tmp_path / "a.xodr").exists()
+
+
+def test_a_picture_that_is_not_square_is_padded_not_stretched(tmp_path):
+    """Issue 58: a road drawing or SD raster that is not square is padded to a square, centred on the raster's
+    background, so that its roads keep their shape; one note says how many pixels were added."""
+    import cv2
+
+    from cmtool.data.sd_raster import rasterize_sd
+    from cmtool.maps.sdmap import Road, SDMap
+    from cmtool.sample.inputs import image_inputs
+
+    drawing = np.full((200, 400), 255, np.uint8)
+    cv2.rectangle(drawing, (150, 50), (250, 150), 0, 8)  # a square block of dark roads on white paper, centred
+    cv2.imwrite(str(tmp_path / "wide.png"), drawing)
+    raster = rasterize_sd(SDMap(roads=[Road(id="r", polyline=np.array([[-40.0, 3.0], [40.0, -5.0]]), lanes=2)]),
+                          0.0, 0.0, 0.0)
+    cv2.imwrite(str(tmp_path / "tall.png"), cv2.cvtColor(np.ascontiguousarray(raster[:, 32:96]), cv2.COLOR_RGB2BGR))
+    wide, tall = image_inputs([tmp_path / "wide.png", tmp_path / "tall.png"])
+    rows, cols = np.nonzero(wide.sd[..., 0])
+    assert abs((rows.max() - rows.min()) - (cols.max() - cols.min())) <= 1  # still a square
+    assert abs((rows.max() + rows.min()) / 2 - 63.5) <= 1 and abs((cols.max() + cols.min()) / 2 - 63.5) <= 1
+    assert wide.note.endswith("padded to 400 x 400 to keep the roads' shape (100 px of background above and below)")
+    assert np.array_equal(tall.sd[:, 32:96], raster[:, 32:96]) and not tall.sd[:, :32].any()
+    assert not tall.sd[:, 96:].any()
+    assert "resampled the 64 x 128 SD raster" in tall.note and "(32 px of background left and right)" in tall.note

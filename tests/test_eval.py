@@ -34,6 +34,7 @@ def test_eval_writes_reports_and_resumes(sampling_ckpt, tiny_data, tmp_path, cap
     summary = (out / "summary.md").read_text()
     assert f"| metric | unguided | {' | '.join(baselines)} | ControlMap | + guarantee |" in summary
     assert "split test, 4 scenes" in summary
+    assert "- data `tiny`" in summary and "`/" not in summary  # no folder of this machine
     legal = [report["methods"][m]["geometry"]["legal_oneway"]["mean"] for m in ("controlmap", "guaranteed")]
     assert not all(v == v for v in legal) or legal[1] >= legal[0]  # the guarantee turns wrong-way lanes round
     frames = report["frames"]

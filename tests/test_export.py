@@ -511,6 +511,33 @@ def test_export_verify_holds_each_export_against_its_reader(tmp_path, capsys, mo
     assert code == 1 and "--verify checks opendrive and lanelet2 exports, not geojson" in err
 
 
+@pytest.mark.parametrize("fmt, suffix, wheel", [("opendrive", "xodr", "carla"), ("lanelet2", "osm", "lanelet2")])
+def test_failed_export_verify_leaves_an_earlier_file(tmp_path, capsys, monkeypatch, fmt, suffix, wheel):
+    """Issue 58: `export --verify` without the reader's wheel stops before any work with one line naming what to
+    install, and a reader that routes otherwise fails the export: either way an earlier file stays byte for byte and
+    no temporary is left beside it."""
+    import sys
+    import types
+
+    import cmtool.formats.consumers as consumers
+
+    write_jsonl(tmp_path / "s.jsonl", [neighbours_scene()])
+    out = tmp_path / f"area.{suffix}"
+    out.write_bytes(b"an earlier export\n")
+    args = ("export", "--format", fmt, tmp_path / "s.jsonl", "--origin", "49,8.4", "--out", out, "--verify")
+    monkeypatch.setitem(sys.modules, wheel, None)  # `import carla` fails as without the wheel
+    code, _, err = in_process(capsys, *args)
+    assert code == 1 and err.count("\n") == 1 and err.startswith("Error: --verify ") and "Traceback" not in err
+    assert f"needs the {wheel} wheel: pip install 'cmtool[verify]'" in err
+    assert out.read_bytes() == b"an earlier export\n"
+    monkeypatch.setitem(sys.modules, wheel, types.ModuleType(wheel))  # a reader that routes otherwise
+    monkeypatch.setattr(consumers, "verify", lambda *a: consumers.Verdict("Reader 1", 4, [(0, 1)], [], []))
+    code, _, err = in_process(capsys, *args)
+    assert code == 1 and err.count("\n") == 1 and "routes otherwise than the lane graph" in err, err
+    assert "(not written)" in err and out.read_bytes() == b"an earlier export\n"
+    assert sorted(p.name for p in tmp_path.iterdir()) == [out.name, "s.jsonl"]
+
+
 def test_lanelet2_routes_two_lanes_that_meet_into_a_short_one(tmp_path, capsys):
     """Found on a stitched area map: two lane-change neighbours end at one point and go on into a 4 m lane, beside two
     lanes that start at one point. Sharing the neighbours' bound made the short lanelet's start corner its end corner,

@@ -59,7 +59,7 @@ def test_pbf_without_osmium_gives_install_hint(tmp_path, monkeypatch):
     pbf = tmp_path / "x.osm.pbf"
     pbf.write_bytes(b"\0")
     monkeypatch.setattr(builtins, "__import__", no_osmium)
-    with pytest.raises(CmtoolError, match=r"pip install 'cmtool\[osm\]'"):
+    with pytest.raises(CmtoolError, match=r"pip install osmium"):
         read_osm(pbf)
 
 
@@ -138,3 +138,15 @@ def test_written_osm_reads_back_as_the_same_roads(tmp_path):
     # roads that met at one point share a node in the file, so the road graph stays connected
     text = (tmp_path / "town.osm").read_text()
     assert text.count("<node ") < sum(len(r.polyline) for r in sd.roads)
+
+
+def test_a_file_of_another_kind_is_named(tmp_path):
+    """Issue 58: a picture or an HD map given where an OpenStreetMap file is expected is named as what it is."""
+    from cmtool.data.synth import generate_city
+
+    (tmp_path / "sd.png").write_bytes(b"\x89PNG\r\n\x1a\n" + bytes(32))
+    generate_city("LAV", seed=0, extent=200.0).save(tmp_path / "city.json")
+    with pytest.raises(CmtoolError, match=r"sd.png is a picture \(PNG\); expected an OpenStreetMap"):
+        read_osm(tmp_path / "sd.png")
+    with pytest.raises(CmtoolError, match=r"city.json is an HD map \(JSON\); expected an OpenStreetMap"):
+        read_osm(tmp_path / "city.json")

@@ -1,5 +1,8 @@
 """The weights shipped with the package: checksums, size, sampling with them; `cmtool pack`."""
 
+import json
+import os
+import re
 
 import numpy as np
 import pytest
@@ -15,12 +18,26 @@ from cmtool.sample.generator import MapGenerator
 from tests.conftest import REPO, in_process
 
 
+def absolute_paths(folder) -> list[str]:
+    """The absolute paths named in the JSON files under ``folder``."""
+
+    def walk(value):
+        if isinstance(value, dict):
+            value = list(value.values())
+        if isinstance(value, list):
+            return [p for v in value for p in walk(v)]
+        return [value] if isinstance(value, str) and os.path.isabs(value) else []
+
+    return [p for f in sorted(folder.rglob("*.json")) for p in walk(json.loads(f.read_text()))]
+
+
 def test_shipped_weights_match_their_checksums_and_size():
     assert verify(BUNDLED) == []
     manifest = (BUNDLED / MANIFEST).read_text()
     assert "controlmap/model.safetensors.index.json" in manifest and "rvae/model.safetensors" in manifest
     files = [p for p in BUNDLED.rglob("*") if p.is_file()]
     assert sum(p.stat().st_size for p in files) <= 40e6 and max(p.stat().st_size for p in files) <= 16 * 2**20
+    assert absolute_paths(BUNDLED) == []  # no folder of the machine that packed them
 
 
 def test_shipped_weights_sample_lane_graphs_for_each_city(tmp_path, capsys):
@@ -44,12 +61,15 @@ def test_info_without_a_path_describes_the_shipped_models(capsys):
     assert "trained for this decoder by `cmtool train encoder`" in out  # the shipped RVAE encodes too
     assert out.count("trained ") >= 2 and "recipes/tiny-cpu/pipeline/controlnet.toml" in out
     assert "decoder=graph" in out  # the RVAE's decoder predicts successor links
+    assert "cmtool/weights/controlmap\n" in out and not re.search(r"[\s(]/\w", out)  # no machine paths
 
 
 def test_pack_writes_float16_weights_that_sample_like_the_original(sampling_ckpt, tmp_path, capsys):
     code, out, err = in_process(capsys, "pack", "--ckpt", sampling_ckpt["controlmap"], "--out", tmp_path / "w")
     assert code == 0, err
     assert verify(tmp_path / "w") == []
+    assert os.path.isabs(ckpt.load_config(sampling_ckpt["controlmap"])["dit"]) and absolute_paths(tmp_path / "w") == []
+    assert json.loads((tmp_path / "w" / MANIFEST).read_text())["controlmap"] == "controlmap"  # the folder packed
     weights = ckpt.read_weights(tmp_path / "w" / "rvae")
     assert weights and not any(k.startswith(("trunk.", "to_latent.")) for k in weights)
     assert all(v.dtype == torch.float16 for v in weights.values())

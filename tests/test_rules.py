@@ -231,7 +231,8 @@ def test_sample_starts_from_the_rule_layout(sampling_ckpt, tmp_path, capsys):
     assert code == 1 and "--encoder goes with --init" in err
     code, _, err = in_process(capsys, "sample", "--sd", REPO / "sample_data" / "sd_sgp.png", "--init", "rules",
                               "--ckpt", sampling_ckpt["controlmap"], "--no-log", "--out", tmp_path / "z")
-    assert code == 1 and "needs an SD map, not a picture" in err
+    assert code == 0, err  # a picture's roads are traced: the rules lay lanes out on them
+    assert json.loads((tmp_path / "z" / "sd_sgp.json").read_text())["meta"]["init"] == "rules"
 
 
 def test_the_guarantee_turns_wrong_way_lanes_and_fills_roads_without_lanes():
@@ -254,7 +255,7 @@ def test_the_guarantee_turns_wrong_way_lanes_and_fills_roads_without_lanes():
     assert legal_oneway(final.lanes, sd)[0] == 1.0 and sd_adherence(final.lanes, sd)["sd_coverage"] > 0.95
     assert np.array_equal(final.lanes[0], wrong[::-1]) and final.meta["source"] == "test"
     assert guarantee(final, sd, rules) is final  # nothing left to change
-    assert guarantee(graph, sd, None).meta["guarantee"] == {"turned": 1, "added": 0}  # a picture input: no rules
+    assert guarantee(graph, sd, None).meta["guarantee"] == {"turned": 1, "added": 0, "replaced": 0}  # a picture input: no rules
 
 
 def test_sample_reports_the_models_own_maps_beside_the_guaranteed_ones(sampling_ckpt, tmp_path, capsys):
@@ -267,7 +268,7 @@ def test_sample_reports_the_models_own_maps_beside_the_guaranteed_ones(sampling_
     assert code == 0, err
     (name,) = [p for p in (tmp_path / "final").glob("*.json") if not p.name.endswith(".gt.json")]
     meta = json.loads(name.read_text())["meta"]
-    assert set(meta["guarantee"]) == {"turned", "added"} and 0 <= meta["raw"]["validity"] <= 1
+    assert set(meta["guarantee"]) == {"turned", "added", "replaced"} and 0 <= meta["raw"]["validity"] <= 1
     code, out, err = in_process(capsys, *args, "--raw", "--out", tmp_path / "raw")
     assert code == 0, err
     meta = json.loads((tmp_path / "raw" / name.name).read_text())["meta"]

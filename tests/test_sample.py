@@ -48,7 +48,8 @@ def read_rrd(path) -> dict[str, list]:
 
 
 def steps_of(rows, path) -> list:
-    return sorted(s for s, _ in rows[path])
+    """The diffusion steps of an entity's rows, None (static) first."""
+    return sorted((s for s, _ in rows[path]), key=lambda s: -1 if s is None else s)
 
 
 def graph_core(path) -> dict:
@@ -74,22 +75,23 @@ def run_cli_once(*args):
 
 def test_recording_has_every_step_of_every_map(sampled):
     rows = sampled["rows"]
-    every = list(range(STEPS))
+    every = list(range(1, STEPS + 1))  # step k: what the k-th model pass predicted
     for k in range(2):
         p = f"/sample_{k}/"
-        for entity in ("diffusion/latent", "diffusion/x0/lanes", "diffusion/eps/cond", "diffusion/eps/uncond",
+        for entity in ("diffusion/x0/lanes", "diffusion/eps/cond", "diffusion/eps/uncond",
                        "diffusion/eps/guided", "diffusion/eps/delta", "control/residual/block_0",
                        "control/residual/block_1", "control/residual/block_0/norm", "control/residual/block_1/norm"):
-            assert steps_of(rows, p + entity) == every, entity
+            assert [s for s in steps_of(rows, p + entity) if s is not None] == every, entity  # a block: placed static
         assert f"{p}control/residual/block_2" not in rows  # the fixture's ControlMap injects into M = 2 blocks
         latent = rows[p + "diffusion/latent"][0][1]["Tensor:data"].values[0].as_py()
         assert latent["shape"] == [64, 8, 8] and latent["names"] == ["channel", "row", "col"]
-        heat = rows[p + "control/residual/block_0"][0][1]["Tensor:data"].values[0].as_py()
-        assert heat["shape"] == [8, 8] and len(heat["buffer"]) == 64 and min(heat["buffer"]) >= 0
+        heat = [r for s, r in rows[p + "control/residual/block_0"] if s == 1][0]
+        assert heat["DepthImage:format"].values[0].as_py()["width"] == 8
+        assert np.frombuffer(bytes(heat["DepthImage:buffer"].values[0].as_py()), np.float32).min() >= 0
         for final in ("control/sd", "hd/lanes"):
             assert steps_of(rows, p + final) == [None]  # static: shown at every step
         # DDIM with eta 0 ends on the last predicted clean latent: the final map is the last x0 decoded
-        last_x0 = [r for s, r in rows[p + "diffusion/x0/lanes"] if s == STEPS - 1][0]["LineStrips2D:strips"]
+        last_x0 = [r for s, r in rows[p + "diffusion/x0/lanes"] if s == STEPS][0]["LineStrips2D:strips"]
         final = rows[p + "hd/lanes"][0][1]["LineStrips2D:strips"]
         np.testing.assert_allclose(np.array(last_x0.values.to_pylist()), np.array(final.values.to_pylist()),
                                    atol=6e-4)  # the final map in millimetres, as its file keeps it
@@ -102,7 +104,7 @@ def test_recording_has_every_step_of_every_map(sampled):
 
 def test_eps_norms_are_the_guidance_formula(sampled):
     rows = sampled["rows"]
-    for s in range(STEPS):
+    for s in range(1, STEPS + 1):
         get = {k: [r for st, r in rows[f"/sample_0/diffusion/eps/{k}"] if st == s][0]["Scalars:scalars"].values[0].as_py()
                for k in ("cond", "uncond", "guided", "delta")}
         assert get["delta"] > 0 and get["cond"] != get["uncond"]
@@ -129,6 +131,67 @@ def test_outputs_are_valid_lane_graphs_and_pictures(sampled):
     table = sampled["stdout"]
     assert "lanes" in table and "validity" in table and "sd_bos_s0" in table and "sd_bos_s1" in table
     assert "one-way ok" in table and "2 maps: mean validity" in table
+
+
+def test_a_run_records_its_start_every_model_pass_and_the_clean_latent_it_ends_on(sampled):
+    """diffusion_step 0 is the noise the sampler starts from (nothing predicted yet), step k what the k-th model pass
+    predicted and the latent it left, the last step the clean latent the map is decoded from (no timestep): a 2-step
+    run has 3 frames to watch, not 2."""
+    rows = sampled["rows"]
+    latents = {s: r for s, r in rows["/sample_0/diffusion/latent"]}
+    assert sorted(latents) == list(range(STEPS + 1))
+    assert min(s for s, _ in rows["/sample_0/diffusion/x0/lanes"]) == 1  # nothing predicted at the start
+    start = np.array(latents[0]["Tensor:data"].values[0].as_py()["buffer"])
+    assert 0.9 < start.std() < 1.1 and latents[0]["timestep"].as_py() == 999  # pure noise, at the top timestep
+    assert "timestep" not in latents[STEPS] and "timestep" in latents[STEPS - 1]
+
+
+def test_every_map_s_scores_are_in_the_recording_and_the_table_says_what_they_are(sampled):
+    """Each map's validity, SD covered and one-way ok: in the info document's table and as bars by map number; the
+    printed table has no per-map time column repeating its batch's figure, but the run's time and what each score
+    is."""
+    rows, metas = sampled["rows"], [json.loads((sampled["out"] / f"sd_bos_s{k}.json").read_text())["meta"]
+                                    for k in range(2)]
+    for key, path in (("validity", "validity"), ("sd_coverage", "SD_covered"), ("legal_oneway", "one-way_ok")):
+        bars = rows[f"/scores/{path}"][-1][1]["BarChart:values"].values[0].as_py()["buffer"]
+        assert bars == pytest.approx([m[key] for m in metas]), key
+    info = rows["/info"][-1][1]["TextDocument:text"].values[0].as_py()
+    for k, m in enumerate(metas):
+        assert f"| {k} | {m['validity']:.3f} | {m['sd_coverage']:.3f} | " in info
+    assert "SD covered: share of the SD road with a lane within 3 m" in info
+    table = sampled["stdout"]
+    assert "time s" not in table and "time to generate and check: " in table and "s a map" in table
+    assert "validity: share of lanes free of problems" in table and "one-way ok: share of the lane length" in table
+
+
+def test_the_recording_shows_the_decoded_lanes_under_the_final_ones(sampled, sampling_ckpt, tmp_path):
+    """With the guarantee (the picture's roads traced, lanes laid on them) the map's view holds the lanes as decoded
+    (``decoded/``) beside the final ones (``hd/``); a --raw run has only the model's."""
+    r = run_cli_once("sample", "--ckpt", sampling_ckpt["controlmap"], "--sd", SD_PNG, "--steps", 2, "--out", tmp_path,
+                     "--quiet")
+    assert r.returncode == 0, r.stderr
+    rows = read_rrd(tmp_path / "sample.rrd")
+    meta = json.loads((tmp_path / "sd_bos.json").read_text())["meta"]
+    assert "anchored" in meta and "guarantee" in meta
+    assert rows["/decoded/lanes"] and rows["/hd/lanes"]
+    assert not [p for p in sampled["rows"] if "/decoded/" in str(p)]
+
+
+def test_plots_name_every_series_in_clearly_different_colours(sampled):
+    """The layout names every injected block in the residual-norm legend and draws the conditioned and unconditioned
+    noise predictions (nearly equal norms) in colours far apart."""
+    reader = RrdReader(sampled["out"] / "sample.rrd")
+    series = {}  # entity -> (legend name, RGB) from the layout's overrides
+    for chunk in reader.stream(store=reader.blueprints()[0]):
+        batch = chunk.to_record_batch()
+        if "SeriesLines:names" in batch.schema.names:
+            entity = str(chunk.entity_path).split("/overrides/")[1].split("/visualizers/")[0]
+            rgba = batch.column("SeriesLines:colors")[0].values[0].as_py().to_bytes(4, "big")
+            series[entity] = (batch.column("SeriesLines:names")[0].values[0].as_py(), np.array(list(rgba[:3])))
+    for m in range(2):
+        assert series[f"sample_0/control/residual/block_{m}/norm"][0] == f"block {m}"
+    cond, uncond = series["sample_0/diffusion/eps/cond"], series["sample_0/diffusion/eps/uncond"]
+    assert (cond[0], uncond[0]) == ("cond", "uncond") and np.linalg.norm(cond[1] - uncond[1]) > 200
 
 
 def test_same_seed_same_json_and_cfg_zero_is_the_unguided_model(sampling_ckpt, tmp_path, capsys):
@@ -327,9 +390,12 @@ def test_bench_sample_prints_the_quality_speed_table(sampling_ckpt, tiny_data, c
     rows = [line.split("|")[1:-1] for line in out.splitlines() if line.startswith("| ") and "sampler" not in line]
     assert [(r[0].strip(), int(r[1])) for r in rows] == [("ddpm", 1), ("ddpm", 2), ("dpm++2m-sde", 1),
                                                          ("dpm++2m-sde", 2)]
+    head = next(line for line in out.splitlines() if line.startswith("| sampler"))
+    chamfer = [c.strip() for c in head.split("|")[1:-1]].index("Chamfer m")
     for r in rows:
         values = [float(v) for v in r[2:]]
-        assert values[0] > 0 and all(0 <= v <= 1 for v in values[2:]), r
+        assert values[0] > 0 and values[chamfer - 2] >= 0, r
+        assert all(0 <= v <= 1 for k, v in enumerate(values[2:], 4) if k != chamfer), r
     # one step of either sampler is the same first step from the same noise: the same maps
     assert rows[0][4:] == rows[2][4:]
     code, _, err = in_process(capsys, "bench", "sample", "--ckpt", sampling_ckpt["controlmap"], "--data", tiny_data,
@@ -411,11 +477,11 @@ def test_steps_where_nothing_is_decoded_still_get_a_row(tmp_path):
     rec.flush()
     rec.disconnect()
     rows = read_rrd(tmp_path / "t.rrd")
-    assert steps_of(rows, "/diffusion/x0/lanes") == [0, 1, 2, 3]
-    assert steps_of(rows, "/diffusion/x0/lights/green") == [0, 1, 2, 3]
+    assert steps_of(rows, "/diffusion/x0/lanes") == [1, 2, 3, 4]
+    assert steps_of(rows, "/diffusion/x0/lights/green") == [1, 2, 3, 4]
     sizes = {s: len(r["LineStrips2D:strips"].values) for s, r in rows["/diffusion/x0/lanes"]}
-    assert sizes == {0: 2, 1: 0, 2: 2, 3: 0}
-    assert "/diffusion/eps/cond" not in rows and steps_of(rows, "/diffusion/eps/guided") == [0, 1, 2, 3]
+    assert sizes == {1: 2, 2: 0, 3: 2, 4: 0}
+    assert "/diffusion/eps/cond" not in rows and steps_of(rows, "/diffusion/eps/guided") == [1, 2, 3, 4]
 
 
 def test_bf16_sampling_stays_within_a_stated_tolerance_of_fp32(tmp_path, capsys):

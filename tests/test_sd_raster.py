@@ -94,7 +94,7 @@ def test_image_from_black_white_png(tmp_path):
     r = sd_raster_from_image(path)
     assert r.shape == (128, 128, 3) and r.dtype == np.uint8
     assert set(np.unique(r[..., 0])) == {0, 255} and not r[..., 1:].any()
-    assert r[64, 64, 0] == 255 and r[100, 10, 0] == 0 and r[13, 10, 0] == 255
+    assert r[64, 64, 0] == 255 and r[100, 10, 0] == 0 and r[13, 20, 0] == 255
     jpg = tmp_path / "roads.jpg"
     cv2.imwrite(str(jpg), cv2.cvtColor(drawing, cv2.COLOR_GRAY2BGR))
     assert (sd_raster_from_image(jpg)[..., 0] != r[..., 0]).mean() < 0.01

@@ -38,7 +38,7 @@ def test_fit_removes_point_jitter_and_the_kinks_it_makes():
 
 
 def test_sample_smooths_the_decoded_points(sampling_ckpt, tmp_path, capsys):
-    common = ("sample", "--ckpt", sampling_ckpt["controlmap"], "--sd", SD_PNG, "--steps", 3, "--city", "LAV",
+    common = ("sample", "--ckpt", sampling_ckpt["controlmap"], "--sd", SD_PNG, "--steps", 3, "--city", "LAV", "--raw",
               "--no-log", "--quiet")
     for name, k in (("raw", 0), ("smooth", 4)):
         code, _, err = in_process(capsys, *common, "--smooth", k, "--out", tmp_path / name)

@@ -73,8 +73,10 @@ def cell(img, x0, x1, y0, y1):
 
 # views each layout must fill, as fractions of the window (x0, x1, y0, y1) below the 3% title bar
 VIEWS = {
-    "sample": {f"map view {k}": (0.215 * k + 0.01, 0.215 * (k + 1) - 0.01, 0.07, 0.38) for k in range(4)}
-    | {"latent": (0.01, 0.16, 0.45, 0.74), "noise norms": (0.53, 0.85, 0.43, 0.55)},
+    "sample": {f"map view {k}": (0.25 * k + 0.01, 0.25 * (k + 1) - 0.01, 0.07, 0.38) for k in range(3)}
+    | {"latent": (0.01, 0.11, 0.45, 0.74), "heatmaps": (0.13, 0.38, 0.43, 0.74),
+       "noise norms": (0.40, 0.56, 0.43, 0.74), "residual norms": (0.58, 0.74, 0.43, 0.74),
+       "info": (0.76, 0.99, 0.07, 0.4), "scores": (0.76, 0.99, 0.5, 0.73)},
     "eval": {f"map view {k}": (0.2 * k + 0.02, 0.2 * (k + 1) - 0.02, 0.1, 0.43) for k in range(4)}
     | {f"score plot {k}": (0.335 * k + 0.02, 0.335 * (k + 1) - 0.02, 0.5, 0.73) for k in range(3)},
     "train": {f"plot {k}": (0.25 * k + 0.02, 0.25 * (k + 1) - 0.02, 0.06, 0.37) for k in range(4)}
@@ -99,8 +101,10 @@ def test_viewer_draws_every_view(recordings, tmp_path, kind):
         # the latent fills its view (an 8 x 8 grid of one channel, not a 64 x 8 strip at the edge) and the residual
         # heatmaps show structure: many colours of a colour map (about 180), not flat squares (about 30)
         assert busy(cell(img, *VIEWS["sample"]["latent"])) > 0.2, f"latent view not filled ({png})"
-        heatmaps = cell(img, 0.18, 0.5, 0.45, 0.74).reshape(-1, 3)
+        heatmaps = cell(img, *VIEWS["sample"]["heatmaps"]).reshape(-1, 3)
         assert len(np.unique(heatmaps // 16, axis=0)) > 80, f"flat heatmaps ({png})"
+        # the info document fits its view: no text runs into its right edge (its table was cut off there)
+        assert busy(cell(img, 0.99, 1.0, 0.06, 0.45)) < 0.002, f"info cut off at the right edge ({png})"
     if kind != "data":  # the time panel, open on the recording's timeline, lists the streams at the bottom left
         assert busy(cell(img, 0.0, 0.1, 0.8, 0.98)) > 0.01, f"{kind}: no time panel ({png})"
 
@@ -136,7 +140,7 @@ def test_serve_serves_the_recording_and_the_web_viewer(tmp_path):
 LAYOUT_VIEWS = {
     "data": {"#"},
     "train": {"rvae: loss", "rvae: learning rate", "rvae: gradient norm"},
-    "sample": {"SD control", "x0 lanes over diffusion steps", "latent x_t, one channel", "noise prediction norms"},
+    "sample": {"SD control", "x0 lanes over diffusion steps", "latent x_t", "noise prediction norms"},
     "eval": {"SD input", "unguided DiT", "ControlMap", "ground truth", "scores of this scene"},
     "ablate": {"scene 0: at this w", "scene 1: at this w"},
     "area": {"area: tiles, then the stitched map"},
@@ -169,3 +173,78 @@ def test_recordings_opened_one_after_another_keep_their_own_layouts(recordings, 
             assert not problems, f"{kind}: {problems}"
     finally:
         viewer.quit()
+
+
+def roads(img: np.ndarray) -> np.ndarray:
+    """Which pixels differ clearly from the most common colour (roads and lanes on the background)."""
+    flat = img.reshape(-1, 3).astype(int)
+    colours, counts = np.unique(flat // 8, axis=0, return_counts=True)
+    return np.abs(img.astype(int) - colours[counts.argmax()] * 8).sum(axis=2) > 60
+
+
+def box_grid(mask: np.ndarray, top: float, bottom: float, left: float, right: float, n: int = 12) -> np.ndarray:
+    """(n, n): whether each cell of the pixel rectangle (rows north to south) holds some of ``mask``."""
+    r = np.linspace(top, bottom, n + 1).round().astype(int)
+    c = np.linspace(left, right, n + 1).round().astype(int)
+    return np.array([[mask[r[i]:r[i + 1], c[j]:c[j + 1]].mean() > 0.02 for j in range(n)] for i in range(n)])
+
+
+@pytest.mark.skipif(missing() is not None, reason=f"no headless viewer here: {missing()}")
+def test_the_area_recording_is_north_up_as_its_picture(recordings, tmp_path):
+    """Where the viewer draws the area's roads, on a grid over the box, agrees with the SD map of the area's PNG
+    (north up), not with that map mirrored north-south, as the viewer drew it before."""
+    import json
+
+    from cmtool.sample.area import ON_SCREEN_M
+    from cmtool.viz.draw import title_strip
+
+    out = recordings["area"].parent
+    x0, y0, x1, y1 = json.loads(next(out.glob("*_area.json")).read_text())["meta"]["area"]["box_m"]
+    size, extent = 1024, max(x1 - x0, y1 - y0) + 8.0  # the PNG's SD panel: the box's square and 4 m, north up
+    top = title_strip("", size).shape[0]
+    sd = roads(cv2.imread(str(next(out.glob("*_area.png"))))[top:top + size, :size])
+    px = lambda m: (m + extent / 2) / extent * size  # noqa: E731
+    picture = box_grid(sd, px(-y1), px(-y0), px(x0), px(x1))
+    img = cv2.imread(str(screenshot(recordings["area"], tmp_path / "area.png")))
+    view = roads(cell(img, 0.0, 0.83, 0.06, 0.745))  # the area view, which fits the roads it shows
+    rows, cols = np.nonzero(view)
+    margin = ON_SCREEN_M + 2.0  # the roads shown reach this far around the box (drawn 2 m wide)
+    sx, sy = (cols.max() - cols.min()) / (x1 - x0 + 2 * margin), (rows.max() - rows.min()) / (y1 - y0 + 2 * margin)
+    shown = box_grid(view, rows.min() + margin * sy, rows.max() - margin * sy, cols.min() + margin * sx,
+                     cols.max() - margin * sx)
+    agree, mirrored = (shown == picture).mean(), (shown == picture[::-1]).mean()
+    assert agree > 0.8 and agree > mirrored + 0.2, (agree, mirrored)
+
+
+def test_docs_name_the_timelines_of_every_recording(recordings):
+    """docs/viewer.md's table gives each kind of recording the timelines it has (Rerun's own log_time aside)."""
+    import re
+
+    from rerun.chunk import RrdReader
+
+    documented = {}
+    for line in (REPO / "docs" / "viewer.md").read_text().splitlines():
+        cells = [c.strip() for c in line.strip("|").split("|")]
+        if len(cells) == 5 and cells[2].strip("`") in APP_IDS.values():
+            documented[cells[2].strip("`")] = set(re.findall(r"`([^`]+)`", cells[3]))
+    for kind, path in recordings.items():
+        timelines = {n for c in RrdReader(path).stream() for n in c.to_record_batch().schema.names
+                     if ":" not in n and n not in ("rerun.controls.RowId", "log_time", "log_tick")}
+        assert timelines == documented[APP_IDS[kind]], kind
+
+
+def test_a_data_recording_shows_every_scene_at_any_time_in_rows_without_gaps(tiny_data, tmp_path):
+    """`data show` logs its scenes static (a scene logged at a time showed nothing while the cursor stood before it)
+    and lays them out in rows of near-equal length, so that no cell of its layout is empty."""
+    from rerun.chunk import RrdReader
+
+    from cmtool.viz.recording import grid_rows
+    from cmtool.viz.show import show_dataset
+
+    show_dataset(tiny_data, n=13, rrd=tmp_path / "data.rrd")
+    names = {n for c in RrdReader(tmp_path / "data.rrd").stream() for n in c.to_record_batch().schema.names}
+    assert "sample" not in names and "log_time" not in names
+    assert grid_rows(13) == [4, 3, 3, 3] and grid_rows(16) == [4, 4, 4, 4] and grid_rows(1) == [1]
+    for n in range(1, 40):
+        rows = grid_rows(n)
+        assert sum(rows) == n and max(rows) - min(rows) <= 1 and abs(len(rows) - n ** 0.5) < 1

@@ -68,8 +68,11 @@ def bench_sample_cmd(ckpt, sd_path, steps, sampler, cfg, batch, repeats, data, n
 def _table(gen, head: str, data, n: int, counts: list[int], names: list[str], cfg: float, batch: int, features: bool,
            device) -> None:
     """``bench sample --data``: the quality-speed table."""
-    from cmtool.data.cache import load_dataset
+    from functools import partial
+
+    from cmtool.data.cache import MissingSDMaps, load_dataset, scene_sd_maps
     from cmtool.eval.bench_sample import sampler_table
+    from cmtool.eval.evaluation import as_sampled
     from cmtool.metrics.features import FeatureExtractor
 
     if not gen.has_control:
@@ -81,9 +84,15 @@ def _table(gen, head: str, data, n: int, counts: list[int], names: list[str], cf
     if features and len(scenes) < 64:
         raise click.UsageError(f"--features: GT Recall needs at least 64 scenes (batches of 64), got {len(scenes)}")
     extractor = FeatureExtractor("resnet50-seeded", None, _device(device)) if features else None
-    click.echo(f"{head}; {len(scenes)} test scenes of {data}, cfg {cfg}, batch {batch}; seconds per map: denoising, "
-               "decoding and lane graphs")
-    sampler_table(gen, scenes, cfg, names, counts, batch, extractor=extractor, report=click.echo)
+    try:
+        scene_sd_maps(data, "test")
+        final = partial(as_sampled, data=data, split="test", scenes=scenes)
+        what = "the maps as cmtool sample writes them (laid on the SD roads, the guarantee)"
+    except MissingSDMaps as e:
+        final, what = None, f"the model's maps ({e})"
+    click.echo(f"{head}; {len(scenes)} test scenes of {data}, cfg {cfg}, batch {batch}; scores of {what}; seconds "
+               "per map: denoising, decoding and lane graphs")
+    sampler_table(gen, scenes, cfg, names, counts, batch, extractor=extractor, report=click.echo, final=final)
 
 
 def _step_list(text: str) -> list[int]:

@@ -2,6 +2,8 @@
 
 from __future__ import annotations
 
+import tempfile
+from pathlib import Path
 
 import click
 
@@ -89,16 +91,17 @@ def export(fmt, map_path, origin, heading, scene, lane_width, out, verify):
 
     import numpy as np
 
-    from cmtool.core.jsonio import write_json
-    from cmtool.formats.consumers import READERS
-    from cmtool.formats.consumers import verify as check_export
+    from cmtool.core.jsonio import write_json, write_text_atomic
+    from cmtool.formats.consumers import READERS, reader
     from cmtool.formats.geojson import to_geojson
     from cmtool.formats.mapfile import read_lane_graphs
     from cmtool.maps.neighbours import graph_neighbours
     from cmtool.metrics.validity import check
 
-    if verify and fmt not in READERS:
-        raise CmtoolError(f"--verify checks {' and '.join(READERS)} exports, not {fmt}")
+    if verify:
+        if fmt not in READERS:
+            raise CmtoolError(f"--verify checks {' and '.join(READERS)} exports, not {fmt}")
+        reader(fmt)  # before any work: a missing reader is known at once
     graphs = read_lane_graphs(map_path)
     if scene >= len(graphs):
         raise CmtoolError(f"{map_path}: no scene {scene} ({len(graphs)} scene{'s' if len(graphs) != 1 else ''})")
@@ -131,10 +134,12 @@ def export(fmt, map_path, origin, heading, scene, lane_width, out, verify):
         return
     if fmt in ("lanelet2", "opendrive"):
         if fmt == "lanelet2":
-            from cmtool.formats.lanelet2_export import write_lanelet2 as write
+            from cmtool.formats.lanelet2_export import to_lanelet2 as export_text
         else:
-            from cmtool.formats.opendrive_export import write_opendrive as write
-        write(graph, out, lat0, lon0, heading, lane_width)
+            from cmtool.formats.opendrive_export import to_opendrive as export_text
+        text = export_text(graph, lat0, lon0, heading, lane_width)
+        verdict = _verified(fmt, graph, text, out, lat0, lon0) if verify else None
+        write_text_atomic(out, text)  # only now: a failed export or verification leaves an earlier file as it was
         left, oncoming = graph_neighbours(graph)
         click.echo(f"{out}: {len(graph.lanes)} lanes, {len(graph.successors)} successor joins, {len(left)} lane-change "
                    f"neighbours, {len(oncoming)} oncoming pairs, {len(graph.green_lights) + len(graph.red_lights)} "
@@ -146,10 +151,7 @@ def export(fmt, map_path, origin, heading, scene, lane_width, out, verify):
                        + ", ".join(f"{k} {v}" for k, v in sorted(report.counts().items()))
                        + "); simulators may not route through sharply turning or crossing lanes "
                          "(see cmtool validate)", err=True)
-        if verify:
-            verdict = check_export(fmt, graph, out, lat0, lon0)
-            if not verdict.ok:
-                raise CmtoolError(f"{out}: {verdict.line()}")
+        if verdict is not None:
             click.echo(f"{out}: {verdict.line()}")
         return
     collection = to_geojson(graph, lat0, lon0, heading, lane_width)
@@ -159,6 +161,23 @@ def export(fmt, map_path, origin, heading, scene, lane_width, out, verify):
         kinds[f["properties"]["kind"]] = kinds.get(f["properties"]["kind"], 0) + 1
     plural = {"lane": "lanes", "boundary": "boundaries", "light": "lights"}
     click.echo(f"{out}: " + ", ".join(f"{v} {plural[k]}" for k, v in kinds.items()))
+
+
+def _verified(fmt: str, graph, text: str, out, lat0: float, lon0: float):
+    """The reader's verdict on the export ``text`` of ``graph``, read from a temporary file named as ``out`` (the
+    reader tells formats by the name); one that does not route as the lane graph does is an error."""
+    from cmtool.formats.consumers import verify
+
+    with tempfile.TemporaryDirectory(prefix="cmtool-verify-") as folder:
+        path = Path(folder) / Path(out).name
+        path.write_text(text, encoding="utf-8")
+        try:
+            verdict = verify(fmt, graph, path, lat0, lon0)
+        except CmtoolError as e:
+            raise CmtoolError(f"{str(e).replace(str(path), str(out))} (not written)") from None
+    if not verdict.ok:
+        raise CmtoolError(f"{out}: {verdict.line()} (not written)")
+    return verdict
 
 
 @click.command()

@@ -81,3 +81,21 @@ def scene_to_latlon(points, lat0: float, lon0: float, heading: float = 0.0) -> n
     yaw = math.radians(90.0 - heading)  # the forward axis in east/north coordinates
     rot = np.array([[math.cos(yaw), -math.sin(yaw)], [math.sin(yaw), math.cos(yaw)]])
     return LocalProjection(lat0, lon0).to_latlon(np.asarray(points, np.float64) @ rot.T)
+
+
+def distance_m(lat0: float, lon0: float, lat1: float, lon1: float) -> float:
+    """Great-circle distance between two points (degrees) on a sphere of the Earth's mean radius, metres."""
+    p0, p1 = math.radians(lat0), math.radians(lat1)
+    h = math.sin((p1 - p0) / 2) ** 2 + math.cos(p0) * math.cos(p1) * math.sin(math.radians(lon1 - lon0) / 2) ** 2
+    return 2 * 6371008.8 * math.asin(min(1.0, math.sqrt(h)))
+
+
+def swap_hint(lat: float, lon: float, lat0: float, lon0: float, reach_m: float) -> str:
+    """"; did you swap latitude and longitude? ..." when the point ``(lat, lon)`` is off the globe or farther than
+    ``reach_m`` from ``(lat0, lon0)`` while ``(lon, lat)`` lies within it; else ""."""
+    def near(a, b):
+        return -90.0 <= a <= 90.0 and -180.0 <= b <= 180.0 and distance_m(a, b, lat0, lon0) <= reach_m
+
+    if near(lon, lat) and not near(lat, lon):
+        return f"; did you swap latitude and longitude? (LAT,LON: {lon:g},{lat:g})"
+    return ""

@@ -43,6 +43,7 @@ class Progress:
         self.info: dict = {}
         self.start = time.perf_counter()
         self._last_draw = -float("inf")
+        self._stale = True  # counts or values changed since the last line drawn
 
     @property
     def elapsed(self) -> float:
@@ -74,18 +75,24 @@ class Progress:
         """Add ``n`` done items (and update the extra values shown)."""
         self.done += n
         self.info.update(info)
+        self._stale = True
         now = time.perf_counter()
         if now - self._last_draw >= self.interval:
             self._draw()
             self._last_draw = now
 
     def close(self) -> None:
-        """Print the final line."""
-        self._draw(final=True)
+        """Print the final line, unless the last line drawn shows the final counts already (then end that one)."""
+        if self._stale:
+            self._draw(final=True)
+        elif self.enabled and self.tty:
+            self.stream.write("\n")
+            self.stream.flush()
 
     def _draw(self, final: bool = False) -> None:
         if not self.enabled:
             return
+        self._stale = False
         if self.tty:
             self.stream.write("\r\033[K" + self.line() + ("\n" if final else ""))
         else:

@@ -127,7 +127,9 @@ def sd_raster_from_image(image) -> np.ndarray:
     roads on dark or dark roads on light (roads are taken to be the minority of pixels; on a
     transparent background, the opaque strokes): converted to grey, split into road and background
     at full resolution (Otsu's threshold), and resized to 128 x 128, where a pixel is road when at
-    least a fifth of it was (so thin strokes survive). Lane count and direction are unknown.
+    least a fifth of it was (so thin strokes survive). Lane count and direction are unknown. A picture
+    that is not square is padded to a square first, centred on the raster's background (no road), so
+    that its roads keep their shape.
     """
     return convert_sd_image(image)[0]
 
@@ -140,19 +142,33 @@ def read_sd_image(path) -> tuple[np.ndarray, str | None]:
 def convert_sd_image(image) -> tuple[np.ndarray, str | None]:
     """:func:`sd_raster_from_image` plus a one-line note saying what was converted (None: nothing)."""
     img = _page(_read_picture(image) if isinstance(image, (str, os.PathLike)) else np.asarray(image))
+    (h, w), side = img.shape[:2], max(img.shape[:2])
+    fit = (max(1, round(SIZE * w / side)), max(1, round(SIZE * h / side)))  # its width, height in the raster
+    pad = ((side - min(h, w)) // 2, (side - min(h, w) + 1) // 2)
+    padded = "" if h == w else (f"; padded to {side} x {side} to keep the roads' shape ({pad[0]}"
+                                f"{'' if pad[0] == pad[1] else f' and {pad[1]}'} px of background "
+                                f"{'left and right' if w < h else 'above and below'})")
     if is_sd_raster(img):
-        if img.shape[:2] == (SIZE, SIZE):
+        if (h, w) == (SIZE, SIZE):
             return img.copy(), None
-        note = f"resampled the {img.shape[1]} x {img.shape[0]} SD raster to {SIZE} x {SIZE} (nearest pixel)"
-        return cv2.resize(img, (SIZE, SIZE), interpolation=cv2.INTER_NEAREST), note
+        return (_centred(cv2.resize(img, fit, interpolation=cv2.INTER_NEAREST)),
+                f"resampled the {w} x {h} SD raster to {SIZE} x {SIZE} (nearest pixel){padded}")
     out = np.zeros((SIZE, SIZE, 3), dtype=np.uint8)
     mask = drawing_roads(img)
     if mask is None:
         return out, "a blank picture: no roads"
-    coverage = cv2.resize(mask.astype(np.float32), (SIZE, SIZE), interpolation=cv2.INTER_AREA)
-    out[..., 0] = np.where(coverage >= 0.2, ROAD_VALUE, 0)
-    return out, (f"converted a {img.shape[1]} x {img.shape[0]} road drawing to an SD raster "
-                 "(road presence only; lane counts and directions unknown)")
+    coverage = cv2.resize(mask.astype(np.float32), fit, interpolation=cv2.INTER_AREA)
+    out[..., 0] = _centred(np.where(coverage >= 0.2, ROAD_VALUE, 0).astype(np.uint8))
+    return out, (f"converted a {w} x {h} road drawing to an SD raster (road presence only; lane counts and "
+                 f"directions unknown){padded}")
+
+
+def _centred(img: np.ndarray) -> np.ndarray:
+    """A picture that fits in ``SIZE`` x ``SIZE`` in the middle of one, on the raster's background (zeros)."""
+    out = np.zeros((SIZE, SIZE, *img.shape[2:]), img.dtype)
+    top, left = (SIZE - img.shape[0]) // 2, (SIZE - img.shape[1]) // 2
+    out[top:top + img.shape[0], left:left + img.shape[1]] = img
+    return out
 
 
 def picture(path) -> tuple[np.ndarray, bool]:
@@ -204,7 +220,14 @@ def _read_picture(path) -> np.ndarray:
     except cv2.error as e:
         raise CmtoolError(f"{path}: cannot decode the picture ({str(e).strip().splitlines()[-1]})") from None
     if img is None or img.size == 0:
-        raise CmtoolError(f"{path}: cannot read image (missing or empty file, or not a PNG/JPG picture)")
+        from cmtool.formats.mapfile import what_file
+
+        what = what_file(path) if path.is_file() else None
+        if what is None or what.startswith("a picture"):
+            raise CmtoolError(f"{path}: cannot read image (missing or empty file, or not a PNG/JPG picture)")
+        use = {"an OpenStreetMap file": "; for an OpenStreetMap file use --osm", "an SD map (JSON)": ""}
+        raise CmtoolError(f"{path} is {what}; --sd takes a picture (a PNG/JPG SD raster or road drawing)"
+                          + use.get(what, "; for a map use --from-hd"))
     if img.ndim == 3 and img.shape[2] == 3:
         return cv2.cvtColor(img, cv2.COLOR_BGR2RGB)
     if img.ndim == 3 and img.shape[2] == 4:

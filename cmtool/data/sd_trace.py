@@ -29,6 +29,12 @@ def trace_sd(path, px_m: float = 0.5, city: str | None = None) -> SDMap:
     if not px_m > 0:
         raise CmtoolError(f"--px-m {px_m}: must be a positive number of metres")
     img, coloured = picture(path)
+    return trace_picture(img, coloured, px_m, city, path)
+
+
+def trace_picture(img: np.ndarray, coloured: bool, px_m: float, city: str | None = None, path="picture") -> SDMap:
+    """The SD map of the roads in a picture array (``coloured``: in the SD raster's colours, else a road drawing),
+    named ``path`` in messages."""
     mask = (img[..., 0] == ROAD_VALUE).astype(np.uint8) if coloured else drawing_roads(img)
     if mask is None or not mask.any():
         raise CmtoolError(f"{path}: no roads in the picture (draw roads light on dark or dark on light)")

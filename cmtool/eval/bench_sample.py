@@ -88,12 +88,13 @@ def bench_sample(gen: MapGenerator, sd: np.ndarray, settings: SampleSettings, ba
 
 
 def sampler_table(gen: MapGenerator, scenes, cfg: float = 1.0, samplers=SAMPLERS, steps=TABLE_STEPS, batch: int = 64,
-                  seed: int = 0, extractor: FeatureExtractor | None = None, report=print) -> list[dict]:
+                  seed: int = 0, extractor: FeatureExtractor | None = None, report=print, final=None) -> list[dict]:
     """One row per sampler and step count: seconds per map of generating the maps of ``scenes`` (denoising,
     decoding and lane graphs, ``batch`` maps at a time, in turn with nothing else) and their scores against the
-    scenes' ground truth (validity, lane F1 at 1 m, legal one-way share, SD road covered, and with ``extractor``
-    GT Recall and the improved precision and recall of the maps' features against the ground truth's). ``report``
-    gets each row as a line of the table as soon as it is done."""
+    scenes' ground truth (validity, lane F1 and precision at 1 m, Chamfer distance, legal one-way share, SD road
+    covered, and with ``extractor`` GT Recall and the improved precision and recall of the maps' features against
+    the ground truth's). ``final``: scores the maps it makes of the model's (the maps as ``cmtool sample`` writes
+    them), not timed. ``report`` gets each row as a line of the table as soon as it is done."""
     labels = [gen.known_label(s.city) for s in scenes]
     sds = np.stack([s.sd for s in scenes])
     reference = [s.to_lanegraph() for s in scenes]
@@ -110,10 +111,12 @@ def sampler_table(gen: MapGenerator, scenes, cfg: float = 1.0, samplers=SAMPLERS
             began = time.perf_counter()
             maps = gen.generate_all(sds, labels, settings)
             seconds = (time.perf_counter() - began) / len(maps)
+            if final is not None:
+                maps = final(maps)
             scores = evaluate(maps, reference, sds, extractor, features=extractor is not None, **shared)
             g = scores["geometry"]
             row = {"sampler": sampler, "steps": n, "seconds_per_map": seconds,
-                   **{k: g[k]["mean"] for k in ("validity", "lane_f1", "legal_oneway", "sd_coverage")}}
+                   **{k: g[k]["mean"] for k in QUALITY}}
             if extractor is not None:
                 fidelity = scores["precision_recall"]
                 row |= {"gt_recall": scores["gt_recall"]["recall"], "precision": fidelity["precision"],
@@ -123,14 +126,16 @@ def sampler_table(gen: MapGenerator, scenes, cfg: float = 1.0, samplers=SAMPLERS
     return rows
 
 
-TABLE_HEAD = "| sampler | steps | s per map | maps per second | validity | lane F1 @1 m | legal one-way | SD covered |"
+QUALITY = ("validity", "lane_f1", "lane_precision", "chamfer_m", "legal_oneway", "sd_coverage")
+TABLE_HEAD = ("| sampler | steps | s per map | maps per second | validity | lane F1 @1 m | lane precision @1 m | "
+              "Chamfer m | legal one-way | SD covered |")
 FEATURE_HEAD = " GT Recall | precision | recall |"
 
 
 def table_row(row: dict) -> str:
     """A markdown row of :func:`sampler_table`."""
     cells = [row["sampler"], str(row["steps"]), f"{row['seconds_per_map']:.4f}", f"{1 / row['seconds_per_map']:.1f}",
-             *(f"{row[k]:.3f}" for k in ("validity", "lane_f1", "legal_oneway", "sd_coverage"))]
+             *(f"{row[k]:.3f}" for k in QUALITY)]
     if "gt_recall" in row:
         cells += [f"{row[k]:.3f}" for k in ("gt_recall", "precision", "recall")]
     return "| " + " | ".join(cells) + " |"

@@ -33,11 +33,13 @@ from cmtool.core import dist as D
 from cmtool.core.errors import CmtoolError
 from cmtool.core.jsonio import read_json, write_json, write_text_atomic
 from cmtool.core.progress import Progress
-from cmtool.data.cache import MissingSDMaps, load_dataset
+from cmtool.data.cache import MissingSDMaps, load_dataset, scene_sd_maps
 from cmtool.data.layouts import LAYOUTS, layout_raster, scene_layouts
+from cmtool.data.rules import lane_counts
 from cmtool.data.scene import Scene
 from cmtool.diffusion.settings import SamplerSettings
 from cmtool.formats.sumo import netconvert_path
+from cmtool.maps.hdmap import drives_on
 from cmtool.maps.lanegraph import LaneGraph, write_jsonl
 from cmtool.metrics.features import FeatureExtractor
 from cmtool.metrics.lanes import lane_scores
@@ -47,6 +49,7 @@ from cmtool.model import checkpoint as ckpt
 from cmtool.model.controlmap import NO_LAYOUT
 from cmtool.model.release import BUNDLED
 from cmtool.sample import DEFAULT_SMOOTH
+from cmtool.sample.anchor import drawn_lane_counts, frame_roads
 from cmtool.sample.generator import MapGenerator
 from cmtool.sample.guarantee import guarantee
 from cmtool.sample.layouts import NO_INIT, check_init
@@ -111,12 +114,13 @@ def run_eval(gen: MapGenerator, settings: EvalSettings, out: Path, extractor: Fe
         baselines = {m: [_as_map(s, m, k) for k, s in enumerate(
                          starts if m == settings.init else scene_layouts(settings.data, settings.split, scenes, m))]
                      for m in LAYOUTS if m != "netconvert" or netconvert_path() is not None}
-        roads = scene_layouts(settings.data, settings.split, scenes, "rules", roads_only=True)
-        final = [guarantee(g, s.sd, r.to_lanegraph()) for g, s, r in zip(generated["controlmap"], scenes, roads)]
+        final = as_sampled(generated["controlmap"], settings.data, settings.split, scenes)
+        counts = lane_count_agreement(scenes, generated["controlmap"], scene_sd_maps(settings.data, settings.split))
         generated = {"unguided": generated["unguided"], **baselines, "controlmap": generated["controlmap"],
                      "guaranteed": final}
     except MissingSDMaps as e:
         print(f"note: no rule-based columns: {e}", file=sys.stderr)
+        counts = None
     reference = [s.to_lanegraph() for s in scenes]
     controls = np.stack([s.sd for s in scenes])
     shared = {}
@@ -127,12 +131,40 @@ def run_eval(gen: MapGenerator, settings: EvalSettings, out: Path, extractor: Fe
     truth = [check(g) for g in reference]
     report = {"settings": asdict(settings), "methods": results, "frames": frame_groups(scenes, reference, generated),
               "ground_truth_validity": float(np.mean([r.score for r in truth])),
-              "ground_truth_routable": float(np.mean([r.routable_with_changes for r in truth]))}
+              "ground_truth_routable": float(np.mean([r.routable_with_changes for r in truth])),
+              **({"lane_counts": counts} if counts else {})}
     write_json(out / "metrics.json", report)
     write_text_atomic(out / "summary.md", summary_markdown(report))
     _write_recording(out / "eval.rrd", scenes, reference, generated, results, rrd_samples)
     write_png(out / "gallery.png", gallery(scenes, reference, generated))
     return report
+
+
+def lane_count_agreement(scenes, maps: list[LaneGraph], sd_maps) -> dict:
+    """How many lanes a direction of each SD road in the frames has: the model's ``maps`` and the rules' guess (the
+    road's ``lanes`` tag, else its class's usual count) against the ground truth, both maps counted as anchoring
+    counts them (:func:`drawn_lane_counts`), over the road directions where the ground truth has lanes: the share
+    equal to the truth's, the mean difference and the mean absolute difference."""
+    diffs = {"model": [], "rules": []}
+    for scene, graph, sd_map in zip(scenes, maps, sd_maps):
+        roads, side = frame_roads(sd_map, scene.pose.as_array(), scene.frame_m), drives_on(scene.city)
+        truth, model = drawn_lane_counts(scene.to_lanegraph(), roads, side), drawn_lane_counts(graph, roads, side)
+        for (p, sign), n in truth.items():
+            along, against = lane_counts(roads[p])
+            diffs["model"].append(model.get((p, sign), 0) - n)
+            diffs["rules"].append((along if sign == 1 or roads[p].oneway else against) - n)
+    return {k: {"road_directions": len(v), "equal": float(np.mean(np.equal(v, 0))),
+                "mean_difference": float(np.mean(v)), "mean_abs_difference": float(np.mean(np.abs(v)))}
+            for k, v in diffs.items() if v}
+
+
+def as_sampled(maps: list[LaneGraph], data, split: str, scenes) -> list[LaneGraph]:
+    """The maps of a dataset split's first scenes as ``cmtool sample`` writes them (:func:`guarantee`: laid on the
+    scenes' SD roads, turned where against one-way roads, the rules' lanes lent); raises ``MissingSDMaps`` for a
+    dataset built before SD maps were stored."""
+    rules = scene_layouts(data, split, scenes, "rules", roads_only=True)
+    return [guarantee(g, s.sd, r.to_lanegraph(), frame_roads(sd_map, s.pose.as_array(), s.frame_m), drives_on(s.city))
+            for g, s, r, sd_map in zip(maps, scenes, rules, scene_sd_maps(data, split))]
 
 
 GALLERY_SCENES = 3  # junction frames and as many others in gallery.png
@@ -266,9 +298,10 @@ def summary_markdown(report: dict) -> str:
     if path.resolve() == (BUNDLED / "controlmap").resolve():
         title = "the weights shipped with cmtool"
     else:
-        title = path.parent.parent.name if path.parent.name == "checkpoints" else str(path)
+        title = path.parent.parent.name if path.parent.name == "checkpoints" else ckpt.portable(path)
     head = [f"# cmtool eval: {title}", "",
-            f"- checkpoint `{s['checkpoint']}`", f"- data `{s['data']}`, split {s['split']}, {s['n']} scenes",
+            f"- checkpoint `{ckpt.portable(s['checkpoint'])}`",
+            f"- data `{ckpt.portable(s['data'])}`, split {s['split']}, {s['n']} scenes",
             f"- ControlMap: guidance w = {s['cfg']}"
             + (f", started from the {s['init']} layout noised to strength {s['strength']:g}" if s.get("init", NO_INIT)
                != NO_INIT else "") + f"; both: {s['steps']} {s['sampler']} steps, seed {s['seed']}, "
@@ -277,6 +310,8 @@ def summary_markdown(report: dict) -> str:
             "- unguided: the frozen DiT without SD control or city label (the paper's SLEDGE rows)",
             "- rules: the rule-based lane layout of the same SD map (lane counts from the tags or the road class, "
             "one-way roads one way, junction connectors); netconvert: SUMO's, when it is installed",
+            "- + guarantee: ControlMap's maps as `cmtool sample` writes them: lanes along the SD roads laid on them, "
+            "lanes against one-way roads turned round, rule lanes lent where a road has none",
             f"- features: {backbone}; recall metrics in batches of 64, top 3, p = P(chance >= observed)",
             (f"- validity score of the ground truth itself: {report['ground_truth_validity']:.3f}; its lane pairs "
              f"routable with lane changes: {report.get('ground_truth_routable', float('nan')):.3f}"), "", ""]
@@ -291,6 +326,14 @@ def summary_markdown(report: dict) -> str:
                 + f" | {frames['lanes_per_map']['truth']:.3f} |"]
         tail += [f"| lane F1 @1 m, {k} frames ({frames['scenes'][k]}) ↑ | "
                  + " | ".join(cell(frames["lane_f1"][m][k]) for m in names) + " | 1 |" for k in ("junction", "other")]
+    counts = report.get("lane_counts")
+    if counts:
+        tail += ["", "", f"### Lanes per road direction ({counts['model']['road_directions']} SD road directions with "
+                 "ground-truth lanes)", "", "| | ControlMap (the model's own) | rules' guess (tag, else road class) |",
+                 "|---|---|---|"]
+        tail += [f"| {label} | {counts['model'][k]:.3f} | {counts['rules'][k]:.3f} |" for k, label in
+                 (("equal", "equal to the ground truth's ↑"), ("mean_difference", "mean difference (lanes)"),
+                  ("mean_abs_difference", "mean absolute difference ↓"))]
     return "\n".join(head) + summary_table({SHORT[k]: v for k, v in methods.items()}) + "\n".join(tail) + "\n"
 
 

@@ -40,19 +40,25 @@ class Verdict:
                 f"join {self.unjoined[:3]}, {len(self.dropped):,} lanes left out {self.dropped[:3]}")
 
 
-def verify(fmt: str, graph, path: str | os.PathLike, lat0: float, lon0: float) -> Verdict:
-    """Load the ``fmt`` export of ``graph`` (written at ``(lat0, lon0)``) at ``path`` in its reader; compare."""
-    wheel, name = READERS[fmt]
+def reader(fmt: str):
+    """The module that reads ``fmt`` exports (a CmtoolError naming what to install when it is missing)."""
+    wheel = READERS[fmt][0]
     try:
-        reader = importlib.import_module(wheel)
+        return importlib.import_module(wheel)
     except ImportError as e:
         raise CmtoolError(f"--verify for {fmt} needs the {wheel} wheel: pip install 'cmtool[verify]' (carla exists "
                           f"for Linux x86_64, Python 3.10 to 3.12): {e}") from None
+
+
+def verify(fmt: str, graph, path: str | os.PathLike, lat0: float, lon0: float) -> Verdict:
+    """Load the ``fmt`` export of ``graph`` (written at ``(lat0, lon0)``) at ``path`` in its reader; compare."""
+    wheel, name = READERS[fmt]
+    module = reader(fmt)
     try:
         if fmt == "opendrive":
-            edges, seen = _carla(reader, Path(path).read_text(encoding="utf-8"))
+            edges, seen = _carla(module, Path(path).read_text(encoding="utf-8"))
         else:
-            edges, seen = _lanelet2(reader, path, lat0, lon0)
+            edges, seen = _lanelet2(module, path, lat0, lon0)
     except (RuntimeError, ValueError) as e:
         raise CmtoolError(f"{path}: {name} cannot read it: {e}") from None
     n = len(graph.lanes)

@@ -5,7 +5,8 @@ Kinds (:func:`map_kind`): ``hdmap`` (cmtool HD map JSON), ``lanegraph`` (lane gr
 Lanelet2 ``.osm``), ``osm`` (OpenStreetMap, ``.osm`` or ``.osm.pbf``: roads without lanes) and ``nuplan``
 (a nuPlan ``.gpkg``). :func:`read_lane_graphs` and :func:`read_hd_map` read whichever holds lanes, converting
 between a whole HD map and one lane graph (:meth:`LaneGraph.from_hd`, :meth:`LaneGraph.to_hd`); a file without
-lanes gets one line saying what it is and which command makes lanes of it.
+lanes gets one line saying what it is and which command makes lanes of it; so does a picture (:func:`picture_format`),
+and :func:`what_file` names what any file holds for the messages of readers of other things.
 """
 
 from __future__ import annotations
@@ -29,9 +30,45 @@ NO_LANES = {
 }
 
 
+PICTURES = {b"\x89PNG\r\n\x1a\n": "PNG", b"\xff\xd8\xff": "JPEG", b"BM": "BMP", b"II*\x00": "TIFF", b"MM\x00*": "TIFF",
+            b"GIF8": "GIF", b"\x93NUMPY": ".npy array"}  # how a picture file starts -> its format
+WORDS = {"hdmap": "an HD map (JSON)", "sdmap": "an SD map (JSON)", "av2": "an Argoverse 2 map (JSON)",
+         "lanelet2": "a Lanelet2 map (OSM XML)", "osm": "an OpenStreetMap file", "nuplan": "a nuPlan map (GeoPackage)",
+         "lanegraph": "a lane graph (JSON)"}
+
+
+def picture_format(path: str | os.PathLike) -> str | None:
+    """The format of a picture file (PNG, JPEG, ...), told by its first bytes; None: not a picture (or unreadable)."""
+    try:
+        with open(path, "rb") as f:
+            head = f.read(8)
+    except OSError:
+        return None
+    return next((name for magic, name in PICTURES.items() if head.startswith(magic)), None)
+
+
+def what_file(path: str | os.PathLike) -> str | None:
+    """What a file holds, in words for a message (e.g. "a lane graph (JSON)", "a picture (PNG)"); None: nothing
+    cmtool reads."""
+    picture = picture_format(path)
+    if picture is not None:
+        return f"a picture ({picture})"
+    try:
+        kind, obj = map_kind(path)
+    except CmtoolError:
+        return None
+    if kind == "lanegraph" and not (isinstance(obj, dict) and "lanes" in obj):
+        return "lane graphs (JSON Lines)" if obj is None and Path(path).suffix == ".jsonl" else None
+    return WORDS[kind]
+
+
 def map_kind(path: str | os.PathLike) -> tuple[str, object]:
-    """The kind of map in ``path`` and, for JSON files, the parsed object (None otherwise)."""
+    """The kind of map in ``path`` and, for JSON files, the parsed object (None otherwise); a picture is refused."""
     path = Path(path)
+    picture = picture_format(path)
+    if picture is not None:
+        raise CmtoolError(f"{path} is a picture ({picture}); this command takes a map file (a lane graph, HD map, "
+                          "Lanelet2, Argoverse 2 or nuPlan map); for a map of a picture use `cmtool sample --sd`")
     if path.suffix == ".gpkg":
         return "nuplan", None
     if path.name.endswith(".pbf"):

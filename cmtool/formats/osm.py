@@ -87,7 +87,10 @@ def read_osm(path: str | os.PathLike) -> SDMap:
         if any(w.tags.get("type") in ("line_thin", "line_thick") for w in data.ways.values()):
             hint = "; it looks like a Lanelet2 map (`cmtool data import --format lanelet2`)"
     else:
-        raise CmtoolError(f"{path}: expected an OpenStreetMap .osm or .osm.pbf file")
+        from cmtool.formats.mapfile import what_file
+
+        what = what_file(path)
+        raise CmtoolError(f"{path}{f' is {what};' if what else ':'} expected an OpenStreetMap .osm or .osm.pbf file")
     runs = []  # (way id, part, node ids, tags)
     for way_id, refs, tags in ways:
         run: list[int] = []
@@ -127,7 +130,8 @@ def _read_pbf(path: Path) -> tuple[dict[int, tuple[float, float]], list[tuple[in
     try:
         import osmium
     except ImportError:
-        raise CmtoolError(f"{path}: reading .osm.pbf needs pyosmium: pip install 'cmtool[osm]'") from None
+        raise CmtoolError(f"{path}: reading .osm.pbf needs pyosmium, a dependency of cmtool that is missing here: "
+                          "pip install osmium") from None
     ways, wanted = [], set()
     try:
         for way in osmium.FileProcessor(str(path), osmium.osm.WAY):

@@ -223,6 +223,21 @@ def weights_digest(*checkpoints: Path) -> str:
                           ).hexdigest()[:16]
 
 
+PACKAGE = Path(__file__).resolve().parents[1]
+
+
+def portable(path) -> str:
+    """``path`` without the folders of the machine it is on, for files that travel (shipped configs, reports): inside
+    the package from its root (``cmtool/weights/rvae``), a run's checkpoint from its run folder on
+    (``controlnet/checkpoints/step_00004000``), any other absolute path by its name; a relative path as it is."""
+    path = Path(path)
+    if not path.is_absolute():
+        return path.as_posix()
+    if path.resolve().is_relative_to(PACKAGE):
+        return path.resolve().relative_to(PACKAGE.parent).as_posix()
+    return "/".join(path.parts[-3:]) if path.parent.name == "checkpoints" else path.name
+
+
 def linked(checkpoint: Path, target: str) -> Path:
     """A path a checkpoint config names (its RVAE, its DiT): absolute, or relative to the checkpoint."""
     path = Path(target)

@@ -12,7 +12,8 @@ Weights over 16 MiB are split into files of at most that size (``model-00001-of-
 ... with ``model.safetensors.index.json``), so every file fits the limits of file hosts and copies.
 
 Each config keeps its stage's recipe and training record (the DiT's is kept in the ControlMap
-config as ``dit_training``), so ``cmtool info`` shows how the shipped models were made.
+config as ``dit_training``), so ``cmtool info`` shows how the shipped models were made; the paths in
+them and in the manifest lose the folders of the machine that packed them (:func:`ckpt.portable`).
 :func:`verify` checks the files against the manifest.
 """
 
@@ -89,6 +90,7 @@ def _write_set(src: Path, config: dict, rvae_src: Path, rvae_config: dict, dit_t
     cm_config = {k: v for k, v in config.items() if k not in ("format", "version")}
     cm_config.update(rvae="../rvae", packed_from=config.get("packed_from", str(src)),
                      dit_training=config.get("dit_training", dit_training))
+    cm_config = _portable_paths(cm_config)
     ckpt.save_checkpoint(out / "controlmap", cm_config, half, max_file_bytes=MAX_FILE_BYTES)
 
     decoder = {k: v.half() for k, v in ckpt.read_weights(rvae_src).items()
@@ -102,6 +104,7 @@ def _write_set(src: Path, config: dict, rvae_src: Path, rvae_config: dict, dit_t
             "path": enc_config.get("packed_from", str(enc_src)),
             **{k: enc_config[k] for k in ("own_latent_scale", "reconstruction", "step", "recipe_path", "training")
                if k in enc_config}})
+    rvae_out = _portable_paths(rvae_out)
     ckpt.save_checkpoint(out / "rvae", rvae_out, decoder, max_file_bytes=MAX_FILE_BYTES)
 
     files = sorted(p for p in out.rglob("*") if p.is_file() and p.name != MANIFEST)
@@ -112,6 +115,15 @@ def _write_set(src: Path, config: dict, rvae_src: Path, rvae_config: dict, dit_t
     manifest["total_bytes"] = sum(f["bytes"] for f in manifest["files"].values())
     write_text_atomic(out / MANIFEST, json.dumps(manifest, indent=1) + "\n")
     return manifest
+
+
+def _portable_paths(value):
+    """``value`` (a config or part of one) with every absolute path in it made portable."""
+    if isinstance(value, dict):
+        return {k: _portable_paths(v) for k, v in value.items()}
+    if isinstance(value, list):
+        return [_portable_paths(v) for v in value]
+    return ckpt.portable(value) if isinstance(value, str) and os.path.isabs(value) else value
 
 
 def _encoder_for(src: Path, decoder_config: dict, decoder: dict) -> tuple[Path, dict, dict]:

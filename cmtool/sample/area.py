@@ -105,8 +105,9 @@ def generate_area(gen: MapGenerator, sd_map: SDMap, box, settings: SampleSetting
     farther than ``NEAR_M`` from the box are left out of the rule layouts the tiles start from and borrow from).
     ``cache``: a folder that keeps finished batches of tiles, so that a killed run goes on where it stopped; under
     ``torchrun`` (``info``) the processes share the batches and the main process stitches (the others get None).
-    ``rec``: records the denoising of the tiles of the batches that start before ``RECORDED_TILES`` and that this
-    process generates, each tile in its place in the area (:func:`cmtool.viz.area.place_tile`)."""
+    ``rec``: gets the layout (:func:`cmtool.viz.area.area_blueprint`) and records the denoising of the tiles of the
+    batches that start before ``RECORDED_TILES`` and that this process generates, each tile in its place in the area
+    (:func:`cmtool.viz.area.place_tile`)."""
     began = time.perf_counter()
     sd_map = _near(sd_map, box, NEAR_M)
     tiles = cover(sd_map, box)
@@ -120,6 +121,7 @@ def generate_area(gen: MapGenerator, sd_map: SDMap, box, settings: SampleSetting
         upto = next((b for b in range(0, len(jobs), settings.batch) if b >= RECORDED_TILES), len(jobs))
         for k, job in enumerate(jobs[:upto]):
             job.prefix = place_tile(rec, k, tiles[k], centre)
+        rec.send_blueprint(area_blueprint(upto))
     maps, recorded = _tile_maps(gen, jobs, settings, tiles, cache, progress, info, rec)
     if maps is None:
         return None
@@ -294,7 +296,6 @@ def run_area(gen: MapGenerator, sd_map: SDMap, box, settings: SampleSettings, ou
         outputs.write_text(out / f"{name}_area.json", json_text(area.graph.to_json()))
         write_png(out / f"{name}_area.png", area_picture(area, sd_map, box), outputs)
         if rec is not None:
-            rec.send_blueprint(area_blueprint())
             rec.log("info", rr.TextDocument(_info(command, name, scores, area.recorded), media_type="text/markdown"),
                     static=True)
             roads = _clipped_roads(sd_map, box, ON_SCREEN_M, centre)

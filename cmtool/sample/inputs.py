@@ -16,6 +16,7 @@ import numpy as np
 from cmtool.core.errors import CmtoolError
 from cmtool.core.jsonio import json_lines
 from cmtool.data.sd_raster import FRAME_M, IMAGE_SUFFIXES, SDRasterizer, read_sd_image
+from cmtool.data.sd_trace import trace_picture
 from cmtool.maps.lanegraph import LaneGraph
 from cmtool.maps.sdmap import SDMap
 
@@ -51,8 +52,20 @@ def image_inputs(paths) -> list[ControlInput]:
         sd, note = read_sd_image(path)
         if not sd[..., 0].any():
             raise CmtoolError(f"{path}: no roads in the picture (draw roads light on dark or dark on light)")
-        inputs.append(ControlInput(path.stem, sd, str(path), note=f"{path.name}: {note}" if note else None))
+        inputs.append(ControlInput(path.stem, sd, str(path), note=f"{path.name}: {note}" if note else None,
+                                   **_traced(sd)))
     return _unique_names(inputs)
+
+
+def _traced(sd: np.ndarray) -> dict:
+    """The SD map traced from an SD raster's roads (:func:`cmtool.data.sd_trace.trace_picture`) and the frame's pose
+    in it (the raster's up is ahead), for what needs the roads' lines: the guarantee's anchoring and rules; nothing
+    where no line can be traced."""
+    try:
+        sd_map = trace_picture(sd, True, FRAME_M / sd.shape[0])
+    except CmtoolError:
+        return {}
+    return {"sd_map": sd_map, "pose": (0.0, 0.0, math.pi / 2)}
 
 
 def osm_inputs(path, centers: list[tuple[float, float, float]]) -> list[ControlInput]:
@@ -66,12 +79,13 @@ def osm_inputs(path, centers: list[tuple[float, float, float]]) -> list[ControlI
     inputs = []
     for k, (lat, lon, heading) in enumerate(centers):
         if not (-90.0 <= lat <= 90.0 and -180.0 <= lon <= 180.0):
-            raise CmtoolError(f"--center {lat},{lon}: latitude must be in [-90, 90] and longitude in [-180, 180]")
+            raise CmtoolError(f"--center {lat},{lon}: latitude must be in [-90, 90] and longitude in [-180, 180]"
+                              + _swap_hint(sd_map, lat, lon))
         x, y = proj.to_metres(lat, lon)
         sd = rasterize(float(x), float(y), math.radians(90.0 - heading))
         if not sd[..., 0].any():
             raise CmtoolError(f"{path}: no roads within the {FRAME_M:.0f} m frame around {lat:.6f},{lon:.6f} "
-                              f"(nearest road {_nearest_road(sd_map, x, y):.0f} m away)")
+                              f"(nearest road {_nearest_road(sd_map, x, y):.0f} m away){_swap_hint(sd_map, lat, lon)}")
         name = f"{Path(path).name.split('.')[0]}_{k}" if len(centers) > 1 else Path(path).name.split(".")[0]
         inputs.append(ControlInput(name, sd, f"osm:{Path(path).name}@{lat:.6f},{lon:.6f},heading {heading:g}",
                                    geo=_geo(lat, lon, heading), sd_map=sd_map,
@@ -172,6 +186,15 @@ def _nearest_road(sd_map, x: float, y: float) -> float:
     from cmtool.metrics.lanes import distance_to_polylines
 
     return float(distance_to_polylines(np.array([[x, y]]), [r.polyline for r in sd_map.roads])[0])
+
+
+def _swap_hint(sd_map, lat: float, lon: float) -> str:
+    """A hint when ``(lon, lat)`` lies within the extent of an OpenStreetMap SD map's roads (and a frame around
+    them) and ``(lat, lon)`` does not (:func:`cmtool.core.geo.swap_hint`)."""
+    from cmtool.core.geo import swap_hint
+
+    reach = float(np.linalg.norm(np.concatenate([r.polyline for r in sd_map.roads]), axis=1).max()) + FRAME_M
+    return swap_hint(lat, lon, sd_map.meta["lat0"], sd_map.meta["lon0"], reach)
 
 
 def _bounds(hd) -> str:

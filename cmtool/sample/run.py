@@ -35,24 +35,31 @@ from cmtool.core.progress import Progress
 from cmtool.data.layouts import layout_raster
 from cmtool.data.scene import Scene
 from cmtool.diffusion.settings import SamplerSettings, SamplingError
+from cmtool.maps.hdmap import drives_on
 from cmtool.maps.lanegraph import LaneGraph
 from cmtool.metrics.geometric import legal_oneway, sd_adherence
 from cmtool.metrics.suite import weighted_mean
 from cmtool.metrics.validity import check
 from cmtool.model.controlmap import NO_LAYOUT
+from cmtool.sample.anchor import frame_roads
 from cmtool.sample.generator import MapGenerator
 from cmtool.sample.guarantee import guarantee, raw_scores
 from cmtool.sample.inputs import ControlInput
 from cmtool.sample.layouts import NO_INIT, check_init, layout_scenes
 from cmtool.viz.draw import graph_panel, legend, sd_panel, title_strip
-from cmtool.viz.recording import APP_IDS, close_recording, log_lanes, log_layout, log_sd, open_recording, served
+from cmtool.viz.recording import (APP_IDS, close_recording, log_decoded, log_lanes, log_layout, log_sd, open_recording,
+                                  served)
 from cmtool.viz.show import write_png
-from cmtool.viz.trajectory import TrajectoryLogger, sampling_blueprint
+from cmtool.viz.trajectory import TrajectoryLogger, log_scores, sampling_blueprint
 
 SERVING: list[rr.RecordingStream] = []  # recordings served with --serve, kept alive until the process ends
 AUTO = "auto"  # --city default: the source map's city when the checkpoint knows it, else none
 PANEL = 256
 VIEWER_PORT = 9876  # Rerun's default gRPC port
+SCORES = {"validity": "validity", "sd_coverage": "SD covered", "legal_oneway": "one-way ok"}  # meta key: column
+SCORES_NOTE = ("validity: share of lanes free of problems (cmtool validate); SD covered: share of the SD road with a "
+               "lane within 3 m; one-way ok: share of the lane length on one-way SD roads that runs the legal way; "
+               "-: nothing to judge")
 
 
 @dataclass(kw_only=True)
@@ -98,7 +105,7 @@ class Job:
 class SampledMap:
     job: Job
     graph: LaneGraph
-    seconds: float  # this map's share of its batch's generation time
+    seconds: float  # this map's share of the time its batch took (the maps' times add up to the run's)
 
 
 def plan(gen: MapGenerator, inputs: list[ControlInput], settings: SampleSettings) -> list[Job]:
@@ -114,7 +121,7 @@ def plan(gen: MapGenerator, inputs: list[ControlInput], settings: SampleSettings
         starts = layout_scenes(inputs, settings.init)
     if settings.guarantee and all(item.sd_map is not None for item in inputs):
         rules = [s.to_lanegraph(neighbours=False) for s in layout_scenes(inputs, "rules", roads_only=True)]
-    if gen.layout != NO_LAYOUT:  # an SD picture has no map to lay lanes out on: its layout channels stay empty
+    if gen.layout != NO_LAYOUT:  # a picture whose roads could not be traced has no map: its channels stay empty
         mapped = [k for k, item in enumerate(inputs) if item.sd_map is not None and item.pose is not None]
         if settings.init == gen.layout:
             scenes = [starts[k] for k in mapped]
@@ -159,13 +166,15 @@ def run_sample(gen: MapGenerator, jobs: list[Job], settings: SampleSettings, out
         out.mkdir(parents=True, exist_ok=True)
         if rrd is not None or viewer is not None:
             rec = sampling_recording(rrd, viewer)
-            log_run_header(rec, gen, jobs, settings, command)
+            header = log_run_header(rec, gen, jobs, settings, command)
         strength = f", city cfg {settings.city_cfg:g}" if settings.city_cfg != 1 else ""
         files = MapFiles(out, lambda g: f"generated: {g.city or 'no city'}, w = {settings.cfg:g}{strength}", outputs,
                          pictures, grid)
         early = settings.candidates == 1  # each map's files staged as soon as it is checked, else the chosen ones
-        maps = choose(generate_maps(gen, jobs, settings, rec, progress, info, files.stage if early else None),
-                      settings.candidates)
+        made = generate_maps(gen, jobs, settings, rec, progress, info, files.stage if early else None)
+        if rec is not None:
+            log_map_scores(rec, header, made)
+        maps = choose(made, settings.candidates)
         if not early:
             files.stage([m.job for m in maps], [m.graph for m in maps])
         files.finish()
@@ -228,12 +237,15 @@ def batch_maps(gen: MapGenerator, batch: list[Job], start: int, settings: Sample
                                   ego=not placed)
     began = time.perf_counter()
     graphs = _denoised(gen, batch, start, settings, logger)
+    decoded = list(graphs)
     check_maps(batch, graphs, settings)
     if logger is not None:
-        logger.flush()
-        for job, graph in zip(batch, graphs) if not placed else ():
+        logger.finish()
+        for job, graph, raw in zip(batch, graphs, decoded) if not placed else ():
             log_lanes(rec, job.prefix, graph.lanes, graph.green_lights, graph.red_lights, graph.successors,
                       static=True)
+            if graph is not raw:
+                log_decoded(rec, job.prefix, raw.lanes)
     seconds = (time.perf_counter() - began) / len(batch)
     return [(graph, seconds) for graph in graphs]
 
@@ -257,12 +269,14 @@ def check_maps(batch: list[Job], graphs: list[LaneGraph], settings: SampleSettin
         score_map(graph, job.source.sd)
         if settings.guarantee and job.source.sd is not None:
             raw = raw_scores(graph)
-            fixed = guarantee(graph, job.source.sd, job.rules)
+            src = job.source
+            roads = frame_roads(src.sd_map, src.pose, graph.frame_m) if src.sd_map is not None else None
+            fixed = guarantee(graph, src.sd, job.rules, roads, drives_on(graph.city))
             if fixed is not graph:  # a map the guarantee left alone keeps its scores
                 graphs[k] = graph = fixed
                 score_map(graph, job.source.sd)
             graph.meta["raw"] = raw
-            graph.meta.setdefault("guarantee", {"turned": 0, "added": 0})
+            graph.meta.setdefault("guarantee", {"turned": 0, "added": 0, "replaced": 0})
     if finish is not None:
         finish(batch, graphs)
 
@@ -272,36 +286,31 @@ def _pipelined(gen: MapGenerator, jobs: list[Job], settings: SampleSettings, bar
     """:func:`generate_maps` in one process without a recording: each batch's maps are checked (:func:`check_maps`)
     and finished in a second thread while this one denoises the next batch. The checks are mostly Python and torch's
     kernels run outside the GIL, so the two overlap (torch keeps all its threads: on 2 cores, 28-32 maps a second
-    against 23-24 with one thread fewer, docs/speed.md). A map's time is its share of its batch's denoising and
-    checks."""
+    against 23-24 with one thread fewer, docs/speed.md). A batch's time runs from the end of the batch before's
+    checks (the start, for the first) to the end of its own, so the maps' times add up to the run's."""
     maps: list[SampledMap] = []
     with ThreadPoolExecutor(1, thread_name_prefix="cmtool-checks") as checker:
-        pending = None
+        pending, since = None, time.perf_counter()
         for start in range(0, len(jobs), settings.batch):
             batch = jobs[start:start + settings.batch]
-            began = time.perf_counter()
             graphs = _denoised(gen, batch, start, settings, None)
-            denoising = time.perf_counter() - began
-            _checked(maps, pending, bar)
-            pending = (batch, graphs, denoising, checker.submit(_timed, check_maps, batch, graphs, settings, finish))
-        _checked(maps, pending, bar)
+            since = _checked(maps, pending, bar, since)
+            pending = (batch, graphs, checker.submit(check_maps, batch, graphs, settings, finish))
+        _checked(maps, pending, bar, since)
     return maps
 
 
-def _timed(work, *args) -> float:
-    began = time.perf_counter()
-    work(*args)
-    return time.perf_counter() - began
-
-
-def _checked(maps: list[SampledMap], pending, bar: Progress) -> None:
-    """Wait for the checks of the ``pending`` batch (None: none) and append its maps to ``maps``."""
+def _checked(maps: list[SampledMap], pending, bar: Progress, since: float) -> float:
+    """Wait for the checks of the ``pending`` batch (None: none) and append its maps to ``maps``, sharing the time
+    from ``since`` to now; returns now (``since`` when none is pending)."""
     if pending is None:
-        return
-    batch, graphs, denoising, checks = pending
-    seconds = (denoising + checks.result()) / len(batch)
-    maps += [SampledMap(job, graph, seconds) for job, graph in zip(batch, graphs)]
+        return since
+    batch, graphs, checks = pending
+    checks.result()
+    now = time.perf_counter()
+    maps += [SampledMap(job, graph, (now - since) / len(batch)) for job, graph in zip(batch, graphs)]
     bar.update(len(batch))
+    return now
 
 
 def choose(maps: list[SampledMap], candidates: int) -> list[SampledMap]:
@@ -445,7 +454,9 @@ def _answers_http2(host: str, port: int, wait_s: float = 2.0) -> bool:
             return False
 
 
-def log_run_header(rec, gen: MapGenerator, jobs: list[Job], settings: SampleSettings, command: str) -> None:
+def log_run_header(rec, gen: MapGenerator, jobs: list[Job], settings: SampleSettings, command: str) -> str:
+    """Send the layout, each map's SD input, layout channels and ground truth, and the run's info document; returns
+    the document's text, which :func:`log_map_scores` extends."""
     names = [f"{j.name}{f' #{j.candidate}' if settings.candidates > 1 else ''} ({gen.city_name(j.label) or 'no city'})"
              for j in jobs]
     rec.send_blueprint(sampling_blueprint([j.prefix for j in jobs], names, gen.control_blocks,
@@ -454,10 +465,11 @@ def log_run_header(rec, gen: MapGenerator, jobs: list[Job], settings: SampleSett
              f"- checkpoint: `{gen.path}` ({gen.config['kind']})",
              f"- seed {settings.seed}, cfg w = {settings.cfg}, city cfg {settings.city_cfg}, "
              f"{settings.steps} {settings.sampler} steps"
-             + (f", eta {settings.eta}" if settings.sampler == "ddim" else ""), "", "| map | city | input |",
-             "|---|---|---|"]
-    lines += [f"| {j.prefix or '/'} {j.name} | {gen.city_name(j.label) or 'none'} | {j.source.source} |" for j in jobs]
-    rec.log("info", rr.TextDocument("\n".join(lines), media_type="text/markdown"), static=True)
+             + (f", eta {settings.eta}" if settings.sampler == "ddim" else ""), "",
+             "Maps (number: name, city, input):", ""]
+    lines += [f"- {k}: {name}, {j.source.source}" for k, (j, name) in enumerate(zip(jobs, names))]
+    header = "\n".join(lines)
+    rec.log("info", rr.TextDocument(header, media_type="text/markdown"), static=True)
     for job in jobs:
         if job.source.sd is not None:
             log_sd(rec, job.prefix, job.source.sd, static=True)
@@ -467,6 +479,19 @@ def log_run_header(rec, gen: MapGenerator, jobs: list[Job], settings: SampleSett
         if truth is not None:
             log_lanes(rec, f"{job.prefix}truth/", truth.lanes, truth.green_lights, truth.red_lights, truth.successors,
                       static=True)
+    return header
+
+
+def log_map_scores(rec, header: str, maps: list[SampledMap]) -> None:
+    """Add the scores of every map made (in the order of the jobs) to the info document ``header``, as a table, and
+    log them as bars (:func:`~cmtool.viz.trajectory.log_scores`)."""
+    scores = {key: [m.graph.meta.get(key) for m in maps] for key in SCORES}
+    dash = lambda v: "-" if v is None else f"{v:.3f}"  # noqa: E731
+    rows = ["| map | " + " | ".join(SCORES.values()) + " |", "|---" * (len(SCORES) + 1) + "|"]
+    rows += [f"| {k} | " + " | ".join(dash(scores[key][k]) for key in SCORES) + " |" for k in range(len(maps))]
+    rec.log("info", rr.TextDocument("\n".join([header, "", *rows, "", SCORES_NOTE]), media_type="text/markdown"),
+            static=True)
+    log_scores(rec, {name: scores[key] for key, name in SCORES.items()})
 
 
 MAP_FILES = (".json", ".gt.json", ".png")  # the files of a map named NAME: NAME.json, NAME.gt.json, NAME.png
@@ -523,19 +548,19 @@ def _picture_body(job: Job, graph: LaneGraph, title: str) -> np.ndarray:
 
 
 def summary_table(maps: list[SampledMap]) -> str:
-    """Per map: lanes, successor links, mean lane length, lights, validity score, share of lane length on
-    one-way SD roads running the legal way and share of the SD road with a lane within 3 m ("-" without them),
-    seconds; then the means over the maps."""
+    """Per map: lanes, successor links, mean lane length, lights and the scores (:data:`SCORES_NOTE`: "-" without
+    them); then the means over the maps, what the guarantee changed, the time the maps took and what the scores
+    are."""
     head = (f"{'map':<24} {'city':<5} {'lanes':>5} {'successors':>10} {'mean lane m':>11} {'lights':>6} "
-            f"{'validity':>8} {'one-way ok':>10} {'SD covered':>10} {'time s':>7}")
+            + " ".join(f"{name:>10}" for name in SCORES.values()))
     rows = [head]
     dash = lambda v: "-" if v is None else f"{v:.3f}"  # noqa: E731
     for m in maps:
         g = m.graph
         mean = np.mean([polyline_length(l) for l in g.lanes]) if g.lanes else 0.0
         rows.append(f"{m.job.name[:24]:<24} {g.city or 'none':<5} {len(g.lanes):>5} {len(g.successors):>10} "
-                    f"{mean:>11.1f} {len(g.green_lights) + len(g.red_lights):>6} {g.meta['validity']:>8.3f} "
-                    f"{dash(g.meta.get('legal_oneway')):>10} {dash(g.meta.get('sd_coverage')):>10} {m.seconds:>7.2f}")
+                    f"{mean:>11.1f} {len(g.green_lights) + len(g.red_lights):>6} "
+                    + " ".join(f"{dash(g.meta.get(key)):>10}" for key in SCORES))
     if len(maps) > 1:
         shares = [m.graph.meta.get("legal_oneway") for m in maps]
         legal = weighted_mean([math.nan if v is None else v for v in shares],
@@ -551,4 +576,7 @@ def summary_table(maps: list[SampledMap]) -> str:
         rows.append(f"the guarantee turned {sum(f['turned'] for f in fixed)} lanes round and added "
                     f"{sum(f['added'] for f in fixed)} from the rules; the model's own maps: validity "
                     f"{mean('validity')}, one-way ok {mean('legal_oneway')}, SD covered {mean('sd_coverage')}")
-    return "\n".join(rows)
+    seconds = sum(m.seconds for m in maps)
+    rows.append(f"time to generate and check: {seconds:.1f} s"
+                + (f" for {len(maps)} maps, {seconds / len(maps):.2f} s a map" if len(maps) > 1 else ""))
+    return "\n".join(rows + [SCORES_NOTE])

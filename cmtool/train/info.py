@@ -50,7 +50,8 @@ def describe(path: Path, as_json: bool = False) -> str:
     where = ckpt.resolve(path)
     with torch.device("meta"):
         counts = param_counts(ckpt.build_model(config, str(where)))
-    rows = [("checkpoint", str(where)),
+    shipped = where.resolve().is_relative_to(ckpt.PACKAGE)  # shown as in the package, wherever it is installed
+    rows = [("checkpoint", ckpt.portable(where) if shipped else str(where)),
             ("kind", f"{config['kind']} ({'complete' if config.get('complete') else 'in progress'}, "
                      f"step {config.get('step')}/{config.get('steps')})"),
             ("model", _fields(config["model"]))]

@@ -44,8 +44,9 @@ class Stage(ABC):
         self.recipe, self.device = recipe, device
 
     @abstractmethod
-    def model(self) -> torch.nn.Module:
-        """A fresh model; parameters with ``requires_grad`` are the ones trained."""
+    def model(self, weights: bool = True) -> torch.nn.Module:
+        """A fresh model; parameters with ``requires_grad`` are the ones trained. ``weights=False``: its layers only,
+        no checkpoint weights read into them (to count its parameters on the meta device)."""
 
     @abstractmethod
     def dataset(self) -> Dataset:
@@ -126,13 +127,9 @@ def _state_tensors(model, opt) -> tuple[dict[str, torch.Tensor], dict]:
 
 def _check_size(stage: Stage) -> None:
     """Refuse, before anything is allocated, a model whose weights, gradients, optimiser moments and EMA copy would
-    not fit in memory (its parameters counted on the meta device; a stage that starts from a checkpoint's weights
-    cannot be built there and was checked when that checkpoint was saved)."""
-    try:
-        with torch.device("meta"):
-            params = sum(p.numel() for p in stage.model().parameters())
-    except NotImplementedError:
-        return
+    not fit in memory (its parameters counted on the meta device)."""
+    with torch.device("meta"):
+        params = sum(p.numel() for p in stage.model(weights=False).parameters())
     where = stage.recipe.path or "the recipe"
     if params > ckpt.MAX_PARAMS:
         raise CmtoolError(f"{where}: a model of {params / 1e9:.1f} billion parameters, more than cmtool trains "

@@ -83,7 +83,7 @@ class RVAEStage(Stage):
                        "set rvae.{key} = {n} in [rvae], or build the data with data.{key} = {m}")
         self._preview = None
 
-    def model(self):
+    def model(self, weights=True):
         return RVAE(self.recipe.rvae)
 
     def dataset(self):
@@ -147,8 +147,8 @@ class DecoderStage(RVAEStage):
                        "the decoder keeps its RVAE's queries: train it on data built with data.{key} = {m}")
         self._preview = None
 
-    def model(self):
-        model, _ = ckpt.load_model(self.parent_run, "cpu")
+    def model(self, weights=True):
+        model = ckpt.load_model(self.parent_run, "cpu")[0] if weights else ckpt.build_model(self.parent_config)
         if model.trunk is None:
             raise CmtoolError(f"{self.parent_run}: a decoder-only RVAE; the decoder stage needs the full run")
         for p in (*model.trunk.parameters(), *model.to_latent.parameters()):
@@ -207,8 +207,16 @@ class EncoderStage(RVAEStage):
                        "the encoder keeps its decoder's queries: train it on data built with data.{key} = {m}")
         self._preview = None
 
-    def model(self):
+    def model(self, weights=True):
         model = ckpt.build_model({**self.parent_config, "weights": "full"}, str(self.parent))
+        if weights:
+            self._load_decoder(model)
+        for name, p in model.named_parameters():
+            p.requires_grad_(name.startswith(ENCODER_PREFIXES))
+        return model
+
+    def _load_decoder(self, model: RVAE) -> None:
+        """The parent's decoder weights into ``model``, checked to fit it."""
         decoder = {k: v for k, v in ckpt.read_weights(self.parent).items() if not k.startswith(ENCODER_PREFIXES)}
         own = model.state_dict()
         missing = sorted(k for k in own if not k.startswith(ENCODER_PREFIXES) and k not in decoder)
@@ -221,9 +229,6 @@ class EncoderStage(RVAEStage):
                 problem = f"{shaped[0]} of shape {tuple(decoder[shaped[0]].shape)}, not {tuple(own[shaped[0]].shape)}"
             raise CmtoolError(f"{self.parent}: its decoder weights do not match its config ({problem})")
         model.load_state_dict({k: v.to(own[k].dtype) for k, v in decoder.items()}, strict=False)
-        for name, p in model.named_parameters():
-            p.requires_grad_(name.startswith(ENCODER_PREFIXES))
-        return model
 
     def config(self):
         return {"kind": self.kind, "model": self.parent_config["model"],
@@ -333,9 +338,9 @@ class DiTStage(_DiffusionStage):
         self.dit_config = dataclasses.replace(recipe.dit, num_classes=len(self.cities)).resolved()
         self.init_from = ckpt.resolve(recipe.train.init_from).resolve() if recipe.train.init_from else None
 
-    def model(self):
+    def model(self, weights=True):
         model = DiT(self.dit_config)
-        if self.init_from is not None:
+        if weights and self.init_from is not None:
             model.load_state_dict(self.init_weights())
         return model
 
@@ -429,10 +434,10 @@ class ControlNetStage(_DiffusionStage):
             raise CmtoolError(f"{recipe.path}: train.layout_dropout needs control.layout")
         self._preview = self._preview_control = None
 
-    def model(self):
-        dit, _ = ckpt.load_model(self.dit_path, "cpu")
+    def model(self, weights=True):
+        dit = ckpt.load_model(self.dit_path, "cpu")[0] if weights else ckpt.build_model(self.dit_config)
         model = ControlMap(dit.base if isinstance(dit, ControlMap) else dit, self.recipe.control)
-        if self.branch_from is not None:
+        if weights and self.branch_from is not None:
             self.load_branch(model)
         model.freeze_base()
         return model

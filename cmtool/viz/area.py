@@ -13,7 +13,9 @@ import rerun.blueprint as rrb
 from cmtool.core.geometry import from_frame
 from cmtool.viz.recording import LANE_RADIUS_M, lane_colours
 
-NORTH_UP = [[1.0, 0.0, 0.0], [0.0, -1.0, 0.0], [0.0, 0.0, 1.0]]  # x east, y north on a screen whose y points down
+# x east, y north on a screen whose y points down; logged on ``area``, it acts in a view whose origin lies above it
+# (a view shows its origin's own frame, in which the origin's transform does not act)
+NORTH_UP = [[1.0, 0.0, 0.0], [0.0, -1.0, 0.0], [0.0, 0.0, 1.0]]
 SQUARE = np.array([[1.0, 1.0], [-1.0, 1.0], [-1.0, -1.0], [1.0, -1.0], [1.0, 1.0]])
 SEAM_ON_ROAD, SEAM_OFF_ROAD = [255, 0, 255], [150, 150, 150]
 
@@ -55,9 +57,13 @@ def log_area(rec: rr.RecordingStream, roads, tiles, tile_maps, graph, seams, on_
                                           colors=[SEAM_ON_ROAD if r else SEAM_OFF_ROAD for r in on_road]))
 
 
-def area_blueprint() -> rrb.Blueprint:
-    """The area's view beside the run's info, the ``tile`` timeline open at its end (the stitched map)."""
-    return rrb.Blueprint(rrb.Horizontal(rrb.Spatial2DView(origin="/area", name="area: tiles, then the stitched map"),
+def area_blueprint(placed: int) -> rrb.Blueprint:
+    """The area's view (north up; the control residual heatmaps of the ``placed`` tiles, 0 to placed - 1, left out)
+    beside the run's info, the ``tile`` timeline open at its end (the stitched map)."""
+    area = rrb.Spatial2DView(origin="/", contents=["/area/**", *(f"- /area/denoising/{k}/control/**"
+                                                                 for k in range(placed))],
+                             name="area: tiles, then the stitched map")
+    return rrb.Blueprint(rrb.Horizontal(area,
                                         rrb.TextDocumentView(origin="/info", name="info"), column_shares=[5, 1]),
                          rrb.BlueprintPanel(expanded=False), rrb.SelectionPanel(expanded=False),
                          rrb.TimePanel(expanded=True, timeline="tile", play_state="following"))

@@ -26,6 +26,7 @@ _EGO_TO_SCREEN = [[0.0, -1.0, 0.0], [-1.0, 0.0, 0.0], [0.0, 0.0, 1.0]]
 # recording opened in a running viewer shows its own layout, not the first one's
 APP_IDS = {kind: f"cmtool_{kind}" for kind in ("data", "train", "sample", "eval", "ablate", "area")}
 LANE_RADIUS_M, LIGHT_RADIUS_M = 0.2, 0.3  # thin enough to see the junction through
+DECODED = [150, 150, 150]  # the decoded lanes under the final map
 GRPC_PORT, WEB_PORT = 9876, 9090  # where --serve serves a recording and Rerun's web viewer
 
 
@@ -161,6 +162,13 @@ def log_lanes(rec: rr.RecordingStream, prefix: str, lines, green=(), red=(), edg
                                                               colors=colour, draw_order=20.0), static=static)
 
 
+def log_decoded(rec: rr.RecordingStream, prefix: str, lines) -> None:
+    """Log a map's lanes as the model decoded them, grey and thin, under ``<prefix>decoded``: beside the final map
+    (``<prefix>hd``) it shows what the guarantee moved (laid on the SD roads, turned, lent)."""
+    rec.log(f"{prefix}decoded/lanes", rr.LineStrips2D([np.asarray(l) for l in lines], radii=LANE_RADIUS_M / 2,
+                                                      colors=DECODED, draw_order=-5.0), static=True)
+
+
 def log_sd(rec: rr.RecordingStream, prefix: str, sd: np.ndarray, frame_m: float = 64.0, static: bool = False) -> None:
     """Log an SD raster (H, W, 3) as a readable image on the scene's square at ``<prefix>control/sd``."""
     size = sd.shape[0]
@@ -185,18 +193,27 @@ def log_layout(rec: rr.RecordingStream, prefix: str, layout: np.ndarray, frame_m
 
 
 def log_scene(rec: rr.RecordingStream, prefix: str, scene) -> None:
-    """Log a scene's lanes, successor arrows, light lines and SD raster under ``prefix``."""
+    """Log a scene's lanes, successor arrows, light lines and SD raster under ``prefix``, static (shown at any
+    time)."""
     log_lanes(rec, prefix, scene.lines[scene.line_mask], scene.green[scene.green_mask], scene.red[scene.red_mask],
-              scene.edges)
+              scene.edges, static=True)
     if scene.sd is not None:
-        log_sd(rec, prefix, scene.sd, scene.frame_m)
+        log_sd(rec, prefix, scene.sd, scene.frame_m, static=True)
+
+
+def grid_rows(count: int) -> list[int]:
+    """How many of ``count`` views go in each row of a near-square layout with no empty cell: as many rows as the
+    square root rounded, the longer rows first (13: 4, 3, 3, 3)."""
+    rows = max(1, round(np.sqrt(count)))
+    return [count // rows + (r < count % rows) for r in range(rows)]
 
 
 def scenes_blueprint(names: list[str], half: float = 32.0, info: bool = True) -> rrb.Blueprint:
-    """A grid of 2D views, one per ``sample_{k}`` (titled by ``names``), plus the info text."""
+    """2D views in rows (:func:`grid_rows`), one per ``sample_{k}`` (titled by ``names``), plus the info text."""
     bounds = rrb.VisualBounds2D(x_range=[-half, half], y_range=[-half, half])
     views = [rrb.Spatial2DView(origin=f"/sample_{k}", name=name, visual_bounds=bounds) for k, name in enumerate(names)]
-    grid = rrb.Grid(*views, grid_columns=int(np.ceil(np.sqrt(max(len(views), 1)))))
+    rows = grid_rows(len(views))
+    grid = rrb.Vertical(*[rrb.Horizontal(*views[first:first + n]) for first, n in zip(np.cumsum([0, *rows]), rows)])
     if not info:
         return rrb.Blueprint(grid, collapse_panels=True)
     return rrb.Blueprint(rrb.Horizontal(grid, rrb.TextDocumentView(origin="/info", name="info"),

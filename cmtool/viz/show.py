@@ -74,6 +74,5 @@ def show_dataset(data_dir, n: int = 16, png=None, rrd=None, split: str | None = 
             + "\n".join(f"- sample_{k}: scene {t}" for k, t in enumerate(titles)), media_type="text/markdown"),
             static=True)
         for k, scene in enumerate(scenes):
-            rec.set_time("sample", sequence=k)
             log_scene(rec, f"sample_{k}/", scene)
         close_recording(rec, rrd)

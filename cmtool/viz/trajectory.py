@@ -3,8 +3,10 @@
 :class:`TrajectoryLogger` is the sampler's per-step callback. It keeps each step's tensors and
 sends them in columns (one ``send_columns`` per entity for many steps), which costs a fraction
 of logging row by row; pending steps go out every ``flush_s`` seconds when a live viewer follows
-the run, else all at the end of the batch. Per map, under ``<prefix>`` (``sample_{k}/`` when a recording holds several maps) and on
-the ``diffusion_step`` (0 = pure noise) and ``timestep`` timelines:
+the run, else all at the end of the batch. Per map, under ``<prefix>`` (``sample_{k}/`` when a recording holds
+several maps), on the ``diffusion_step`` timeline (0: the start, pure noise or the noised ``--init`` layout; k: what
+the k-th model pass predicted and the latent it left; the last: the clean latent the map is decoded from) and the
+``timestep`` timeline (each model pass's t: the latent it took and what it predicted):
 
 - ``diffusion/latent``: the latent x_t (Tensor channel x row x col, shown as one channel's 8 x 8
   grid with a channel slider; each step's value range spans its own values);
@@ -13,10 +15,12 @@ the ``diffusion_step`` (0 = pure noise) and ``timestep`` timelines:
 - ``diffusion/eps/{cond,uncond,guided}``: L2 norms of the noise predictions, and
   ``diffusion/eps/delta``, the norm of the guidance term ``w (eps_cond - eps_uncond)`` (at w = 1 the guided
   prediction is the conditioned one and no unconditioned pass runs: no ``uncond`` and ``delta``);
-- ``control/residual/block_{m}``: per-token L2 norm of the residual added to DiT block m (8 x 8
-  Tensor, rows = latent rows, each step's value range spanning its own values, so the heatmap shows
-  where the control acts at every step), and ``control/residual/block_{m}/norm``, its total L2 norm.
-"""
+- ``control/residual/block_{m}``: per-token L2 norm of the residual added to DiT block m (an 8 x 8
+  ``DepthImage``, rows = latent rows, each step's colour range spanning its own values, so the heatmap shows
+  where the control acts at every step; placed in rows of three, framed and named by ``control/residual/frames``),
+  and ``control/residual/block_{m}/norm``, its total L2 norm.
+
+:func:`log_scores` adds each map's scores (``scores/...``) when the maps are made."""
 
 from __future__ import annotations
 
@@ -32,12 +36,15 @@ from rerun._baseclasses import ComponentColumn, ComponentColumnList
 from rerun.encodings import TensorDimensionIndexSelection, TensorDimensionSelection
 
 from cmtool.diffusion.samplers import StepInfo
-from cmtool.viz.draw import GREEN, RED
+from cmtool.viz.draw import GREEN, RED, heading_colours
 from cmtool.viz.recording import LANE_RADIUS_M, LIGHT_RADIUS_M, in_memory, lane_colours, log_ego_frame
 
 LATENT_DIMS = ("channel", "row", "col")
 MAX_TABS = 16  # maps that get their own tab in the default layout
-HEATMAP_DIMS = ("row", "col")
+# the noise-prediction norms: each series' legend name and colour (the conditioned and unconditioned far apart)
+EPS_SERIES = {"cond": ("cond", [70, 140, 255]), "uncond": ("uncond", [255, 150, 30]),
+              "guided": ("guided", [235, 235, 235]), "delta": ("guided - uncond", [220, 60, 200])}
+SCORE_COLOURS = ([70, 140, 255], [255, 150, 30], [90, 200, 90])
 
 
 class _Column:
@@ -83,10 +90,35 @@ def tensor_columns(arrays: np.ndarray, dim_names) -> ComponentColumnList:
     """:func:`tensor_column` with each tensor's own [min, max] as its value range (a colour map over the
     values of that step, not over a fixed range that flattens steps of small values)."""
     arrays = np.asarray(arrays, np.float32)
+    return ComponentColumnList([*tensor_column(arrays, dim_names), *rr.Tensor.columns(value_range=_ranges(arrays))])
+
+
+def heatmap_columns(maps: np.ndarray) -> ComponentColumnList:
+    """``DepthImage`` columns of ``(N, H, W)`` heatmaps, each coloured over its own [min, max] (drawn in a 2D view,
+    which puts no dimension labels over them as a tensor view does)."""
+    maps = np.ascontiguousarray(maps, np.float32)
+    n, h, w = maps.shape
+    image_format = rr.components.ImageFormat(width=w, height=h, channel_datatype="F32")
+    return rr.DepthImage.columns(buffer=maps.reshape(n, -1).view(np.uint8), format=[image_format] * n,
+                                 depth_range=_ranges(maps))
+
+
+def block_colours(blocks: int) -> np.ndarray:
+    """(blocks, 3) RGB: one colour per injected block (its heatmap's frame, its norm's series), hues evenly apart."""
+    return heading_colours(2 * np.pi * (np.arange(blocks) + 0.5) / max(blocks, 1))
+
+
+def heatmap_cells(blocks: int) -> np.ndarray:
+    """(blocks, 2): the top-left corner of each block's heatmap, scaled to a unit square, in rows of three with room
+    for a label under each."""
+    return np.array([[(m % 3) * 1.1, (m // 3) * 1.3] for m in range(blocks)], np.float64).reshape(-1, 2)
+
+
+def _ranges(arrays: np.ndarray) -> np.ndarray:
+    """(N, 2): each array's [min, max], widened where flat."""
     flat = arrays.reshape(len(arrays), -1)
     lo, hi = flat.min(axis=1), flat.max(axis=1)
-    ranges = np.stack([lo, np.maximum(hi, lo + 1e-6)], axis=1).astype(np.float64)
-    return ComponentColumnList([*tensor_column(arrays, dim_names), *rr.Tensor.columns(value_range=ranges)])
+    return np.stack([lo, np.maximum(hi, lo + 1e-6)], axis=1).astype(np.float64)
 
 
 def strips_column(strips: np.ndarray) -> ComponentColumn:
@@ -106,10 +138,12 @@ def _norms(x) -> np.ndarray:
 
 
 class TrajectoryLogger:
-    """Sampler callback that records every step of a batch of maps, one ``prefix`` per map. ``flush_s``: seconds
-    between flushes [default: 0.5 for a live viewer; none before the last step for a recording kept in memory,
-    so that all steps' latents are decoded in one batch]; ``ego``: make each map's ``diffusion/x0`` an ego-frame
-    space shown forward-up (else the caller places each prefix, as ``area.rrd`` places its tiles)."""
+    """Sampler callback that records every step of a batch of maps, one ``prefix`` per map: ``diffusion_step`` 0
+    holds the latent the sampler starts from, step k what its k-th model pass predicted and the latent that pass
+    left (see the module doc). ``flush_s``: seconds between flushes [default: 0.5 for a live viewer; none before
+    :meth:`finish` for a recording kept in memory, so that all steps' latents are decoded in one batch]; ``ego``:
+    make each map's ``diffusion/x0`` an ego-frame space shown forward-up (else the caller places each prefix, as
+    ``area.rrd`` places its tiles)."""
 
     def __init__(self, rec: rr.RecordingStream, prefixes: list[str], decode: Callable, cfg: float,
                  flush_s: float | None = None, ego: bool = True):
@@ -117,6 +151,8 @@ class TrajectoryLogger:
             flush_s = math.inf if in_memory(rec) else 0.5
         self.rec, self.prefixes, self.decode, self.cfg, self.flush_s = rec, prefixes, decode, cfg, flush_s
         self.pending: list[dict] = []
+        self.last = None  # the last step seen
+        self.placed = False  # the heatmaps placed
         self.last_flush = time.perf_counter()
         for prefix in prefixes if ego else ():
             log_ego_frame(rec, f"{prefix}diffusion/x0")
@@ -136,40 +172,71 @@ class TrajectoryLogger:
             step["heatmaps"] = [h.reshape(len(h), side, side).cpu().numpy() for h in per_token]
             step["residual_norms"] = [h.norm(dim=1).cpu().numpy() for h in per_token]
         self.pending.append(step)
+        self.last = step
         if time.perf_counter() - self.last_flush >= self.flush_s:
             self.flush()
 
     def flush(self) -> None:
-        """Send the pending steps of every map as columns."""
+        """Send the pending steps of every map as columns: each step's latent at its own number, what its model
+        pass predicted at the next."""
         if not self.pending:
             return
         steps, self.pending = self.pending, []
+        if not self.placed:
+            self._place_heatmaps(steps[0])
         n, b = len(steps), len(self.prefixes)
         import torch
 
         decoded = self.decode(torch.cat([s["x0"] for s in steps]))  # step-major: row i * b + k
-        times = [rr.TimeColumn("diffusion_step", sequence=[s["step"] for s in steps]),
-                 rr.TimeColumn("timestep", sequence=[s["t"] for s in steps])]
+        timesteps = rr.TimeColumn("timestep", sequence=[s["t"] for s in steps])
+        inputs = [rr.TimeColumn("diffusion_step", sequence=[s["step"] for s in steps]), timesteps]
+        times = [rr.TimeColumn("diffusion_step", sequence=[s["step"] + 1 for s in steps]), timesteps]
         latents = np.stack([s["latent"].numpy() for s in steps], axis=1)  # (B, n, C, H, W)
         for k, prefix in enumerate(self.prefixes):
             send = self.rec.send_columns
-            send(f"{prefix}diffusion/latent", indexes=times, columns=tensor_columns(latents[k], LATENT_DIMS))
+            send(f"{prefix}diffusion/latent", indexes=inputs, columns=tensor_columns(latents[k], LATENT_DIMS))
             mine = [decoded[i * b + k] for i in range(n)]
             self._send_lines(f"{prefix}diffusion/x0/lanes", times, [d["lines"] for d in mine], None, LANE_RADIUS_M)
             for state, colour in (("green", GREEN), ("red", RED)):
                 self._send_lines(f"{prefix}diffusion/x0/lights/{state}", times, [d[state] for d in mine], colour,
                                  LIGHT_RADIUS_M)
-            for key in ("cond", "uncond", "guided", "delta"):
+            for key in EPS_SERIES:
                 if key in steps[0]:
                     send(f"{prefix}diffusion/eps/{key}", indexes=times,
                          columns=rr.Scalars.columns(scalars=[float(s[key][k]) for s in steps]))
             for m in range(len(steps[0].get("heatmaps", []))):
                 path = f"{prefix}control/residual/block_{m}"
-                send(path, indexes=times, columns=tensor_columns(np.stack([s["heatmaps"][m][k] for s in steps]),
-                                                                 HEATMAP_DIMS))
+                send(path, indexes=times, columns=heatmap_columns(np.stack([s["heatmaps"][m][k] for s in steps])))
                 send(f"{path}/norm", indexes=times,
                      columns=rr.Scalars.columns(scalars=[float(s["residual_norms"][m][k]) for s in steps]))
         self.last_flush = time.perf_counter()
+
+    def finish(self) -> None:
+        """Flush, then record the clean latent the sampler ended on after the last step (its last model pass's
+        clean estimate: every sampler's last update lands on it), without a timestep."""
+        self.flush()
+        if self.last is None:
+            return
+        final = self.last["x0"].float().cpu().numpy()[:, None]  # (B, 1, C, H, W)
+        times = [rr.TimeColumn("diffusion_step", sequence=[self.last["step"] + 1])]
+        for k, prefix in enumerate(self.prefixes):
+            self.rec.send_columns(f"{prefix}diffusion/latent", indexes=times,
+                                  columns=tensor_columns(final[k], LATENT_DIMS))
+
+    def _place_heatmaps(self, step: dict) -> None:
+        """Place each map's heatmaps (:func:`heatmap_cells`), each framed and named in the colour of its norm's
+        series (the frames on an entity of their own: Rerun places a label by the box's own coordinates, not by its
+        entity's transform)."""
+        self.placed = True
+        heatmaps = step.get("heatmaps", [])
+        at = heatmap_cells(len(heatmaps))
+        for prefix in self.prefixes if heatmaps else ():
+            self.rec.log(f"{prefix}control/residual/frames", rr.Boxes2D(
+                mins=at, sizes=np.ones_like(at), labels=[f"block {m}" for m in range(len(heatmaps))],
+                colors=block_colours(len(heatmaps)), radii=0.006), static=True)
+            for m, (x, y) in enumerate(at):
+                self.rec.log(f"{prefix}control/residual/block_{m}", rr.Transform3D(
+                    translation=[x, y, 0.0], scale=1.0 / heatmaps[m].shape[-1]), static=True)
 
     def _send_lines(self, path: str, times, per_step: list[np.ndarray], colour, radius: float) -> None:
         counts = [len(lines) for lines in per_step]
@@ -181,9 +248,24 @@ class TrajectoryLogger:
         self.rec.send_columns(path, indexes=times, columns=columns.partition(counts))
 
 
+def log_scores(rec: rr.RecordingStream, scores: dict[str, list]) -> None:
+    """Each score of every map as a bar at the map's number (``scores``: name -> a value or None per map, in the
+    order of the maps' prefixes), the scores of a map side by side, under ``scores/NAME`` (spaces as ``_``); a score
+    no map has is left out."""
+    width = 0.8 / len(scores)
+    for i, (name, values) in enumerate(scores.items()):
+        bars = np.array([np.nan if v is None else v for v in values], np.float64)
+        if np.isnan(bars).all():
+            continue
+        at = np.arange(len(bars)) + (i - (len(scores) - 1) / 2) * width
+        chart = rr.BarChart(bars, abscissa=at, widths=np.full(len(bars), 0.9 * width),
+                            color=SCORE_COLOURS[i % len(SCORE_COLOURS)])
+        rec.log(f"scores/{name.replace(' ', '_')}", chart, static=True)
+
+
 def sample_view(prefix: str, name: str, blocks: int, truth: bool) -> rrb.Container:
     """One map's layout: SD | x0 lanes over the steps | final lanes (| ground truth) above
-    latent | residual heatmaps | scalars."""
+    latent | residual heatmaps | noise-prediction norms | residual norms."""
     root = "/" + prefix
     bounds = rrb.VisualBounds2D(x_range=[-32.0, 32.0], y_range=[-32.0, 32.0])
 
@@ -193,33 +275,41 @@ def sample_view(prefix: str, name: str, blocks: int, truth: bool) -> rrb.Contain
 
     top = [spatial("SD control", "control/sd"),
            spatial("x0 lanes over diffusion steps", "control/sd", "diffusion/x0/**"),
-           spatial("generated", "control/sd", "hd/**")]
+           spatial("generated (grey: as decoded)", "control/sd", "decoded/**", "hd/**")]
     if truth:
         top.append(spatial("ground truth", "control/sd", "truth/**"))
     grid = rrb.TensorSliceSelection(width=TensorDimensionSelection(2), height=TensorDimensionSelection(1),
                                     indices=[TensorDimensionIndexSelection(0, 0)], slider=[0])  # (channel, row, col)
-    bottom = [rrb.TensorView(origin=f"{root}diffusion/latent", name="latent x_t, one channel", slice_selection=grid,
+    bottom = [rrb.TensorView(origin=f"{root}diffusion/latent", name="latent x_t", slice_selection=grid,
                              view_fit="Fill")]
-    if blocks:
-        bottom.append(rrb.Grid(*[rrb.TensorView(origin=f"{root}control/residual/block_{m}", contents="$origin",
-                                                name=f"block {m}", view_fit="Fill") for m in range(blocks)],
-                               grid_columns=3, name="control residuals"))
     legend = rrb.PlotLegend(corner="LeftTop")
-    plots = [rrb.TimeSeriesView(name="noise prediction norms", origin=f"{root}diffusion/eps", plot_legend=legend)]
+    eps = {f"{root}diffusion/eps/{key}": rr.SeriesLines(colors=colour, names=series).visualizer()
+           for key, (series, colour) in EPS_SERIES.items()}
+    plots = [rrb.TimeSeriesView(name="noise prediction norms", origin=f"{root}diffusion/eps", plot_legend=legend,
+                                overrides=eps)]
     if blocks:
+        far = heatmap_cells(blocks).max(axis=0)  # the last column's and row's corner; a label under each heatmap
+        bounds = rrb.VisualBounds2D(x_range=[-0.05, far[0] + 1.05], y_range=[-0.05, far[1] + 1.3])
+        heatmap = rr.DepthImage.from_fields(colormap="viridis", magnification_filter="Nearest")
+        bottom.append(rrb.Spatial2DView(origin=f"{root}control/residual", name="control residual of each block",
+                                        visual_bounds=bounds, defaults=[heatmap]))
+        norms = {f"{root}control/residual/block_{m}/norm": rr.SeriesLines(colors=c, names=f"block {m}").visualizer()
+                 for m, c in enumerate(block_colours(blocks))}
         plots.append(rrb.TimeSeriesView(name="control residual norms", origin=f"{root}control/residual",
-                                        plot_legend=legend))
-    bottom.append(rrb.Vertical(*plots))
-    return rrb.Vertical(rrb.Horizontal(*top), rrb.Horizontal(*bottom, column_shares=[1, 2, 2][:len(bottom)]),
+                                        plot_legend=legend, overrides=norms))
+    shares = [2, 4.5][:len(bottom)] + [3] * len(plots)
+    return rrb.Vertical(rrb.Horizontal(*top), rrb.Horizontal(*bottom, *plots, column_shares=shares),
                         row_shares=[1, 1], name=name)
 
 
 def sampling_blueprint(prefixes: list[str], names: list[str], blocks: int, truth: bool) -> rrb.Blueprint:
     """Tabs with one :func:`sample_view` per map (the first ``MAX_TABS``; the others are in the
-    entity tree), beside the run's info document."""
+    entity tree), beside the run's info document above the scores of every map."""
     views = [sample_view(p, n, blocks, truth) for p, n in zip(prefixes[:MAX_TABS], names)]
     body = views[0] if len(views) == 1 else rrb.Tabs(*views)
-    return rrb.Blueprint(rrb.Horizontal(body, rrb.TextDocumentView(origin="/info", name="info"),
-                                        column_shares=[6, 1]),
+    side = rrb.Vertical(rrb.TextDocumentView(origin="/info", name="info"),
+                        rrb.BarChartView(origin="/scores", name="scores of each map (x: map number)",
+                                         plot_legend=rrb.PlotLegend(corner="LeftTop")), row_shares=[3, 2])
+    return rrb.Blueprint(rrb.Horizontal(body, side, column_shares=[3, 1]),
                          rrb.BlueprintPanel(expanded=False), rrb.SelectionPanel(expanded=False),
                          rrb.TimePanel(expanded=True, timeline="diffusion_step"))
