@@ -2,10 +2,10 @@
 
 from __future__ import annotations
 
-
 import click
 
 from cmtool.cli.common import InPath, OutPath
+
 
 @click.command()
 @click.argument("path", required=False, type=InPath())
