@@ -30,7 +30,6 @@ import dataclasses
 import hashlib
 import json
 import math
-import os
 import sys
 import time
 from pathlib import Path
@@ -39,6 +38,7 @@ import torch
 
 from cmtool.core.errors import CmtoolError
 from cmtool.core.jsonio import read_json, write_json
+from cmtool.core.launch import launch
 from cmtool.core.tables import read_toml
 from cmtool.model import checkpoint as ckpt
 from cmtool.train.recipe import Recipe, load_recipe
@@ -78,11 +78,12 @@ class Pipeline:
     """Runs the stages of a pipeline recipe into ``out`` (see the module docstring)."""
 
     def __init__(self, recipe: Recipe, out: Path, device: torch.device, progress: bool = True,
-                 data_dir: Path | None = None, serve: int | None = None):
+                 data_dir: Path | None = None, serve: int | None = None, log: bool = True):
         self.recipe, self.out, self.device, self.progress, self.serve = recipe, Path(out), device, progress, serve
+        self.log = log  # False: no training recordings, no eval.rrd
         self.files = stage_recipes(recipe)
         self.data_dir = data_dir  # a dataset built before: the data stage takes it instead of building
-        self.rank = int(os.environ.get("RANK", "0"))
+        self.rank = launch()[0]
         self.stages = [s for s in STAGES if s != "decoder" or "decoder" in self.files]
         self.state_path = self.out / "pipeline.json"
         self.fingerprints: dict[str, str] = {}
@@ -110,7 +111,7 @@ class Pipeline:
         blob = json.dumps({"stage": name, "content": content, "reads": reads}, sort_keys=True, default=str)
         return hashlib.sha256(blob.encode()).hexdigest()[:16]
 
-    def _stage_recipe(self, name: str) -> Recipe:
+    def stage_recipe(self, name: str) -> Recipe:
         """A training stage's recipe with its paths pointed at this pipeline's folders."""
         rec = load_recipe(self.files[name])
         if rec.train.stage and rec.train.stage != name:
@@ -131,7 +132,7 @@ class Pipeline:
                 return {"dataset": read_json(self.data_dir / "manifest.json").get("recipe")}
             return load_recipe(self.files["data"]).to_dict()["data"]
         if name in TRAINED:
-            values = self._stage_recipe(name).to_dict()
+            values = self.stage_recipe(name).to_dict()
             values["train"] = {k: v for k, v in values["train"].items() if k not in UNHASHED}
             return values
         if name == "eval":
@@ -218,10 +219,10 @@ class Pipeline:
         from cmtool.train.loop import train
         from cmtool.train.stages import STAGES as TRAIN_STAGES
 
-        rec = self._stage_recipe(name)
+        rec = self.stage_recipe(name)
         run_dir = self.folder(name)
         final = train(TRAIN_STAGES[name](rec, self.device), run_dir, resume=bool(ckpt.run_checkpoints(run_dir)),
-                      progress=self.progress, serve=self.serve)
+                      progress=self.progress, serve=self.serve, log=self.log)
         config = ckpt.load_config(final)
         result = {"checkpoint": str(final), "steps": config["step"],
                   "train_seconds": round(config["training"]["time_s"], 1)}
@@ -249,7 +250,7 @@ class Pipeline:
                                 sampler=e.sampler, seed=e.seed, batch=e.batch)
         extractor = FeatureExtractor("resnet50-seeded", None, self.device) if e.features else None
         report = run_eval(gen, settings, self.folder("eval"), extractor, rrd_samples=e.rrd_samples,
-                          progress=self.progress)
+                          progress=self.progress, record=self.log)
         cm = report["methods"]["controlmap"]
         keys = ("validity", "dangling", "crossings", "lane_f1", "sd_coverage", "legal_oneway")
         out = {k: round(cm["geometry"][k]["mean"], 4) for k in keys

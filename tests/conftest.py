@@ -36,6 +36,20 @@ def in_process(capsys, *args) -> tuple[int, str, str]:
     return code, out.out, out.err
 
 
+def interrupted_at(monkeypatch, module, name: str, call: int):
+    """Make ``module.name`` raise KeyboardInterrupt (a Ctrl-C) at its ``call``-th call; returns the real function."""
+    real, calls = getattr(module, name), []
+
+    def stops(*args, **kwargs):
+        calls.append(1)
+        if len(calls) == call:
+            raise KeyboardInterrupt
+        return real(*args, **kwargs)
+
+    monkeypatch.setattr(module, name, stops)
+    return real
+
+
 @pytest.fixture(scope="module")
 def one_thread():
     """One torch thread for a module (`pytestmark = pytest.mark.usefixtures("one_thread")`)."""

@@ -26,7 +26,7 @@ from cmtool.maps.sdmap import Road, SDMap
 from cmtool.maps.stitch import JOIN_M, stitch
 from cmtool.metrics.connectivity import routed_share, sd_end_pairs, unrouted
 from cmtool.metrics.validity import check
-from tests.conftest import REPO, in_process
+from tests.conftest import REPO, in_process, interrupted_at
 
 TOWN = REPO / "sample_data" / "town_bos.osm"
 BOX = "42.3560,-71.0640,42.3575,-71.0620"  # about 165 m x 167 m of the town's middle
@@ -241,15 +241,7 @@ def test_a_killed_area_run_goes_on_where_it_stopped(tmp_path, capsys, monkeypatc
     args = ("sample", "--osm", TOWN, "--area", BOX, "--steps", 4, "--sampler", "dpm++2m-sde", "--batch", 4, "--raw")
     code, _, err = in_process(capsys, *args, "--out", tmp_path / "whole")
     assert code == 0, err
-    real, calls = area_module.batch_maps, []
-
-    def dies_on_the_third_batch(*a, **k):
-        calls.append(1)
-        if len(calls) == 3:
-            raise KeyboardInterrupt
-        return real(*a, **k)
-
-    monkeypatch.setattr(area_module, "batch_maps", dies_on_the_third_batch)
+    real = interrupted_at(monkeypatch, area_module, "batch_maps", 3)
     code, _, err = in_process(capsys, *args, "--out", tmp_path / "broken")  # Ctrl-C, as the CLI reports it
     assert code == 130, err
     cache = tmp_path / "broken" / ".town_bos_area.tiles"

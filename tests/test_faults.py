@@ -11,6 +11,7 @@ from __future__ import annotations
 import contextlib
 import io
 import json
+import pickle
 import resource
 import shutil
 import zipfile
@@ -19,13 +20,14 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from tests.conftest import REPO, SHARED_DATA
+from tests.conftest import REPO, SHARED_DATA, interrupted_at
 
 pytestmark = pytest.mark.usefixtures("one_thread")
 
 AV2 = next(iter(sorted((SHARED_DATA / "av2").rglob("log_map_archive_*.json"))), None)
 LANELET2 = next(iter(sorted((SHARED_DATA / "lanelet2").rglob("*.osm"))), None)
 SD_PNG = REPO / "sample_data" / "sd_bos.png"
+TOWN = REPO / "sample_data" / "town_bos.osm"
 UNWRITABLE = "/sys/cmtool-test"  # mkdir and open fail with EACCES here, even for root
 FULL_DISK = 16  # bytes a run may write per file
 
@@ -375,8 +377,7 @@ INPUT_CASES = [
                   "noconfig", "badweights", "notjson")
       for cmd, args in {"info": "info BAD",
                         "sample": "sample --ckpt BAD --sd " + str(SD_PNG) + " --steps 2 --no-log --out {out}/k",
-                        "pack": "pack --ckpt BAD --out {out}/pk"}.items()
-      if (cmd, bad) != ("info", "badweights")],  # info reads the config alone
+                        "pack": "pack --ckpt BAD --out {out}/pk"}.items()],
     case("eval-ckpt-missing", "eval", "--ckpt", "{missing}", "--data", "{data}", "--n", "2", "--out", "{out}/em"),
     # datasets
     *[case(f"{cmd}-{bad}", *args.replace("BAD", "{" + bad + "}").split())
@@ -591,6 +592,10 @@ def hostile(ws, tmp_path_factory):
     overlap[b]["data_offsets"] = overlap[a]["data_offsets"]
     p["ckpt_overlap"] = ckpt_copy("overlap")
     _write_safetensors(p["ckpt_overlap"] / shard, json.dumps(overlap), data)
+    p["ckpt_garbage"] = ckpt_copy("garbage")  # a header of the right length that is not JSON
+    _write_safetensors(p["ckpt_garbage"] / shard, "x" * len(text), data)
+    p["ckpt_pickle"] = ckpt_copy("pickle")  # a pickle named .safetensors
+    (p["ckpt_pickle"] / shard).write_bytes(pickle.dumps({k: list(range(10)) for k in names}))
     index = json.loads((shipped / "model.safetensors.index.json").read_text())
     p["ckpt_escape"] = ckpt_copy("escape")
     escape = dict(index, weight_map={k: "../../../" + v for k, v in index["weight_map"].items()})
@@ -680,6 +685,12 @@ HOSTILE_CASES = [
          fragment="billion parameters"),
     case("pipeline-names-itself", "train", "pipeline", "--recipe", "{self_toml}", "--out", "{out}/p",
          fragment="pipeline recipe"),
+    # issue 57: frame options --area does not take, checkpoints info never read the weights of, frames off the map
+    case("area-heading", "sample", "--osm", str(TOWN), "--area", "all", "--heading", "30", *SD_ARGS[2:], "--out",
+         "{out}/a", fragment="--heading"),
+    *[case(f"info-ckpt-{bad}", "info", "{ckpt_" + bad + "}", fragment="not a valid safetensors file")
+      for bad in ("overlap", "garbage", "pickle")],
+    case("raster-x-far", "data", "raster", "{sd}", "--x", "1e300", "--png", "{out}/r.png", fragment="--x"),
     *[case(f"connect-{name}", "sample", *SD_ARGS[:-2], "--quiet", "--out", "{out}/c", "--connect", url,
            fragment="--connect")
       for name, url in (("port-70000", "rerun+http://127.0.0.1:70000/proxy"), ("port-abc", "rerun+http://127.0.0.1:abc"),
@@ -1072,6 +1083,28 @@ def test_a_stop_waits_at_most_the_grace_period():
     assert time.monotonic() - began < _Watchdog.GRACE_S + 5
 
 
+def test_a_worker_stopped_inside_a_finalizer_still_stops_quietly():
+    """SIGTERM landing in a ``__del__`` (where Python prints the exception and goes on): the worker stops a moment
+    later where it can unwind, with no "Exception ignored" traceback (the pool's termination would wait for it)."""
+    import subprocess
+    import sys
+
+    script = ("import os, signal, time\n"
+              "from cmtool.core import workers\n"
+              "workers._worker_signals()\n"
+              "class Finalized:\n"
+              "    def __del__(self):\n"
+              "        os.kill(os.getpid(), signal.SIGTERM)\n"
+              "try:\n"
+              "    Finalized()\n"
+              "    time.sleep(5)\n"
+              "    print('still running')\n"
+              "except SystemExit as e:\n"
+              "    print('stopped', e.code)\n")
+    done = subprocess.run([sys.executable, "-c", script], cwd=REPO, capture_output=True, text=True, timeout=120)
+    assert done.stdout.strip() == "stopped 143" and "Traceback" not in done.stderr, done.stderr
+
+
 def test_workers_a_pool_terminates_are_not_the_users_signal():
     """Leaving a pool while its workers are busy terminates them with SIGTERM; the command goes on past the watchdog's
     grace period (issue 58: `train pipeline` and `data build` ended themselves with 143 ten seconds later)."""
@@ -1086,3 +1119,111 @@ def test_workers_a_pool_terminates_are_not_the_users_signal():
               "main(['work'])\n")
     result = subprocess.run([sys.executable, "-c", script], cwd=REPO, capture_output=True, text=True, timeout=120)
     assert result.returncode == 0 and result.stdout.strip() == "finished", result.stderr
+
+
+# --- Reliability 4 (issue 57): no wrong or lost output with exit 0 -------------------------------------------------
+
+def test_a_resumed_area_run_makes_the_unbroken_runs_map_byte_for_byte(tmp_path, monkeypatch):
+    """An area run stopped after two batches of tiles, one of them then left with fewer tiles than the batch size (as
+    a damaged cache holds): the same command makes the unbroken run's map, byte for byte."""
+    import cmtool.sample.area as area_module
+
+    hd = tmp_path / "pit.json"
+    code, err = cli("data", "synth", "--city", "PIT", "--seed", 0, "--extent", 300, "--out", hd)
+    assert code == 0, err
+    args = ("sample", "--from-hd", hd, "--area", "90,90,210,210", "--batch", 2, "--steps", 2, "--no-log", "--quiet")
+    code, err = cli(*args, "--out", tmp_path / "whole")
+    assert code == 0, err
+    real = interrupted_at(monkeypatch, area_module, "batch_maps", 3)
+    assert cli(*args, "--out", tmp_path / "broken")[0] == 130
+    monkeypatch.setattr(area_module, "batch_maps", real)
+    batch = tmp_path / "broken" / ".pit_area.tiles" / "b0000002.jsonl"
+    batch.write_text(batch.read_text().splitlines(keepends=True)[0])
+    code, err = cli(*args, "--out", tmp_path / "broken")
+    assert code == 0, err
+    assert (tmp_path / "broken" / "pit_area.json").read_bytes() == (tmp_path / "whole" / "pit_area.json").read_bytes()
+
+
+@pytest.mark.parametrize("env", [{"RANK": "1"}, {"RANK": "abc"}, {"WORLD_SIZE": "2"},
+                                 {"RANK": "2", "WORLD_SIZE": "2", "LOCAL_RANK": "0", "MASTER_ADDR": "127.0.0.1",
+                                  "MASTER_PORT": "29500"}],
+                         ids=["rank-alone", "rank-abc", "world-alone", "rank-2-of-2"])
+def test_a_torchrun_environment_that_does_not_fit_is_one_line(tmp_path, monkeypatch, env):
+    """Variables of torchrun without torchrun (or numbers that do not fit together): refused, nothing written (`RANK=1`
+    alone made `sample` exit 0 as a process whose maps the main one writes)."""
+    for key, value in env.items():
+        monkeypatch.setenv(key, value)
+    check(*cli("sample", *SD_ARGS, "--out", tmp_path / "s"), "RANK")
+    assert not (tmp_path / "s").exists()
+
+
+def test_an_extract_across_the_antimeridian_keeps_its_lengths_and_places(tmp_path):
+    """A 600 m road east-west across 180 and a road on either side: the road stays 600 m long and runs east, a box
+    across 180 is that box (not the whole extract), and the GeoJSON export's longitudes stay in [-180, 180]."""
+    import math
+
+    from cmtool.formats.osm import read_osm
+
+    half = 300 / (111320 * math.cos(math.radians(-16.5)))  # degrees of longitude for 300 m
+    osm = tmp_path / "fiji.osm"
+    osm.write_text(_osm({1: (-16.5, 180 - half), 2: (-16.5, -180 + half), 3: (-16.51, 179.9), 4: (-16.52, 179.9),
+                         5: (-16.51, -179.99), 6: (-16.52, -179.99)}, {10: [1, 2], 11: [3, 4], 12: [5, 6]}))
+    sd = read_osm(osm)
+    road = next(r.polyline for r in sd.roads if r.id == "w10")
+    assert np.linalg.norm(road[-1] - road[0]) == pytest.approx(600, abs=1) and abs(road[-1, 1] - road[0, 1]) < 0.5
+    code, err = cli("sample", "--osm", osm, "--area", f"-16.499,{180 - half},-16.501,{-180 + half}", *SD_ARGS[2:],
+                    "--out", tmp_path / "a")
+    assert code == 0, err
+    area = json.loads((tmp_path / "a" / "fiji_area.json").read_text())
+    x0, _, x1, _ = area["meta"]["area"]["box_m"]
+    assert x1 - x0 == pytest.approx(600, abs=1)
+    code, err = cli("export", "--format", "geojson", tmp_path / "a" / "fiji_area.json", "--out", tmp_path / "a.geojson")
+    assert code == 0, err
+    lons = [p[0] for f in json.loads((tmp_path / "a.geojson").read_text())["features"]
+            for p in np.array(f["geometry"]["coordinates"]).reshape(-1, 2)]
+    assert max(lons) <= 180 and min(lons) >= -180 and max(lons) > 179.99 and min(lons) < -179.99
+
+
+def test_export_verify_counts_every_successor_join(tmp_path):
+    """A lane graph with 3 successor joins, 2 of them self-loops: Lanelet2's verdict counts all 3 and names the one
+    its export does not route (it reported "routes the lane graph's 1 successor joins" and wrote the file)."""
+    pytest.importorskip("lanelet2", reason="the lanelet2 wheel (the verify extra)")
+    graph = tmp_path / "loops.json"
+    graph.write_text(json.dumps({"format": "cmtool.lanegraph", "version": 1, "lanes": [[[-20, 0], [0, 0]],
+                                                                                       [[0, 0], [20, 0]]],
+                                 "successors": [[0, 1], [0, 0], [1, 1]]}))
+    check(*cli("export", "--format", "lanelet2", graph, "--origin", "60,25", "--out", tmp_path / "l.osm", "--verify"),
+          "1 of its 3 successor joins not routed [(0, 0)]")
+    assert not (tmp_path / "l.osm").exists()
+
+
+def test_an_area_holds_every_road_it_crosses(tmp_path):
+    """`--area all` on one short road makes its lanes (the box was a line of no height: 0 lanes, validity 1.000); a
+    road crossing a box with no vertex inside is in the area; a box holding the whole extract is the whole extract."""
+    from cmtool.formats.osm import read_osm
+    from cmtool.sample.area import area_box
+
+    short = tmp_path / "short.osm"
+    short.write_text(_osm({1: (60.0, 24.9), 2: (60.0, 24.9018)}, {10: [1, 2]}))
+    code, err = cli("sample", "--osm", short, "--area", "all", *SD_ARGS[2:], "--out", tmp_path / "s")
+    assert code == 0, err
+    assert json.loads((tmp_path / "s" / "short_area.json").read_text())["lanes"]
+    long = tmp_path / "long.osm"
+    long.write_text(_osm({1: (60.0, 24.9), 2: (60.0, 24.95), 3: (60.01, 24.9), 4: (60.01, 24.95)},
+                         {10: [1, 2], 11: [3, 4]}))
+    sd = read_osm(long)
+    assert area_box(sd, "59.999,24.92,60.001,24.93")  # no vertex within 1 km of the box
+    whole = area_box(sd, "all")
+    for spec in ("-90,-180,90,180", "50,10,70,40"):
+        assert np.allclose(area_box(sd, spec), whole, atol=0.1), spec
+
+
+def test_a_legal_long_output_name_is_written(tmp_path):
+    """A 250-byte file name (255 is the limit): its temporary file beside it is named short, and renamed into it."""
+    graph = tmp_path / "g.json"
+    graph.write_text(json.dumps({"format": "cmtool.lanegraph", "version": 1, "lanes": [[[0, 0], [20, 0]]]}))
+    out = tmp_path / ("a" * 242 + ".geojson")
+    code, err = cli("export", "--format", "geojson", graph, "--origin", "60,25", "--out", out)
+    assert code == 0, err
+    assert json.loads(out.read_text())["type"] == "FeatureCollection"
+    assert sorted(p.name for p in tmp_path.iterdir()) == sorted(["g.json", out.name])

@@ -8,7 +8,7 @@ import pytest
 import shapely
 from conftest import SHARED_DATA, in_process
 
-from cmtool.data.frames import DEFAULT_MIX, FrameSampler, frame_stats, mix_table
+from cmtool.data.frames import DEFAULT_MIX, FrameSampler, frame_stats, mix_table, pick
 from cmtool.data.scene import Pose
 from cmtool.maps.roadgraph import road_graph
 from cmtool.maps.sdmap import Road, SDMap
@@ -213,3 +213,72 @@ def test_frames_only_on_the_roads_given():
     frames = sampler.sample(40, np.random.default_rng(3), roads={0, 5})
     assert len(frames) == 40 and {f.road for f in frames} == {0, 5}
     assert sampler.sample(5, np.random.default_rng(3), roads=set()) == []
+
+
+def _old_frame(sampler: FrameSampler, road: int, at: float, flip: bool) -> tuple:
+    """A pose's frame as the sampler classified it one pose at a time, before the batched search (its fields)."""
+    from cmtool.core.geometry import to_frame
+    from cmtool.data.frames import CURVE_DEG, JUNCTION_M
+
+    line, info, half = sampler.graph.lines[road], sampler.sd.roads[road], sampler.frame_m / 2.0
+    p0, p1 = (shapely.get_coordinates(shapely.line_interpolate_point(line, [at - 1.0, at + 1.0]))
+              if sampler.lengths[road] > 0 else (np.zeros(2), np.array([1.0, 0.0])))
+    d = p0 - p1 if info.oneway == -1 or (info.oneway == 0 and flip) else p1 - p0
+    x, y = shapely.get_coordinates(shapely.line_interpolate_point(line, at))[0]
+    pose = Pose(float(x), float(y), float(np.arctan2(d[1], d[0])))
+    centres, nearest_m, kind = sampler.graph.centres, float("inf"), None
+    if len(centres):
+        ego = to_frame(centres, pose.x, pose.y, pose.yaw)
+        dist = np.linalg.norm(ego, axis=1)
+        k = int(np.argmin(dist))
+        nearest_m = float(dist[k])
+        inside = np.flatnonzero(np.all(np.abs(ego) <= half, axis=1))
+        if dist[k] <= JUNCTION_M:
+            kind = f"junction {sampler.graph.junctions[k].kind}"
+        elif len(inside):
+            kind = "approach" if ego[inside[np.argmin(dist[inside])], 0] > 0 else "exit"
+    ends = sampler.graph.dead_ends
+    if kind is None and len(ends) and np.any(np.all(np.abs(to_frame(ends, pose.x, pose.y, pose.yaw)) <= half, 1)):
+        kind = "end"
+    if kind is None:
+        ahead = np.clip([at - half, at - half + 2.0, at + half - 2.0, at + half], 0.0, shapely.length(line))
+        pts = shapely.get_coordinates(shapely.line_interpolate_point(line, ahead))
+        d0, d1 = pts[1] - pts[0], pts[3] - pts[2]
+        kind = "curve" if abs(np.degrees(np.arctan2(d0[0] * d1[1] - d0[1] * d1[0], d0 @ d1))) >= CURVE_DEG \
+            else "straight"
+    return pose, kind, nearest_m
+
+
+def test_batched_classification_and_spacing_equal_the_pose_by_pose_ones():
+    """The sampler classifies all candidates at once (KD-trees of junctions and dead ends) and spaces them with a grid
+    of the poses taken: the same frames as pose by pose and against every pose taken, on the Finland extract."""
+    from cmtool.data.frames import read_sd_source
+
+    sampler = FrameSampler(read_sd_source(FINLAND) if FINLAND.exists() else grid())
+    rng = np.random.default_rng(3)
+    road = rng.integers(0, len(sampler.sd.roads), 400)
+    at, flip = rng.uniform(0.0, 1.0, 400) * sampler.lengths[road], rng.random(400) < 0.5
+    frames = sampler._frames(sampler._classify(road, at, flip), np.arange(len(road)))  # all at once
+    for frame, r, a, f in zip(frames, road.tolist(), at.tolist(), flip.tolist()):
+        assert (frame.pose, frame.label, frame.junction_m) == _old_frame(sampler, r, a, f)
+    kinds, xy = np.array([f.kind for f in frames], object), np.array([[f.pose.x, f.pose.y] for f in frames])
+    for n, spacing in ((50, 25.0), (300, 25.0), (400, 0.0), (400, 3.0)):
+        assert pick(kinds, xy, n, DEFAULT_MIX, spacing) == _old_pick(kinds, xy, n, DEFAULT_MIX, spacing)
+
+
+def _old_pick(kinds, xy, n: int, mix: dict, spacing: float) -> list[int]:
+    """The sampler's choice of frames as it was: every candidate against every frame taken so far."""
+    weights = {k: w for k, w in mix.items() if k in set(kinds) and w > 0}
+    quota = {k: int(np.ceil(n * w / (sum(weights.values()) or 1.0))) for k, w in weights.items()}
+    taken, count = [], {}
+    for rule in ("quota", "spacing", "any"):
+        for i, kind in enumerate(kinds):
+            if len(taken) == n:
+                break
+            if i in taken or (rule != "any" and taken and np.min(np.linalg.norm(xy[taken] - xy[i], axis=1)) < spacing):
+                continue
+            if rule == "quota" and count.get(kind, 0) >= quota.get(kind, 0):
+                continue
+            taken.append(i)
+            count[kind] = count.get(kind, 0) + 1
+    return taken

@@ -3,7 +3,7 @@
 import numpy as np
 import pytest
 
-from cmtool.metrics.lanes import distance_to_polylines, lane_scores, near_polylines
+from cmtool.metrics.lanes import distance_to_polylines, lane_scores, lane_scores_of_scenes, near_polylines
 
 STRAIGHT = np.array([[0.0, 0.0], [20.0, 0.0]])
 BEND = np.array([[0.0, 5.0], [10.0, 5.0], [10.0, 20.0]])
@@ -110,3 +110,18 @@ def test_settled_points_get_the_answers_geos_gives_every_point():
         np.testing.assert_array_equal(within_distance(points, lanes, tol), distance_to_polylines(points, lanes) <= tol)
     assert not within_distance(np.zeros((3, 2)), [], 1.0).any()
     assert within_distance(np.zeros((0, 2)), [STRAIGHT], 1.0).shape == (0,)
+
+
+def test_scores_of_many_scenes_at_once_equal_each_scene_alone():
+    rng = np.random.default_rng(5)
+    preds, gts = [], []
+    for k in range(40):
+        gt = [np.cumsum(rng.normal(0, 3, (rng.integers(2, 12), 2)), axis=0) + rng.uniform(-30, 30, 2)
+              for _ in range(rng.integers(0, 8) if k % 7 else 0)]  # every seventh scene without lanes
+        pred = [l + rng.normal(0, 0.6, l.shape) for l in gt[:rng.integers(0, len(gt) + 1)]]
+        pred += [np.cumsum(rng.normal(0, 3, (5, 2)), axis=0) for _ in range(rng.integers(0, 3) if k % 5 else 0)]
+        preds.append(pred)
+        gts.append(gt)
+    together = lane_scores_of_scenes(preds, gts, tol=1.0)
+    assert together == [lane_scores(p, g, tol=1.0) for p, g in zip(preds, gts)]
+    assert lane_scores_of_scenes([], []) == []

@@ -13,7 +13,7 @@ from cmtool.data.synth import generate_city
 from cmtool.metrics.lanes import lane_scores
 from cmtool.model.config import RVAEConfig, RVAELossConfig
 from cmtool.model.rvae import ELEMENTS, RVAE, decoded_elements
-from cmtool.model.rvae_loss import kl_divergence, match, rvae_loss
+from cmtool.model.rvae_loss import kl_divergence, match, rvae_loss, successor_loss
 
 SMALL = dict(d_model=64, decoder_layers=1, heads=4, ffn=128)
 
@@ -101,10 +101,43 @@ def test_match_recovers_permutation():
     mask = torch.tensor([[True] * 6, [True, False, True, True, False, True]])
     perm = rng.permutation(6)
     pred = gt[:, perm] + 0.01  # query q predicts target perm[q]
-    pairs = match(pred, torch.zeros(2, 6), gt, mask, RVAELossConfig())
+    [pairs] = match([(pred, torch.zeros(2, 6), gt, mask)], RVAELossConfig())
     for (q, g), m in zip(pairs, mask.numpy()):
         assert len(q) == m.sum() and m[g].all()
         np.testing.assert_array_equal(perm[q], g)
+
+
+def test_batched_matching_equals_the_assignment_of_each_scene():
+    """Several sets matched at once (costs batched, one transfer) give each scene the assignment scipy finds on its
+    own float64 cost matrix; the gathered successor loss equals the loop over scenes."""
+    from scipy.optimize import linear_sum_assignment
+
+    rng, config = np.random.default_rng(3), RVAELossConfig()
+    sets = []
+    for queries, targets in ((12, 10), (7, 7), (5, 3)):
+        pred = torch.from_numpy(rng.uniform(-30, 30, (16, queries, 5, 2)).astype(np.float32))
+        logit = torch.from_numpy(rng.normal(0, 3, (16, queries)).astype(np.float32))
+        gt = torch.from_numpy(rng.uniform(-30, 30, (16, targets, 5, 2)).astype(np.float32))
+        sets.append((pred, logit, gt, torch.from_numpy(rng.random((16, targets)) < 0.6)))
+    for (pred, logit, gt, mask), pairs in zip(sets, match(sets, config)):
+        p, g, l = pred.double().numpy(), gt.double().numpy(), logit.double().numpy()
+        for k, (q_idx, g_idx) in enumerate(pairs):
+            valid = np.flatnonzero(mask[k].numpy())
+            cost = config.l1_weight * np.abs(p[k][:, None] - g[k][None, valid]).sum(-1).mean(-1) / 32.0 \
+                + config.existence_weight * np.logaddexp(0.0, -l[k])[:, None]
+            rows, cols = linear_sum_assignment(cost)
+            np.testing.assert_array_equal(q_idx, rows)
+            np.testing.assert_array_equal(g_idx, valid[cols])
+    logits = torch.from_numpy(rng.normal(0, 2, (16, 12, 12)).astype(np.float32))
+    succ = torch.from_numpy(rng.random((16, 10, 10)) < 0.2)
+    pairs = match(sets[:1], config)[0]
+    total, count = 0.0, 0
+    for k, (q, g) in enumerate(pairs):
+        for i, j in ((i, j) for i in range(len(q)) for j in range(len(q)) if i != j):
+            x, y = float(logits[k, q[i], q[j]]), float(succ[k, g[i], g[j]])
+            total += max(x, 0) - x * y + np.log1p(np.exp(-abs(x)))
+            count += 1
+    assert successor_loss(logits, succ, pairs).item() == pytest.approx(total / count, rel=1e-5)
 
 
 def test_loss_zero_when_prediction_is_permuted_target():

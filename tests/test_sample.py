@@ -317,7 +317,7 @@ def make_bad_inputs(tmp_path, ckpt, case) -> dict:
         "negative city cfg": ((*sd, "--city-cfg", "-1"), "--city-cfg"),
         "smooth": ((*sd, "--smooth", "1"), "--smooth: 0 (the decoder's raw points) or 2..20 control points"),
         "missing ckpt": ((*sd, "--ckpt", tmp_path / "nowhere"), "no such checkpoint"),
-        "corrupt ckpt": ((*sd, "--ckpt", corrupt), "unreadable weights"),
+        "corrupt ckpt": ((*sd, "--ckpt", corrupt), "not a valid safetensors file"),
         "rvae ckpt": ((*sd, "--ckpt", ckpt["rvae"]), "an RVAE checkpoint"),
         "dit with sd": ((*sd, "--ckpt", ckpt["dit"]), "no control branch"),
         "osm far": (("--osm", OSM, "--center", "40.4600,-79.9900"), "no roads within the 64 m frame"),
@@ -346,13 +346,43 @@ def test_bad_inputs_are_one_line_errors_with_no_output(case, sampling_ckpt, tmp_
     assert not out.exists()
 
 
+@pytest.mark.parametrize("case", ["sd", "sd nested", "osm", "from-hd", "pose file", "area sd", "area osm"])
+def test_a_missing_input_is_named_before_the_model_loads(case, tmp_path, monkeypatch, capsys):
+    from cmtool.sample.generator import MapGenerator
+
+    def load(*a, **k):
+        raise AssertionError("the model was loaded before the inputs were checked")
+
+    monkeypatch.setattr(MapGenerator, "load", load)
+    missing = tmp_path / "nope"
+    args = {"sd": ("--sd", missing), "sd nested": ("--sd", tmp_path / "nowhere" / "x.png"),
+            "osm": ("--osm", missing, "--center", "40.44,-79.99"), "from-hd": ("--from-hd", missing),
+            "pose file": ("--from-hd", OSM, "--pose", missing.with_suffix(".jsonl")),
+            "area sd": ("--sd", missing, "--area", "all"), "area osm": ("--osm", missing, "--area", "all")}[case]
+    code, _, err = in_process(capsys, "sample", *args, "--steps", 2, "--out", tmp_path / "out", "--quiet")
+    lines = err.strip().splitlines()
+    assert code != 0 and len(lines) == 1 and lines[0].startswith("Error: ") and "no such file" in lines[0], err
+    assert str(args[-1] if case == "pose file" else args[1]) in lines[0]
+    assert not (tmp_path / "out").exists()
+
+
+def test_a_missing_sd_file_is_reported_without_importing_torch(tmp_path):
+    """The error path stays fast: neither torch nor the sampling modules are imported to name a missing --sd."""
+    probe = ("import sys\nfrom cmtool.cli import main\ntry:\n    main(sys.argv[1:])\nexcept SystemExit:\n    pass\n"
+             "print(sorted(m for m in ('torch', 'rerun', 'cmtool.sample.run', 'cmtool.model') if m in sys.modules))")
+    r = subprocess.run([sys.executable, "-c", probe, "sample", "--sd", str(tmp_path / "nope.png"), "--out",
+                        str(tmp_path / "out")], capture_output=True, text=True, cwd=REPO, timeout=120)
+    assert f"Error: {tmp_path / 'nope.png'}: no such file" in r.stderr, r.stderr
+    assert r.stdout.strip() == "[]", r.stdout
+
+
 def test_a_failure_mid_run_leaves_no_files(sampling_ckpt, tmp_path, monkeypatch, capsys):
-    from cmtool.sample import run
+    from cmtool.sample import files
 
     def broken(*a, **k):
         raise OSError("disk full")
 
-    monkeypatch.setattr(run, "graph_panel", broken)
+    monkeypatch.setattr(files, "graph_panel", broken)
     with pytest.raises(OSError):
         main(["sample", "--ckpt", str(sampling_ckpt["controlmap"]), "--sd", str(SD_PNG), "--num", "2", "--steps", "2",
               "--out", str(tmp_path / "out"), "--quiet"])

@@ -22,6 +22,7 @@ import click
 from cmtool import __version__
 from cmtool.cli import ablate, baseline, bench, data, evaluate, maps, release, sample, train
 from cmtool.core.errors import CmtoolError, Terminated
+from cmtool.core.launch import launch
 
 __all__ = ["cli", "main"]
 
@@ -30,6 +31,7 @@ __all__ = ["cli", "main"]
 @click.version_option(__version__, prog_name="cmtool")
 def cli():
     """cmtool: controllable lane-level HD map generation from SD maps (ControlMap)."""
+    launch()  # a torchrun environment that does not fit together is refused before any command reads it
 
 
 for _command in (data.data, train.train_cmd, sample.sample, baseline.baseline, evaluate.metrics, evaluate.eval_cmd,

@@ -65,7 +65,7 @@ def _run(method, osm, center, heading, from_hd, pose, seed, side, out, grid, who
     from cmtool.maps.hdmap import drives_on
     from cmtool.sample import inputs as src
     from cmtool.sample.baseline import baseline_maps, write_baseline_maps
-    from cmtool.sample.run import summary_table
+    from cmtool.sample.summary import summary_table
 
     if (osm is None) == (from_hd is None):
         raise CmtoolError("give one SD input: --osm or --from-hd")

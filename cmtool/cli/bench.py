@@ -150,3 +150,57 @@ def bench_metrics_cmd(eval_dir, method, tile, repeats, no_features, device, feat
     extractor = None if no_features else FeatureExtractor("resnet50-seeded", None, _device(device),
                                                           precision=feature_precision)
     click.echo(report_table(bench_metrics(generated, reference, controls, extractor, repeats, workers or cpu_count())))
+
+
+@bench.command("train")
+@click.option("--recipe", required=True, type=InPath(), help="A stage recipe, or a pipeline recipe (each training stage "
+                                                               "whose inputs exist).")
+@click.option("--data", "data_dir", type=DatasetDir(), help="Dataset folder [default: the recipe's; a pipeline's: "
+                                                            "RUN/data].")
+@click.option("--run", "run_dir", type=InPath(file_okay=False),
+              help="A pipeline run folder (`cmtool train pipeline --out`): its finished stages feed the later ones.")
+@click.option("--steps", default=10, show_default=True, type=click.IntRange(1, 100_000), help="Timed batches per rate.")
+@click.option("--workers", type=click.IntRange(min=0), help="DataLoader workers [default: each recipe's].")
+@click.option("--precision", type=click.Choice(["auto", "fp32", "bf16"]), help="Override train.precision.")
+@click.option("--device", help="torch device [default: cuda when available, else cpu].")
+def bench_train_cmd(recipe, data_dir, run_dir, steps, workers, precision, device):
+    """Time each training stage: samples per second of the data path alone, of the model step alone (forward,
+    backward, optimiser) and of both together, so you see which one bounds a run."""
+    from cmtool.core.errors import CmtoolError
+    from cmtool.train.bench import bench_stage
+    from cmtool.train.recipe import load_recipe
+    from cmtool.train.stages import STAGES
+
+    rec = load_recipe(recipe)
+    if rec.pipeline.rvae:
+        from cmtool.pipeline import Pipeline
+
+        if data_dir is None and run_dir is None:
+            raise CmtoolError("bench train: give --data (the RVAE stage) or --run (every stage it holds the inputs of)")
+        run = Pipeline(rec, run_dir or data_dir, _device(device), data_dir=data_dir)
+        recipes = {name: run.stage_recipe(name) for name in run.stages if name in STAGES}
+        if run_dir is None:
+            for name in [n for n in recipes if n != "rvae"]:
+                click.echo(f"{name}: not timed (give --run, a pipeline run folder with the stages it reads)", err=True)
+                del recipes[name]
+    else:
+        if data_dir is not None:
+            rec.train.data = str(data_dir)
+        recipes = {rec.train.stage or "rvae": rec}
+    rows = []
+    for name, stage_recipe in recipes.items():
+        if precision is not None:
+            stage_recipe.train.precision = precision
+        try:
+            rows.append(bench_stage(STAGES[name](stage_recipe, _device(device)), steps, workers))
+        except CmtoolError as e:
+            click.echo(f"{name}: not timed ({e})", err=True)
+    if not rows:
+        raise CmtoolError(f"{recipe}: no stage could be timed (give --data, and --run for the stages after the RVAE)")
+    click.echo(f"device: {_device(device)}; samples per second over {steps} batches each")
+    click.echo("| stage | batch | workers | prepare s | data path | model step | together | data / model | bound by |")
+    click.echo("|---|---|---|---|---|---|---|---|---|")
+    for r in rows:
+        bound = "data" if r["data"] < 1.5 * r["model"] else "model"
+        click.echo(f"| {r['stage']} | {r['batch']} | {r['workers']} | {r['prepare_s']:.1f} | {r['data']:,.0f} | "
+                   f"{r['model']:,.1f} | {r['both']:,.1f} | {r['data'] / r['model']:,.1f} | {bound} |")

@@ -197,17 +197,12 @@ def map_input_options(command):
 def map_inputs(osm, center, heading, from_hd, pose, seed, whole: bool = False) -> list:
     """The frames that the map input options name (:func:`map_input_options`; at most one of --osm and --from-hd
     given, none of them: no frames); ``whole``: frames are optional (a whole map is asked for)."""
+    check_map_inputs(osm, center, from_hd, pose, whole)
     from cmtool.sample import inputs as src
 
-    if center is not None and osm is None:
-        raise CmtoolError("--center goes with --osm")
-    if pose is not None and from_hd is None:
-        raise CmtoolError("--pose goes with --from-hd")
     if osm is not None:
         if center is None:
-            if whole:
-                return []
-            raise CmtoolError("--osm needs --center LAT,LON (or a .jsonl of centres)")
+            return []
         return src.osm_inputs(osm, src.parse_points(center, ("lat", "lon", "heading"), {"heading": heading},
                                                     "--center"))
     if from_hd is not None:
@@ -216,6 +211,16 @@ def map_inputs(osm, center, heading, from_hd, pose, seed, whole: bool = False) -
         poses = src.parse_points(pose, ("x", "y", "yaw"), {}, "--pose") if pose is not None else None
         return src.hd_inputs(from_hd, poses, seed)
     return []
+
+
+def check_map_inputs(osm, center, from_hd, pose, whole: bool = False) -> None:
+    """Refuse map input options that do not go together (:func:`map_inputs`), before any file is read."""
+    if center is not None and osm is None:
+        raise CmtoolError("--center goes with --osm")
+    if pose is not None and from_hd is None:
+        raise CmtoolError("--pose goes with --from-hd")
+    if osm is not None and center is None and not whole:
+        raise CmtoolError("--osm needs --center LAT,LON (or a .jsonl of centres)")
 
 
 def init_options(command):

@@ -122,13 +122,17 @@ def raster(sd_map, x, y, yaw, png):
     import numpy as np
 
     from cmtool.data.frames import read_sd_source
-    from cmtool.data.sd_raster import rasterize_sd
+    from cmtool.data.sd_raster import FRAME_M, rasterize_sd
     from cmtool.viz.show import write_png
 
     sd_obj = read_sd_source(sd_map)
     if not sd_obj.roads:
         raise CmtoolError(f"{sd_map}: the SD map has no roads")
     pts = np.concatenate([r.polyline for r in sd_obj.roads])
+    for name, v, low, high in zip(("--x", "--y"), (x, y), pts.min(0), pts.max(0)):
+        if v is not None and not low - FRAME_M <= v <= high + FRAME_M:
+            raise CmtoolError(f"{name} {v:g}: more than a frame ({FRAME_M:g} m) outside the map, whose roads span "
+                              f"{round(low)} to {round(high)} m; the picture would hold no road")
     cx, cy = (pts.min(0) + pts.max(0)) / 2.0
     image = rasterize_sd(sd_obj, cx if x is None else x, cy if y is None else y, np.radians(yaw))
     write_png(png, image)

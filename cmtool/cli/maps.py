@@ -95,7 +95,7 @@ def export(fmt, map_path, origin, heading, scene, lane_width, out, verify):
     from cmtool.formats.consumers import READERS, reader
     from cmtool.formats.geojson import to_geojson
     from cmtool.formats.mapfile import read_lane_graphs
-    from cmtool.maps.neighbours import graph_neighbours
+    from cmtool.maps.neighbours import Crowded, graph_neighbours
     from cmtool.metrics.validity import check
 
     if verify:
@@ -137,7 +137,10 @@ def export(fmt, map_path, origin, heading, scene, lane_width, out, verify):
             from cmtool.formats.lanelet2_export import to_lanelet2 as export_text
         else:
             from cmtool.formats.opendrive_export import to_opendrive as export_text
-        text = export_text(graph, lat0, lon0, heading, lane_width)
+        try:
+            text = export_text(graph, lat0, lon0, heading, lane_width)
+        except Crowded as e:
+            raise CmtoolError(f"{map_path}: {e}") from None
         verdict = _verified(fmt, graph, text, out, lat0, lon0) if verify else None
         write_text_atomic(out, text)  # only now: a failed export or verification leaves an earlier file as it was
         left, oncoming = graph_neighbours(graph)

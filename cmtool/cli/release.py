@@ -15,6 +15,7 @@ def info(path, as_json):
 
     Without PATH: the models shipped with cmtool.
     """
+    from cmtool.model import checkpoint as ckpt
     from cmtool.model.release import BUNDLED, bundled_checkpoint
     from cmtool.train.info import describe
 
@@ -23,6 +24,9 @@ def info(path, as_json):
         click.echo("")
         click.echo(describe(BUNDLED / "rvae", as_json=as_json))
         return
+    if path.suffix != ".toml":  # the weights' headers, which describing a checkpoint never reads
+        for f in ckpt.weight_files(ckpt.resolve(path)):
+            ckpt.check_tensors(f)
     click.echo(describe(path, as_json=as_json))
 
 

@@ -2,13 +2,15 @@
 
 from __future__ import annotations
 
+import os
 import sys
 from pathlib import Path
 
 import click
 
 from cmtool.cli.common import (CITY_CFG_HELP, PRECISION_OPTION, SEED, SMOOTH_OPTION, Finite, InPath, OutPath, _device,
-                               _generator, attach_init, init_options, map_input_options, map_inputs, sampler_options)
+                               _generator, attach_init, check_map_inputs, init_options, map_input_options, map_inputs,
+                               sampler_options)
 from cmtool.core.errors import CmtoolError
 
 SAMPLE_HELP = """Generate lane-level HD maps from SD maps with ControlMap, recording every denoising step.
@@ -80,12 +82,6 @@ Large sets in several processes (CPU or GPUs), the same maps as one process:
 def sample(ckpt, sd_paths, osm, center, heading, from_hd, pose, area, px_m, num, candidates, seed, steps, sampler, eta,
            city, cfg, city_cfg, init, strength, encoder_path, smooth, batch, out, rrd, grid, spawn, connect_url, serve,
            raw, no_log, no_pictures, device, precision, quiet):
-    import shlex
-
-    from cmtool.core import dist as D
-    from cmtool.sample import inputs as src
-    from cmtool.sample.run import SampleSettings, plan, run_sample, summary_table
-
     kinds = [name for name, given in (("--sd", sd_paths), ("--osm", osm), ("--from-hd", from_hd)) if given]
     if len(kinds) > 1:
         raise CmtoolError(f"give one kind of SD input, not {' and '.join(kinds)}")
@@ -95,16 +91,26 @@ def sample(ckpt, sd_paths, osm, center, heading, from_hd, pose, area, px_m, num,
         raise CmtoolError("--grid stacks the maps' pictures: leave out --no-pictures")
     if spawn + bool(connect_url) + serve > 1:
         raise CmtoolError("give one of --spawn, --connect and --serve")
+    if area is None:
+        check_map_inputs(osm, center, from_hd, pose)
+    elif no_pictures:
+        raise CmtoolError("--area writes one picture of the area: leave out --no-pictures")
+    _check_paths(sd_paths, osm, from_hd, pose, center, ckpt, encoder_path, out, rrd, grid)
     if connect_url:
-        from cmtool.sample.run import check_viewer
+        from cmtool.viz.viewer import check_viewer
 
         check_viewer(connect_url, f"--connect {connect_url}")
     if area is not None:
-        if no_pictures:
-            raise CmtoolError("--area writes one picture of the area: leave out --no-pictures")
         return _area(ckpt, sd_paths, px_m, osm, center, from_hd, pose, area, num, candidates, seed, steps, sampler,
                      eta, city, cfg, city_cfg, init, strength, encoder_path, smooth, batch, out, rrd, grid, spawn,
                      connect_url, serve, raw, no_log, device, precision, quiet)
+    import shlex
+
+    from cmtool.core import dist as D
+    from cmtool.sample import inputs as src
+    from cmtool.sample.run import SampleSettings, plan, run_sample
+    from cmtool.sample.summary import summary_table
+
     settings = SampleSettings(num=num, seed=seed, steps=steps, sampler=sampler, eta=eta, cfg=cfg, city=city,
                               city_cfg=city_cfg, batch=batch, init=init, strength=strength if init != "none" else 1.0,
                               guarantee=not raw, candidates=candidates)
@@ -153,26 +159,29 @@ def _area(ckpt, sd_paths, px_m, osm, center, from_hd, pose, area, num, candidate
           cfg, city_cfg, init, strength, encoder_path, smooth, batch, out, rrd, grid, spawn, connect_url, serve, raw,
           no_log, device, precision, quiet):
     """``sample --area``: one map of a whole area (:mod:`cmtool.sample.area`)."""
-    import shlex
-
-    from cmtool.core import dist as D
-    from cmtool.sample import inputs as src
-    from cmtool.sample.area import area_box, run_area
-    from cmtool.sample.run import SampleSettings
-
     if osm is None and from_hd is None and not sd_paths:
         raise CmtoolError("--area needs --osm FILE, --from-hd MAP or --sd PICTURE (the SD map of the area)")
     if len(sd_paths) > 1 or (sd_paths and sd_paths[0].is_dir()):
         raise CmtoolError("--area makes one map of one SD picture: give one --sd file, not several or a folder")
+    ctx = click.get_current_context()
     given = [name for name, v in (("--center", center), ("--pose", pose), ("--grid", grid), ("--spawn", spawn),
                                   ("--connect", connect_url), ("--serve", serve)) if v]
+    given += ["--heading"] * (ctx.get_parameter_source("heading").name != "DEFAULT")
     given += ["--num"] * (num > 1) + ["--candidates"] * (candidates > 1)
     if given:
         raise CmtoolError(f"--area makes one map of the whole area, recorded to a file: leave out {', '.join(given)}")
     if no_log and rrd:
         raise CmtoolError("--no-log cannot be combined with --rrd")
-    if click.get_current_context().get_parameter_source("init").name == "DEFAULT":
+    if ctx.get_parameter_source("init").name == "DEFAULT":
         init, strength = AREA_INIT, AREA_STRENGTH
+    import shlex
+
+    from cmtool.core import dist as D
+    from cmtool.data.tiles import check_extent
+    from cmtool.sample import inputs as src
+    from cmtool.sample.area import area_box, run_area
+    from cmtool.sample.run import SampleSettings
+
     settings = SampleSettings(seed=seed, steps=steps, sampler=sampler, eta=eta, cfg=cfg, city=city, city_cfg=city_cfg,
                               batch=batch, init=init, strength=strength if init != "none" else 1.0, guarantee=not raw)
     settings.check()
@@ -187,6 +196,7 @@ def _area(ckpt, sd_paths, px_m, osm, center, from_hd, pose, area, num, candidate
         sd_map.meta |= {k: hd.meta[k] for k in ("lat0", "lon0") if k in hd.meta}
         name = Path(from_hd).name.split(".")[0]
     box = area_box(sd_map, area, latlon=osm is not None)
+    check_extent(sd_map, box, f"--area {area}" + (f" at --px-m {px_m:g}" if sd_paths else ""))
     info = D.setup(str(_device(device)))
     gen = _generator(ckpt, str(info.device), smooth, precision)
     attach_init(gen, init, encoder_path)
@@ -207,6 +217,50 @@ def _area(ckpt, sd_paths, px_m, osm, center, from_hd, pose, area, num, candidate
                f"{_share(scores['legal_oneway'])}, SD covered {_share(scores['sd_coverage'])}")
     recorded = "" if no_log else f"; recording {rrd or out / 'area.rrd'}"
     click.echo(f"wrote {out / (name + '_area.json')} and {out / (name + '_area.png')}{recorded}")
+
+
+def _check_paths(sd_paths, osm, from_hd, pose, center, ckpt, encoder_path, out, rrd, grid) -> None:
+    """Refuse a missing or unreadable input and an output that cannot be written, before the seconds that the
+    imports and the model take."""
+    for path in sd_paths:
+        _readable(path, str(path), folder=True)
+    for path in (osm, from_hd):
+        if path is not None:
+            _readable(path, str(path))
+    for option, value in (("--pose", pose), ("--center", center)):  # a .jsonl file of points (see parse_points)
+        if value is not None and (Path(value).suffix == ".jsonl" or Path(value).is_file()):
+            _readable(Path(value), f"{option} {value}")
+    for path in (ckpt, encoder_path):
+        if path is not None and not path.exists():
+            raise CmtoolError(f"{path}: no such checkpoint")
+    for path in (out, rrd, grid):
+        if path is not None:
+            _writable(path)
+
+
+def _readable(path: Path, name: str, folder: bool = False) -> None:
+    """Refuse (naming it ``name``) a path that is not a file that can be opened, or with ``folder`` a folder that
+    can be listed."""
+    try:
+        if path.is_dir() and folder:
+            os.scandir(path).close()
+        elif path.is_file():
+            open(path, "rb").close()
+        else:
+            raise CmtoolError(f"{name}: {'a folder, not a file' if path.is_dir() else 'no such file'}")
+    except OSError as e:
+        raise CmtoolError(f"{name}: cannot read it: {(e.strerror or str(e)).lower()}") from None
+
+
+def _writable(path: Path) -> None:
+    """Refuse an output file or folder whose nearest existing folder (itself, for a folder) cannot be written."""
+    where = path if path.is_dir() else path.parent
+    while not where.exists():
+        where = where.parent
+    if not where.is_dir():
+        raise CmtoolError(f"cannot write {path}: {where} is a file, not a folder")
+    if not os.access(where, os.W_OK | os.X_OK):
+        raise CmtoolError(f"cannot write {path}: permission denied")
 
 
 def _share(value) -> str:

@@ -2,13 +2,13 @@
 
 from __future__ import annotations
 
-import os
 from pathlib import Path
 
 import click
 
 from cmtool.cli.common import DatasetDir, InPath, OutPath, _device
 from cmtool.core.errors import CmtoolError
+from cmtool.core.launch import launch
 from cmtool.core.outputs import claim_folder
 from cmtool.train import PRECISIONS
 
@@ -31,7 +31,9 @@ from cmtool.train import PRECISIONS
 @click.option("--quiet", is_flag=True, help="No progress line.")
 @click.option("--serve", is_flag=True, help="Serve the training recording and Rerun's web viewer from this machine "
                                             "(ports 9876 and 9090) while it trains: watch it from a browser elsewhere.")
-def train_cmd(stage, recipe, out, resume, data_dir, steps, precision, device, quiet, serve):
+@click.option("--no-log", is_flag=True, help="Write no Rerun recording (train.rrd, previews; pipeline: eval.rrd too), "
+                                             "e.g. on a machine without rerun-sdk.")
+def train_cmd(stage, recipe, out, resume, data_dir, steps, precision, device, quiet, serve, no_log):
     """Train one stage: rvae (stage 1), dit (stage 2) or controlnet (stage 3); decoder trains a
     finished RVAE's decoder further on its frozen encoder's latents (DiTs trained on them stay valid);
     encoder trains an encoder for a frozen decoder, e.g. the shipped one (cmtool/weights/rvae).
@@ -44,14 +46,16 @@ def train_cmd(stage, recipe, out, resume, data_dir, steps, precision, device, qu
     from cmtool.train.recipe import load_recipe
 
     rec = load_recipe(recipe)
+    if serve and no_log:
+        raise CmtoolError("--serve and --no-log: a recording to serve needs logging")
     port = None
-    if serve and os.environ.get("RANK", "0") == "0":  # the main process of a torchrun launch records
+    if serve and launch()[0] == 0:  # the main process of a torchrun launch records
         from cmtool.viz.recording import GRPC_PORT, serve_web_viewer
 
         click.echo(serve_web_viewer(), err=True)
         port = GRPC_PORT
     if stage == "pipeline":
-        _train_pipeline(rec, out, resume, data_dir, steps, precision, device, quiet, port)
+        _train_pipeline(rec, out, resume, data_dir, steps, precision, device, quiet, port, not no_log)
         return
     if rec.pipeline.rvae:
         raise CmtoolError(f"{recipe}: a pipeline recipe; run it with `cmtool train pipeline`")
@@ -71,11 +75,12 @@ def train_cmd(stage, recipe, out, resume, data_dir, steps, precision, device, qu
     from cmtool.train.loop import train
     from cmtool.train.stages import STAGES
 
-    final = train(STAGES[stage](rec, _device(device)), run_dir, resume=resume, progress=not quiet, serve=port)
+    final = train(STAGES[stage](rec, _device(device)), run_dir, resume=resume, progress=not quiet, serve=port,
+                  log=not no_log)
     click.echo(f"checkpoint: {final}")
 
 
-def _train_pipeline(rec, out, resume, data_dir, steps, precision, device, quiet, serve):
+def _train_pipeline(rec, out, resume, data_dir, steps, precision, device, quiet, serve, log):
     from cmtool.pipeline import Pipeline, summary
 
     if not rec.pipeline.rvae:
@@ -85,13 +90,13 @@ def _train_pipeline(rec, out, resume, data_dir, steps, precision, device, quiet,
         raise CmtoolError("--steps: set train.steps in the stage recipes a pipeline names")
     if out is None:
         raise CmtoolError("train pipeline: give --out, the folder of its stages")
-    if (out / "pipeline.json").exists() and not resume and os.environ.get("RANK", "0") == "0":
+    if (out / "pipeline.json").exists() and not resume and launch()[0] == 0:
         raise CmtoolError(f"{out}: holds a pipeline run; pass --resume to continue it or choose another --out")
     if data_dir is not None and not (data_dir / "manifest.json").is_file():
         raise CmtoolError(f"--data {data_dir}: not a dataset (no manifest.json); build one with `cmtool data build`")
     if precision is not None:
         rec.pipeline.precision = precision
-    report = Pipeline(rec, out, _device(device), progress=not quiet, data_dir=data_dir, serve=serve).run()
+    report = Pipeline(rec, out, _device(device), progress=not quiet, data_dir=data_dir, serve=serve, log=log).run()
     click.echo(summary(report))
     if (out / "eval" / "summary.md").is_file():
         click.echo(f"evaluation: {out / 'eval' / 'summary.md'}; weights: {out / 'weights'}")

@@ -1,18 +1,19 @@
 """Several processes under ``torchrun``: training (DDP), ``cmtool eval`` and ``cmtool sample``.
 
 ``torchrun`` sets RANK, WORLD_SIZE, LOCAL_RANK, MASTER_ADDR and MASTER_PORT; without them the
-run is a single process. NCCL is used on CUDA, gloo on CPU. Sampling splits its batches over the
-processes (:func:`rounds`) and gathers the maps on the main process (:func:`gather`).
+run is a single process (:func:`cmtool.core.launch.launch`). NCCL is used on CUDA, gloo on CPU. Sampling splits its
+batches over the processes (:func:`rounds`) and gathers the maps on the main process (:func:`gather`).
 """
 
 from __future__ import annotations
 
-import os
 import platform
 from dataclasses import dataclass
 
 import torch
 import torch.distributed as dist
+
+from cmtool.core.launch import launch
 
 
 @dataclass
@@ -31,9 +32,7 @@ SINGLE = DistInfo(0, 1, torch.device("cpu"))  # a process on its own (its device
 
 def setup(device: str | None = None) -> DistInfo:
     """Join the process group when launched by torchrun; pick this process's device."""
-    world = int(os.environ.get("WORLD_SIZE", "1"))
-    rank = int(os.environ.get("RANK", "0"))
-    local = int(os.environ.get("LOCAL_RANK", "0"))
+    rank, world, local = launch()
     if device is None:
         device = "cuda" if torch.cuda.is_available() else "cpu"
     dev = torch.device(device)

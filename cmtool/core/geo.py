@@ -3,7 +3,8 @@
 Both OpenStreetMap and Lanelet2 files give WGS84 coordinates. Like Lanelet2's own UTM projector we
 use a transverse Mercator projection (Krüger's series, accurate to well under a millimetre within
 a few hundred kilometres of the central meridian), but centred on an origin near the data: the
-origin maps to (0, 0), x points east and y north.
+origin maps to (0, 0), x points east and y north. Longitudes are taken the short way round from the origin, so data
+across the antimeridian (+-180) projects as one piece, and longitudes come back within [-180, 180].
 """
 
 from __future__ import annotations
@@ -24,6 +25,21 @@ _ALPHA = (
 _E2N = 2.0 * math.sqrt(_N) / (1.0 + _N)  # used in the conformal latitude
 
 
+def wrap_lon(lon, ref=0.0):
+    """Longitudes (degrees) moved by whole turns to within 180 of ``ref`` (unchanged where they are)."""
+    lon = np.asarray(lon, np.float64)
+    return lon - 360.0 * np.round((lon - ref) / 360.0)
+
+
+def centre_of(latlon) -> tuple[float, float]:
+    """The mean latitude and longitude of (N, 2) [lat, lon] points (degrees), the longitudes taken the short way round
+    from the first (an extract across the antimeridian has its centre there, not halfway round the globe)."""
+    latlon = np.array(latlon, np.float64)
+    latlon[:, 1] = wrap_lon(latlon[:, 1], latlon[0, 1])
+    lat, lon = latlon.mean(axis=0)
+    return float(lat), float(wrap_lon(lon))
+
+
 class LocalProjection:
     """Transverse Mercator projection with its origin at ``(lat0, lon0)`` (degrees)."""
 
@@ -37,7 +53,7 @@ class LocalProjection:
 
     def _raw(self, lat, lon):
         phi = np.radians(lat)
-        lam = np.radians(lon - self.lon0)
+        lam = np.radians(wrap_lon(lon, self.lon0) - self.lon0)
         t = np.sinh(np.arctanh(np.sin(phi)) - _E2N * np.arctanh(_E2N * np.sin(phi)))
         xi = np.arctan2(t, np.cos(lam))
         eta = np.arctanh(np.sin(lam) / np.sqrt(1.0 + t * t))
@@ -72,6 +88,7 @@ class LocalProjection:
             guess = guess - np.linalg.solve(jac, f[..., None])[..., 0]
             if np.abs(f).max(initial=0.0) < 1e-5:
                 break
+        guess[:, 1] = wrap_lon(guess[:, 1])
         return guess.reshape(xy.shape)
 
 

@@ -92,9 +92,10 @@ def wrap_angle(a):
 
 
 def to_frame(points: np.ndarray, x: float, y: float, yaw: float) -> np.ndarray:
-    """Express world points in the frame of a pose (x forward along ``yaw``, y left)."""
+    """Express world points in the frame of a pose (x forward along ``yaw``, y left); ``x``, ``y`` and ``yaw`` may be
+    arrays that broadcast against the points' first axes (one pose per point or row)."""
     c, s = np.cos(yaw), np.sin(yaw)
-    d = np.asarray(points, dtype=np.float64) - np.array([x, y])
+    d = np.asarray(points, dtype=np.float64) - np.stack([x, y], axis=-1)
     return np.stack([c * d[..., 0] + s * d[..., 1], -s * d[..., 0] + c * d[..., 1]], axis=-1)
 
 
@@ -118,16 +119,27 @@ def from_frame(points: np.ndarray, x: float, y: float, yaw: float) -> np.ndarray
     return np.stack([c * p[..., 0] - s * p[..., 1] + x, s * p[..., 0] + c * p[..., 1] + y], axis=-1)
 
 
-def offset(line: np.ndarray, distance: float) -> np.ndarray:
-    """Offset a polyline sideways by ``distance`` metres (positive = to the left of travel).
+def offset(line: np.ndarray, distance) -> np.ndarray:
+    """Offset a polyline sideways by ``distance`` metres (positive = to the left of travel); or (m, L, 2) polylines
+    of one vertex count, each by its own of ``distance`` (m,) (:func:`equal_count_batches`), the same numbers.
 
     Uses per-vertex normals averaged over neighbouring segments (good for gently curved lines;
     use shapely's ``offset_curve`` where corners are sharp).
     """
-    d = np.gradient(line, axis=0)
-    d /= np.maximum(np.linalg.norm(d, axis=1, keepdims=True), 1e-12)
-    normal = np.stack([-d[:, 1], d[:, 0]], axis=1)
-    return line + distance * normal
+    d = np.gradient(line, axis=-2)
+    d /= np.maximum(np.linalg.norm(d, axis=-1, keepdims=True), 1e-12)
+    normal = np.stack([-d[..., 1], d[..., 0]], axis=-1)
+    return line + np.asarray(distance)[..., None, None] * normal
+
+
+def equal_count_batches(lines, size: int = 4096):
+    """(indices, (m, L, 2) array) of ``lines`` of equal vertex counts L, at most ``size`` at a time: for computing on
+    many lines at once with the same floating-point operations as on each alone."""
+    count = np.array([len(line) for line in lines])
+    for m in np.unique(count).tolist():
+        which = np.flatnonzero(count == m).tolist()
+        for start in range(0, len(which), size):
+            yield which[start:start + size], np.stack([lines[k] for k in which[start:start + size]])
 
 
 def insert_vertex(line: np.ndarray, point: np.ndarray, snap: float = 1e-6) -> tuple[np.ndarray, np.ndarray]:

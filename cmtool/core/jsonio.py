@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import errno
+import hashlib
 import json
 import math
 import os
@@ -75,9 +76,12 @@ def nesting(text: str, chunk: int = 1 << 22) -> int:
     return deepest
 
 
-def read_json(path: str | os.PathLike):
-    """Load a JSON file; a missing file, non-UTF-8 text or malformed or too deeply nested JSON becomes a
-    :class:`CmtoolError`."""
+def read_json(path: str | os.PathLike, limit: int | None = None):
+    """Load a JSON file; a missing file, non-UTF-8 text, malformed or too deeply nested JSON, or a file of over
+    ``limit`` bytes (refused unread) becomes a :class:`CmtoolError`."""
+    if limit is not None and Path(path).is_file() and (size := os.stat(path).st_size) > limit:
+        raise CmtoolError(f"{path}: a file of {size:,} bytes; cmtool reads such a file up to {limit:,} bytes "
+                          f"({limit / 2**20:g} MiB)")
     return loads(read_text(path), str(path))
 
 
@@ -120,7 +124,7 @@ def atomic_open(path: str | os.PathLike, mode: str = "w"):
     (a file in the way, no permission, a full disk) becomes a :class:`CmtoolError` naming ``path``; a path that must
     not be written (:func:`cmtool.core.outputs.target`) is refused."""
     path = target(path)
-    tmp = _temporary(path)  # named before it exists: a signal at any point below leaves nothing behind
+    tmp = temporary(path)  # named before it exists: a signal at any point below leaves nothing behind
     try:
         with os.fdopen(_create(tmp), mode, encoding=None if "b" in mode else "utf-8") as f:
             yield f
@@ -143,7 +147,7 @@ class OutputSet:
 
     def write_bytes(self, path: str | os.PathLike, data: bytes) -> None:
         path = target(path)
-        tmp = _temporary(path)
+        tmp = temporary(path)
         self.staged.append((tmp, path))
         try:
             with os.fdopen(_create(tmp), "wb") as f:
@@ -169,9 +173,12 @@ class OutputSet:
         self.staged = []
 
 
-def _temporary(path: Path) -> str:
-    """A name for a new temporary file beside ``path`` (hidden, ending in .tmp)."""
-    return str(path.parent / f".{path.name}.{secrets.token_hex(4)}.tmp")
+def temporary(path: Path, stable: bool = False) -> str:
+    """A name for a temporary file beside ``path``: hidden, ending in .tmp, and of one length whatever the length of
+    ``path``'s own name (the temporary of a legal name is legal too); random (a new file), or with ``stable`` the same
+    for the same ``path`` (a file that a later step finds again)."""
+    tag = hashlib.sha256(path.name.encode()).hexdigest()[:12] if stable else secrets.token_hex(6)
+    return str(path.parent / f".cmtool-{tag}.tmp")
 
 
 def _create(tmp: str) -> int:

@@ -25,3 +25,16 @@ def check_fits(nbytes: float, what: str) -> None:
     free = available_bytes()
     if nbytes > free:
         raise CmtoolError(f"{what}: needs about {nbytes / 2**30:.1f} GiB of memory, {free / 2**30:.1f} GiB are free")
+
+
+def in_batches(n: int, search, pairs: int = 1 << 20, most: int = 4096, until=None) -> int:
+    """Call ``search(lo, hi)`` on consecutive ranges covering ``range(n)``, each sized from the count of pairs the
+    one before found (``search`` returns it) so that about ``pairs`` come back at once: from 16 items on, at most
+    doubling, at most ``most`` items; stop early once ``until()`` holds. Returns how many items were searched. A
+    crowded map's candidate pairs thus never all meet in memory."""
+    done, size = 0, 16
+    while done < n and not (until is not None and until()):
+        hi = min(done + size, n)
+        found = search(done, hi)
+        size, done = int(min(most, 2 * size, max(1, (hi - done) * pairs // max(found, 1)))), hi
+    return done

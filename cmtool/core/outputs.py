@@ -15,6 +15,7 @@ import stat
 from pathlib import Path
 
 from cmtool.core.errors import CmtoolError
+from cmtool.core.launch import launch
 
 _inputs: dict[tuple[int, int] | str, Path] = {}  # identity (device, inode; or the real path) -> the path as given
 _locks: dict[str, int] = {}  # real path of a claimed folder -> its open descriptor (flock held)
@@ -63,7 +64,7 @@ def claim_folder(path: str | os.PathLike) -> None:
     folder fails at once with one line instead of mixing its files with this run's. Under torchrun only the first
     process claims (the others write into the folder it holds)."""
     path = Path(path)
-    if os.environ.get("RANK", "0") != "0":
+    if launch()[0] != 0:
         return
     key = os.path.realpath(path)
     if key in _locks:

@@ -6,6 +6,7 @@ from __future__ import annotations
 import ctypes
 import multiprocessing
 import signal
+import sys
 
 PR_SET_PDEATHSIG = 1  # prctl(2)
 
@@ -20,6 +21,8 @@ def pool(processes: int, start: str | None = None) -> multiprocessing.pool.Pool:
 def _worker_signals() -> None:
     signal.signal(signal.SIGINT, signal.SIG_IGN)
     signal.signal(signal.SIGTERM, _stop)
+    signal.signal(signal.SIGALRM, _stop)  # a stop put off (_stop_later)
+    sys.unraisablehook = _stop_later
     try:  # Linux: the worker ends with the process that started it, however that ends (killed, or stopped while
         # multiprocessing's own termination waited on a worker)
         ctypes.CDLL(None, use_errno=True).prctl(PR_SET_PDEATHSIG, signal.SIGTERM)
@@ -28,4 +31,14 @@ def _worker_signals() -> None:
 
 
 def _stop(signum, frame):
-    raise SystemExit(128 + signum)  # unwinds (temporary files removed); multiprocessing prints no traceback for it
+    raise SystemExit(128 + signal.SIGTERM)  # unwinds (temporary files removed); multiprocessing prints no traceback for it
+
+
+def _stop_later(unraisable) -> None:
+    """A stop that arrived inside a finalizer (``__del__``), where Python prints the exception and goes on: nothing is
+    printed, and the stop comes again a millisecond later (SIGALRM), where the worker can unwind."""
+    if isinstance(unraisable.exc_value, SystemExit):
+        signal.setitimer(signal.ITIMER_REAL, 0.001)
+    else:
+        sys.__unraisablehook__(unraisable)
+

@@ -18,11 +18,13 @@ road), ``multilane`` (4 lanes or more on a two-way road, 2 or more on a one-way 
 
 from __future__ import annotations
 
+import math
 from collections import Counter
 from dataclasses import dataclass
 
 import numpy as np
 import shapely
+from scipy.spatial import cKDTree
 
 from cmtool.core.geometry import from_frame, to_frame
 from cmtool.data.scene import Pose
@@ -84,66 +86,70 @@ class FrameSampler:
         self.graph = road_graph(sd)
         self.lengths = shapely.length(self.graph.lines) if len(sd.roads) else np.zeros(0)
 
-    def candidates(self, n: int, rng: np.random.Generator, roads: set[int] | None = None) -> list[Frame]:
-        """``n`` classified poses drawn uniformly over the length of the roads (only of ``roads``, road
-        indices, when given)."""
+    def classify(self, road: int, at: float, flip: bool = False) -> Frame:
+        """The frame of the pose ``at`` metres along ``road``, facing its travel direction (two-way
+        roads: against the polyline when ``flip``)."""
+        return self._frames(self._classify(np.array([road]), np.array([at], np.float64), np.array([flip])), [0])[0]
+
+    def _candidates(self, n: int, rng: np.random.Generator, roads: set[int] | None) -> list[np.ndarray] | None:
+        """``n`` poses drawn uniformly over the length of the roads (only of ``roads``, road indices, when given),
+        classified (:meth:`_classify`); None when there is no road to draw from."""
         lengths = self.lengths.copy()
         if roads is not None:
             lengths[np.setdiff1d(np.arange(len(lengths)), list(roads))] = 0.0
         total = float(lengths.sum())
         if n <= 0 or total <= 0:
-            return []
+            return None
         cum = np.cumsum(lengths)
         s = rng.uniform(0.0, total, size=n)
         road = np.minimum(np.searchsorted(cum, s, side="right"), len(cum) - 1)
         at = np.clip(s - (cum[road] - lengths[road]), 0.0, lengths[road])
-        flip = rng.random(n) < 0.5
-        return [self.classify(int(r), float(a), bool(f)) for r, a, f in zip(road, at, flip)]
+        return self._classify(road, at, rng.random(n) < 0.5)
 
-    def classify(self, road: int, at: float, flip: bool = False) -> Frame:
-        """The frame of the pose ``at`` metres along ``road``, facing its travel direction (two-way
-        roads: against the polyline when ``flip``)."""
-        line, info = self.graph.lines[road], self.sd.roads[road]
-        backward = info.oneway == -1 or (info.oneway == 0 and flip)
-        p0, p1 = (shapely.get_coordinates(shapely.line_interpolate_point(line, [at - 1.0, at + 1.0]))
-                  if self.lengths[road] > 0 else (np.zeros(2), np.array([1.0, 0.0])))
-        d = p0 - p1 if backward else p1 - p0
-        here = shapely.get_coordinates(shapely.line_interpolate_point(line, at))[0]
-        pose = Pose(float(here[0]), float(here[1]), float(np.arctan2(d[1], d[0])))
-        kind, junction, junction_m = self._kind(pose, line, at)
-        tags = []
-        if info.oneway:
-            tags.append("oneway")
-        if self.graph.divided[road]:
-            tags.append("divided")
-        if info.lanes is not None and info.lanes >= (2 if info.oneway else 4):
-            tags.append("multilane")
-        return Frame(pose, kind, junction, tuple(tags), road, junction_m)
+    def _classify(self, road: np.ndarray, at: np.ndarray, flip: np.ndarray) -> list[np.ndarray]:
+        """:meth:`classify` of many poses (arrays of roads, metres along them and flips) as columns: places, yaws,
+        roads, kinds, junction kinds and distances to the nearest junction."""
+        lines, length = np.asarray(self.graph.lines, object)[road], self.lengths[road]
+        oneway = np.array([r.oneway for r in self.sd.roads])[road]
+        ahead = shapely.get_coordinates(shapely.line_interpolate_point(lines[:, None], at[:, None] + [-1.0, 1.0]))
+        d = np.where((length > 0)[:, None], ahead[1::2] - ahead[0::2], [1.0, 0.0])
+        d[(oneway == -1) | ((oneway == 0) & flip)] *= -1.0
+        xy, yaw = shapely.get_coordinates(shapely.line_interpolate_point(lines, at)), np.arctan2(d[:, 1], d[:, 0])
+        return [xy, yaw, road, *self._kinds(xy, yaw, lines, at, length)]
 
-    def _kind(self, pose: Pose, line, at: float) -> tuple[str, str | None, float]:
-        """Kind, junction kind and distance to the nearest junction of the frame at ``pose``."""
-        half = self.frame_m / 2.0
-        centres, nearest_m = self.graph.centres, float("inf")
-        if len(centres):
-            ego = to_frame(centres, pose.x, pose.y, pose.yaw)
-            dist = np.linalg.norm(ego, axis=1)
-            k = int(np.argmin(dist))
-            nearest_m = float(dist[k])
-            if dist[k] <= JUNCTION_M:
-                return "junction", self.graph.junctions[k].kind, nearest_m
-            inside = np.flatnonzero(np.all(np.abs(ego) <= half, axis=1))
-            if len(inside):
-                nearest = inside[np.argmin(dist[inside])]
-                return ("approach" if ego[nearest, 0] > 0 else "exit"), None, nearest_m
-        ends = self.graph.dead_ends
-        if len(ends) and np.any(np.all(np.abs(to_frame(ends, pose.x, pose.y, pose.yaw)) <= half, axis=1)):
-            return "end", None, nearest_m
-        length = shapely.length(line)
-        ahead = np.clip([at - half, at - half + 2.0, at + half - 2.0, at + half], 0.0, length)
-        pts = shapely.get_coordinates(shapely.line_interpolate_point(line, ahead))
-        d0, d1 = pts[1] - pts[0], pts[3] - pts[2]
-        turn = abs(np.degrees(np.arctan2(d0[0] * d1[1] - d0[1] * d1[0], d0 @ d1)))
-        return ("curve" if turn >= CURVE_DEG else "straight"), None, nearest_m
+    def _frames(self, columns: list[np.ndarray], rows) -> list[Frame]:
+        """The frames of some ``rows`` of :meth:`_classify`'s columns."""
+        tags = [tuple(t for t, on in (("oneway", r.oneway), ("divided", self.graph.divided[k]),
+                                      ("multilane", r.lanes is not None and r.lanes >= (2 if r.oneway else 4))) if on)
+                for k, r in enumerate(self.sd.roads)]
+        xy, yaw, road, kind, junction, junction_m = (c[rows] for c in columns)
+        return [Frame(Pose(float(p[0]), float(p[1]), float(a)), k, j, tags[r], int(r), float(m))
+                for p, a, r, k, j, m in zip(xy, yaw, road, kind, junction, junction_m)]
+
+    def _kinds(self, xy: np.ndarray, yaw: np.ndarray, lines: np.ndarray, at: np.ndarray,
+               length: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+        """Kinds, junction kinds and distances to the nearest junction of the frames at ``xy`` facing ``yaw``."""
+        half, n, centres = self.frame_m / 2.0, len(xy), self.graph.centres
+        kind, junction, nearest_m = np.full(n, "", object), np.full(n, None, object), np.full(n, np.inf)
+        if len(centres):  # the nearest centre, taken (of the two nearest) as the ego frame measures it
+            near = np.sort(cKDTree(centres).query(xy, k=min(2, len(centres)))[1].reshape(n, -1), axis=1)
+            dist = np.linalg.norm(to_frame(centres[near], xy[:, :1], xy[:, 1:], yaw[:, None]), axis=-1)
+            k, nearest_m = near[np.arange(n), dist.argmin(axis=1)], dist.min(axis=1)
+            hub = nearest_m <= JUNCTION_M
+            kind[hub] = "junction"
+            junction[hub] = [self.graph.junctions[j].kind for j in k[hub]]
+            i, j, ego = _in_frame(centres, xy, yaw, half, ~hub)
+            first = np.lexsort((j, np.linalg.norm(ego, axis=1), i))  # by pose, then the nearest centre
+            first = first[np.r_[True, i[first][1:] != i[first][:-1]]] if len(i) else first
+            kind[i[first]] = np.where(ego[first, 0] > 0, "approach", "exit")
+        kind[_in_frame(self.graph.dead_ends, xy, yaw, half, kind == "")[0]] = "end"
+        rest = np.flatnonzero(kind == "")
+        ahead = np.clip(at[rest, None] + [-half, -half + 2.0, half - 2.0, half], 0.0, length[rest, None])
+        p = shapely.get_coordinates(shapely.line_interpolate_point(lines[rest, None], ahead)).reshape(-1, 4, 2)
+        d0, d1 = p[:, 1] - p[:, 0], p[:, 3] - p[:, 2]
+        turn = np.abs(np.degrees(np.arctan2(d0[:, 0] * d1[:, 1] - d0[:, 1] * d1[:, 0], (d0 * d1).sum(axis=1))))
+        kind[rest] = np.where(turn >= CURVE_DEG, "curve", "straight")
+        return kind, junction, nearest_m
 
     def sample(self, n: int, rng: np.random.Generator, mix: dict[str, float] | None = None,
                min_spacing_m: float = 16.0, near_junction_m: float | None = None, roads: set[int] | None = None,
@@ -153,10 +159,29 @@ class FrameSampler:
         ``near_junction_m`` of a junction, or on ``roads``. Fewer than ``n`` only when the map has too
         few such places."""
         mix = DEFAULT_MIX if mix is None else mix
-        pool = self.candidates(max(n * oversample, 64), rng, roads) if n > 0 else []
-        pool = [f for f in pool if mix.get(f.kind, 0) > 0
-                and (near_junction_m is None or f.junction_m <= near_junction_m)]
-        return pick(pool, n, mix, min_spacing_m)
+        pool = self._candidates(max(n * oversample, 64), rng, roads) if n > 0 else None
+        if pool is None:
+            return []
+        xy, _, _, kind, _, junction_m = pool
+        ok = np.array([mix.get(k, 0) > 0 for k in kind], bool)
+        if near_junction_m is not None:
+            ok &= junction_m <= near_junction_m
+        ok = np.flatnonzero(ok)
+        return self._frames(pool, ok[pick(kind[ok], xy[ok], n, mix, min_spacing_m)])
+
+
+def _in_frame(points: np.ndarray, xy: np.ndarray, yaw: np.ndarray, half: float, which: np.ndarray):
+    """The pairs (pose ``i``, point ``j``) of the poses ``which`` selects and the points in their frames (squares of
+    side ``2 * half`` about ``xy`` facing ``yaw``), and the points in those frames' coordinates."""
+    if not len(points) or not which.any():
+        return np.zeros(0, np.int64), np.zeros(0, np.int64), np.zeros((0, 2))
+    poses = np.flatnonzero(which)
+    reach = half * np.sqrt(2.0) + 1e-6  # a frame's corner, and some
+    pairs = cKDTree(xy[poses]).sparse_distance_matrix(cKDTree(points), reach, output_type="ndarray")
+    i, j = poses[pairs["i"]], pairs["j"].astype(np.int64)
+    ego = to_frame(points[j], xy[i, 0], xy[i, 1], yaw[i])
+    inside = np.all(np.abs(ego) <= half, axis=1)
+    return i[inside], j[inside], ego[inside]
 
 
 def hd_poses(hd: HDMap, n: int, rng: np.random.Generator, min_spacing_m: float = 16.0) -> list[Pose]:
@@ -164,31 +189,45 @@ def hd_poses(hd: HDMap, n: int, rng: np.random.Generator, min_spacing_m: float =
     return [f.pose for f in FrameSampler(derive_sd(hd)).sample(n, rng, min_spacing_m=min_spacing_m)]
 
 
-def pick(pool: list[Frame], n: int, mix: dict[str, float], min_spacing_m: float) -> list[Frame]:
-    """Up to ``n`` frames from ``pool`` (in order) filling the quota of each kind, then any kind."""
-    if not pool:
+def pick(kinds: np.ndarray, xy: np.ndarray, n: int, mix: dict[str, float], min_spacing_m: float) -> list[int]:
+    """Up to ``n`` of the frames of ``kinds`` at ``xy`` (their indices, in order) filling the quota of each kind, then
+    any kind."""
+    if not len(kinds):
         return []
-    have = Counter(f.kind for f in pool)
+    have = Counter(kinds)
     weights = {k: w for k, w in mix.items() if have[k] and w > 0}
     total = sum(weights.values()) or 1.0
     quota = {k: int(np.ceil(n * w / total)) for k, w in weights.items()}
-    taken, count = [], Counter()
-    xy = np.array([[f.pose.x, f.pose.y] for f in pool])
+    taken, count, chosen, crowded = [], Counter(), [False] * len(kinds), [False] * len(kinds)
+    cell = 1.01 * min_spacing_m  # a taken frame in a cell that does not touch the frame's own lies farther away
+    cells = list(zip(*np.floor(xy / cell).astype(np.int64).T.tolist())) if min_spacing_m > 0 else None
+    points, grid, around = xy.tolist(), {}, [(dx, dy) for dx in (-1, 0, 1) for dy in (-1, 0, 1)]
 
     def spaced(i: int) -> bool:
-        return not taken or np.min(np.linalg.norm(xy[taken] - xy[i], axis=1)) >= min_spacing_m
+        if cells is None or crowded[i]:  # once too near a taken frame, always so
+            return cells is None
+        (x, y), (cx, cy) = points[i], cells[i]
+        for dx, dy in around:
+            for tx, ty in grid.get((cx + dx, cy + dy), ()):
+                ex, ey = tx - x, ty - y
+                if math.sqrt(ex * ex + ey * ey) < min_spacing_m:
+                    crowded[i] = True
+                    return False
+        return True
 
     for rule in ("quota", "spacing", "any"):
-        for i, f in enumerate(pool):
+        for i, kind in enumerate(kinds):
             if len(taken) == n:
                 break
-            if i in taken or (rule != "any" and not spaced(i)):
-                continue
-            if rule == "quota" and count[f.kind] >= quota.get(f.kind, 0):
+            if chosen[i] or (rule == "quota" and count[kind] >= quota.get(kind, 0)) or (rule != "any" and
+                                                                                        not spaced(i)):
                 continue
             taken.append(i)
-            count[f.kind] += 1
-    return [pool[i] for i in taken]
+            chosen[i] = True
+            count[kind] += 1
+            if cells is not None:
+                grid.setdefault(cells[i], []).append(points[i])
+    return taken
 
 
 def label_order(label: str) -> tuple:

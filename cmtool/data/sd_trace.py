@@ -21,6 +21,7 @@ from cmtool.maps.sdmap import Road, SDMap
 
 SPUR_WIDTHS = 2.0  # a dead-end line shorter than this many road widths is a spur of the thinning
 SIMPLIFY_PX = 0.7  # traced lines are simplified to within this many pixels
+MAX_TRACE_PIXELS = 5_000 * 5_000  # larger pictures are refused (a noisy one this size takes about a minute)
 _RING = [(-1, 0), (-1, 1), (0, 1), (1, 1), (1, 0), (1, -1), (0, -1), (-1, -1)]  # P2 .. P9, clockwise from up
 
 
@@ -35,41 +36,52 @@ def trace_sd(path, px_m: float = 0.5, city: str | None = None) -> SDMap:
 def trace_picture(img: np.ndarray, coloured: bool, px_m: float, city: str | None = None, path="picture") -> SDMap:
     """The SD map of the roads in a picture array (``coloured``: in the SD raster's colours, else a road drawing),
     named ``path`` in messages."""
+    if img.shape[0] * img.shape[1] > MAX_TRACE_PIXELS:
+        raise CmtoolError(f"{path}: a picture of {img.shape[1]} x {img.shape[0]} pixels; roads are traced in pictures "
+                          f"of up to {MAX_TRACE_PIXELS:,} pixels (5000 x 5000)")
     mask = (img[..., 0] == ROAD_VALUE).astype(np.uint8) if coloured else drawing_roads(img)
     if mask is None or not mask.any():
         raise CmtoolError(f"{path}: no roads in the picture (draw roads light on dark or dark on light)")
     width = 2.0 * float(cv2.distanceTransform(mask, cv2.DIST_L2, 3).max())  # the widest road, pixels
     lines = _tidy(_lines(_thin(mask)), width)
-    roads = []
     h, w = mask.shape
-    for k, line in enumerate(lines):
-        simple = shapely.get_coordinates(shapely.LineString(line[:, ::-1]).simplify(SIMPLIFY_PX))  # (col, row)
-        if len(simple) < 2 or shapely.length(shapely.LineString(simple)) < 1.0:  # a link of two touching nodes
-            continue
-        metres = np.stack([(simple[:, 0] + 0.5 - w / 2.0) * px_m, (h / 2.0 - simple[:, 1] - 0.5) * px_m], axis=1)
-        lanes, oneway = _attributes(img, line) if coloured else (None, 0)
-        roads.append(Road(f"d{k}", metres, lanes=lanes, oneway=oneway))
+    shapes = shapely.simplify(shapely.linestrings(np.concatenate(lines)[:, ::-1], indices=np.repeat(
+        np.arange(len(lines)), [len(line) for line in lines])), SIMPLIFY_PX) if lines else np.zeros(0, object)
+    simple, which = shapely.get_coordinates(shapes, return_index=True)  # (col, row)
+    metres = np.stack([(simple[:, 0] + 0.5 - w / 2.0) * px_m, (h / 2.0 - simple[:, 1] - 0.5) * px_m], axis=1)
+    metres = np.split(metres, np.flatnonzero(np.diff(which)) + 1)
+    roads = []
+    for k in np.flatnonzero(shapely.length(shapes) >= 1.0):  # shorter: a link of two touching nodes
+        lanes, oneway = _attributes(img, lines[k]) if coloured else (None, 0)
+        roads.append(Road(f"d{k}", metres[k], lanes=lanes, oneway=oneway))
     if not roads:
         raise CmtoolError(f"{path}: no road lines could be traced in the picture")
     return SDMap(city=city, roads=roads, source=f"drawing:{path}", meta={"px_m": px_m})
 
 
 def _thin(mask: np.ndarray) -> np.ndarray:
-    """Zhang and Suen's thinning of a 0/1 mask to lines one pixel wide."""
+    """Zhang and Suen's thinning of a 0/1 mask to lines one pixel wide. Each pass tests only the pixels beside those
+    the last two passes removed (the others' tests come out as before), so the work grows with the road pixels."""
     img = np.pad(mask.astype(np.uint8), 1)
-    while True:
-        changed = False
-        for first in (True, False):
-            p = [np.roll(img, (-dr, -dc), axis=(0, 1)) for dr, dc in _RING]  # p[k][r, c] = img[r + dr, c + dc]
-            neighbours = sum(p)
-            rises = sum(((p[k] == 0) & (p[(k + 1) % 8] == 1)).astype(np.uint8) for k in range(8))
-            a, b = (p[0] * p[2] * p[4], p[2] * p[4] * p[6]) if first else (p[0] * p[2] * p[6], p[0] * p[4] * p[6])
-            gone = (img == 1) & (neighbours >= 2) & (neighbours <= 6) & (rises == 1) & (a == 0) & (b == 0)
-            if gone.any():
-                img[gone] = 0
-                changed = True
-        if not changed:
-            return img[1:-1, 1:-1]
+    flat, seen = img.reshape(-1), np.zeros(img.size, np.int32)
+    ring = [dr * img.shape[1] + dc for dr, dc in _RING]
+
+    def roads(idx):  # the road pixels of idx, each once
+        seen[idx] = np.arange(len(idx))
+        return idx[(seen[idx] == np.arange(len(idx))) & (flat[idx] == 1)]
+
+    check, step = [np.flatnonzero(img > cv2.erode(img, np.ones((3, 3), np.uint8)))] * 2, 0  # pixels on an edge
+    while len(check[0]) or len(check[1]):
+        look, first = check[step % 2], step % 2 == 0
+        p = np.stack([flat[look + o] for o in ring], axis=1)  # p[:, k] = img at look + _RING[k]
+        neighbours, rises = p.sum(axis=1), ((p == 0) & (np.roll(p, -1, axis=1) == 1)).sum(axis=1)
+        a, b = (p[:, [0, 2, 4]], p[:, [2, 4, 6]]) if first else (p[:, [0, 2, 6]], p[:, [0, 4, 6]])
+        gone = look[(neighbours >= 2) & (neighbours <= 6) & (rises == 1) & (a.min(axis=1) == 0) & (b.min(axis=1) == 0)]
+        flat[gone] = 0
+        near = roads(np.concatenate([gone + o for o in ring]))
+        check[step % 2], check[1 - step % 2] = near, roads(np.concatenate([check[1 - step % 2], near]))
+        step += 1
+    return img[1:-1, 1:-1]
 
 
 def _lines(skeleton: np.ndarray) -> list[np.ndarray]:
@@ -94,9 +106,10 @@ def _lines(skeleton: np.ndarray) -> list[np.ndarray]:
     mask = np.zeros(skeleton.shape, np.uint8)
     mask[rows[node], cols[node]] = 1
     labels = cv2.connectedComponents(mask, connectivity=8)[1][rows, cols]  # 0: not a node
-    centres = {lab: np.array([rows[labels == lab].mean(), cols[labels == lab].mean()]) for lab in np.unique(labels)
-               if lab}
-    point = lambda i: centres[labels[i]] if labels[i] else np.array([rows[i], cols[i]], np.float64)  # noqa: E731
+    centres = np.stack([np.bincount(labels, rows), np.bincount(labels, cols)], axis=1) / np.maximum(
+        np.bincount(labels), 1)[:, None]  # each node's mean
+    points = np.stack([rows, cols], axis=1).astype(np.float64)  # a pixel's place, a node pixel's that of its node
+    points[labels > 0] = centres[labels[labels > 0]]
     done, visited, lines = set(), node.copy(), []
     for start in np.flatnonzero(node):
         for first in near[start]:
@@ -108,7 +121,7 @@ def _lines(skeleton: np.ndarray) -> list[np.ndarray]:
                 prev, cur = cur, next(j for j in near[cur] if j != prev)
                 path.append(cur)
             done |= {(start, first), (cur, prev)}
-            lines.append(np.array([point(i) for i in path]))
+            lines.append(points[path])
     for start in np.flatnonzero(~visited):  # loops without a node
         if visited[start]:
             continue
@@ -118,7 +131,7 @@ def _lines(skeleton: np.ndarray) -> list[np.ndarray]:
             prev, cur = cur, next(j for j in near[cur] if j != prev and (j != start or len(path) > 2))
             path.append(cur)
         if len(path) > 3:
-            lines.append(np.array([point(i) for i in path]))
+            lines.append(points[path])
     return lines
 
 
@@ -127,37 +140,39 @@ def _tidy(lines: list[np.ndarray], width: float) -> list[np.ndarray]:
     joins two or more other lines to an end that joins none) dropped, then links shorter than a road width between
     two such nodes contracted (both nodes become one, at the link's middle)."""
 
-    def degrees(lines):
-        count = {}
-        for line in lines:
-            for p in (line[0], line[-1]):
-                count[tuple(p)] = count.get(tuple(p), 0) + 1
-        return count
+    def ends(lines):  # each line's two end nodes (numbered) and the number of line ends at each node
+        points = np.array([(line[0], line[-1]) for line in lines]).reshape(-1, 2)
+        _, node, count = np.unique(points, axis=0, return_inverse=True, return_counts=True)
+        return node.reshape(-1, 2), count
 
-    def length(line):
-        return float(np.linalg.norm(np.diff(line, axis=0), axis=1).sum())
-
-    count = degrees(lines)
-    def spur(line):
-        ends = sorted((count[tuple(line[0])], count[tuple(line[-1])]))
-        return length(line) < SPUR_WIDTHS * width and ends[0] == 1 and ends[1] >= 3
-
-    lines = [line for line in lines if not spur(line)]
-    count = degrees(lines)
+    node, count = ends(lines)
+    degree, length = np.sort(count[node], axis=1), _lengths(lines)
+    keep = np.flatnonzero(~((length < SPUR_WIDTHS * width) & (degree[:, 0] == 1) & (degree[:, 1] >= 3)))
+    lines, length = [lines[i] for i in keep], length[keep]
+    node, count = ends(lines)
     moved = {}
-    for line in lines:
-        a, b = tuple(line[0]), tuple(line[-1])
-        if a != b and length(line) < width and count[a] >= 3 and count[b] >= 3 and a not in moved and b not in moved:
-            moved[a] = moved[b] = 0.5 * (line[0] + line[-1])
+    for i in np.flatnonzero((node[:, 0] != node[:, 1]) & (length < width) & (count[node].min(axis=1) >= 3)):
+        a, b = node[i]
+        if a not in moved and b not in moved:
+            moved[a] = moved[b] = 0.5 * (lines[i][0] + lines[i][-1])
     out = []
-    for line in lines:
-        a, b = tuple(line[0]), tuple(line[-1])
+    for line, (a, b) in zip(lines, node):
         if a in moved and b in moved and np.array_equal(moved[a], moved[b]):
             continue  # the contracted link itself
         line = line.copy()
         line[0], line[-1] = moved.get(a, line[0]), moved.get(b, line[-1])
         out.append(line)
     return out
+
+
+def _lengths(lines: list[np.ndarray]) -> np.ndarray:
+    """The length of each line (at least two points each)."""
+    if not lines:
+        return np.zeros(0)
+    points, starts = np.concatenate(lines), np.cumsum([0] + [len(line) for line in lines[:-1]])
+    step = np.linalg.norm(np.diff(points, axis=0, append=points[-1:]), axis=1)
+    step[starts[1:] - 1] = 0.0  # from one line's end to the next line's start
+    return np.add.reduceat(step, starts)
 
 
 def _attributes(img: np.ndarray, line: np.ndarray) -> tuple[int | None, int]:

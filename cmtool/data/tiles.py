@@ -26,6 +26,7 @@ from cmtool.maps.sdmap import SDMap
 CORE_M = 32.0  # every road point lies in the middle square of this side of some tile
 STEP_M = 2.0  # road points are tried this far apart
 HUB_M = 20.0  # a tile on a junction owns every point this near its centre (for the model's 64 m frames)
+MAX_ROAD_KM = 1_000.0  # of road in one area (about 38,000 tiles, a city of 100 km2); a larger area is refused
 
 
 @dataclass
@@ -66,6 +67,16 @@ def cover(sd: SDMap, box: tuple[float, float, float, float] | None = None, core_
             if not tiles.covers(p):  # the road turns: stand one on the point itself
                 tiles.add(p, _heading(line, at))
     return tiles.poses
+
+
+def check_extent(sd: SDMap, box: tuple[float, float, float, float], option: str) -> None:
+    """Refuse, naming ``option`` (what set the area), an area whose roads run over ``MAX_ROAD_KM``, before any tile
+    is laid."""
+    roads = shapely.intersection([shapely.LineString(r.polyline) for r in sd.roads], shapely.box(*box))
+    km = float(shapely.length(roads).sum()) / 1000.0
+    if not km <= MAX_ROAD_KM:
+        raise CmtoolError(f"{option}: the area's roads run {km:,.0f} km; one area holds up to {MAX_ROAD_KM:,.0f} km "
+                          f"of road (about {MAX_ROAD_KM * 38:,.0f} tiles)")
 
 
 class _Tiles:

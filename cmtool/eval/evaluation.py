@@ -86,10 +86,11 @@ class EvalSettings(SamplerSettings):
 
 def run_eval(gen: MapGenerator, settings: EvalSettings, out: Path, extractor: FeatureExtractor | None,
              rrd_samples: int = 64, progress: bool = True, info: D.DistInfo = D.SINGLE,
-             workers: int = 1) -> dict | None:
+             workers: int = 1, record: bool = True) -> dict | None:
     """Generate (or continue generating) both sets, compute the metrics and write the reports. Under ``torchrun``
     (``info``) the processes take turns at the batches and the main process scores and writes everything; the
-    others return None. ``workers``: processes for the per-scene metrics (:func:`cmtool.metrics.suite.evaluate`)."""
+    others return None. ``workers``: processes for the per-scene metrics (:func:`cmtool.metrics.suite.evaluate`);
+    ``record=False``: no ``eval.rrd``."""
     settings.check()
     if not gen.has_control:
         raise CmtoolError(f"{gen.path}: eval compares ControlMap with its unguided DiT; give a ControlMap checkpoint")
@@ -135,7 +136,8 @@ def run_eval(gen: MapGenerator, settings: EvalSettings, out: Path, extractor: Fe
               **({"lane_counts": counts} if counts else {})}
     write_json(out / "metrics.json", report)
     write_text_atomic(out / "summary.md", summary_markdown(report))
-    _write_recording(out / "eval.rrd", scenes, reference, generated, results, rrd_samples)
+    if record:
+        _write_recording(out / "eval.rrd", scenes, reference, generated, results, rrd_samples)
     write_png(out / "gallery.png", gallery(scenes, reference, generated))
     return report
 

@@ -62,15 +62,21 @@ def verify(fmt: str, graph, path: str | os.PathLike, lat0: float, lon0: float) -
     except (RuntimeError, ValueError) as e:
         raise CmtoolError(f"{path}: {name} cannot read it: {e}") from None
     n = len(graph.lanes)
-    joins = sorted({(int(i), int(j)) for i, j in graph.successors if i != j})
+    joins = sorted({(int(i), int(j)) for i, j in graph.successors})
+    between = [(a, b) for a, b in edges if a != b]  # a reader's join of a lane's parts is no join of the lane graph's
     return Verdict(f"{name} {_version(wheel)}".strip(), len(joins), unreached(n, joins, edges),
-                   unreached(n, edges, joins), sorted(set(range(n)) - seen))
+                   unreached(n, between, joins), sorted(set(range(n)) - seen))
 
 
 def unreached(n: int, edges, paths) -> list[tuple[int, int]]:
-    """The ``edges`` (i, j) between ``n`` lanes where no chain of ``paths`` leads from i to j."""
+    """The ``edges`` (i, j) between ``n`` lanes where no chain of ``paths`` leads from i to j (for a self-loop (i, i):
+    a chain of one path or more)."""
     reach = Reach(n, set(paths))
-    return [(i, j) for i, j in sorted(set(edges)) if j not in reach(i)]
+    after = {}
+    for a, b in set(paths):
+        after.setdefault(a, set()).add(b)
+    return [(i, j) for i, j in sorted(set(edges))
+            if not (any(i in reach(k) for k in after.get(i, ())) if i == j else j in reach(i))]
 
 
 def _carla(carla, xodr: str) -> tuple[list, set]:
@@ -80,7 +86,7 @@ def _carla(carla, xodr: str) -> tuple[list, set]:
                for data in lane.iter("userData") if data.get("code") == "cmtool:lane"}
     topology = [(lane_of[(a.road_id, a.lane_id)], lane_of[(b.road_id, b.lane_id)])
                 for a, b in carla.Map("cmtool", xodr).get_topology()]
-    return [(a, b) for a, b in topology if a != b], {k for edge in topology for k in edge}
+    return topology, {k for edge in topology for k in edge}
 
 
 def _lanelet2(lanelet2, path, lat0: float, lon0: float) -> tuple[list, set]:
@@ -96,7 +102,7 @@ def _lanelet2(lanelet2, path, lat0: float, lon0: float) -> tuple[list, set]:
     routing = lanelet2.routing.RoutingGraph(lanelet_map, rules)
     lane = {ll.id: int(ll.attributes["cmtool:lane"]) for ll in lanelet_map.laneletLayer}
     edges = [(lane[ll.id], lane[f.id]) for ll in lanelet_map.laneletLayer for f in routing.following(ll)]
-    return [(a, b) for a, b in edges if a != b], set(lane.values())
+    return edges, set(lane.values())
 
 
 def _version(wheel: str) -> str:

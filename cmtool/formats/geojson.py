@@ -14,7 +14,7 @@ from __future__ import annotations
 import numpy as np
 
 from cmtool.core.geo import scene_to_latlon
-from cmtool.core.geometry import offset, polyline_length
+from cmtool.core.geometry import equal_count_batches, offset
 
 LANE_WIDTH_M = 3.5
 
@@ -26,15 +26,19 @@ def to_geojson(graph, lat0: float, lon0: float, heading: float = 0.0, lane_width
     for i, j in graph.successors:
         succ.setdefault(int(i), []).append(int(j))
         pred.setdefault(int(j), []).append(int(i))
+    lanes = [np.asarray(lane, np.float64) for lane in graph.lanes]
+    edges, length = [None] * len(lanes), np.zeros(len(lanes))
+    for which, batch in equal_count_batches(lanes):  # lanes of one vertex count at once, the same numbers
+        length[which] = np.linalg.norm(np.diff(batch, axis=1), axis=2).sum(axis=1)
+        sides = [offset(batch, np.full(len(which), sign * lane_width / 2.0)) for sign in (1.0, -1.0)]
+        for n, k in enumerate(which):
+            edges[k] = (sides[0][n], sides[1][n])
     lines, props = [], []  # every feature's line in scene metres, and its properties
-    for i, lane in enumerate(graph.lanes):
-        lane = np.asarray(lane, np.float64)
-        lines.append(lane)
-        props.append({"kind": "lane", "id": i, "successors": succ.get(i, []), "predecessors": pred.get(i, []),
-                      "length_m": round(polyline_length(lane), 3)})
-        for side, sign in (("left", 1.0), ("right", -1.0)):
-            lines.append(offset(lane, sign * lane_width / 2.0))
-            props.append({"kind": "boundary", "lane": i, "side": side})
+    for i, lane in enumerate(lanes):
+        lines += [lane, *edges[i]]
+        props += [{"kind": "lane", "id": i, "successors": succ.get(i, []), "predecessors": pred.get(i, []),
+                   "length_m": round(float(length[i]), 3)},
+                  *({"kind": "boundary", "lane": i, "side": side} for side in ("left", "right"))]
     for state, lights in (("green", graph.green_lights), ("red", graph.red_lights)):
         lines += [np.asarray(line, np.float64) for line in lights]
         props += [{"kind": "light", "state": state} for _ in lights]

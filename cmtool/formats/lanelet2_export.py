@@ -30,13 +30,13 @@ from xml.sax.saxutils import quoteattr
 import numpy as np
 
 from cmtool.core.geo import scene_to_latlon
-from cmtool.core.geometry import offset, padded, resample
+from cmtool.core.geometry import equal_count_batches, offset, padded, resample
 from cmtool.core.jsonio import write_text_atomic
 from cmtool.core.unionfind import UnionFind
 from cmtool.maps.lanegraph import controlled_lanes, stop_line
 from cmtool.maps.neighbours import (
     LANE_WIDTH_M,
-    abreast,
+    abreasts,
     graph_neighbours,
     lane_widths,
     side_of,
@@ -77,8 +77,11 @@ def to_lanelet2(graph, lat0: float, lon0: float, heading: float = 0.0, lane_widt
     left, oncoming = graph_neighbours(graph)
     widths = lane_widths(lanes, left, graph.widths, lane_width)
     lane_of, joins, allowed = _lanelets(len(lanes), {(int(i), int(j)) for i, j in graph.successors})
-    bounds = {(u, side): offset(lanes[i], (0.5 if side == LEFT else -0.5) * widths[i])
-              for u, i in enumerate(lane_of) for side in (LEFT, RIGHT)}
+    lane_bounds = {}  # (lane, side) -> its bound, lanes of one vertex count at once
+    for which, batch in equal_count_batches(lanes):
+        for side, half in ((LEFT, 0.5), (RIGHT, -0.5)):
+            lane_bounds.update(((k, side), line) for k, line in zip(which, offset(batch, half * widths[which])))
+    bounds = {(u, side): lane_bounds[i, side] for u, i in enumerate(lane_of) for side in (LEFT, RIGHT)}
     corners = _Corners(len(lane_of), allowed)
     for (a, a_end), (b, b_end) in joins:
         corners.join([((a, side, a_end), (b, side, b_end)) for side in (LEFT, RIGHT)])
@@ -87,8 +90,9 @@ def to_lanelet2(graph, lat0: float, lon0: float, heading: float = 0.0, lane_widt
     for i, j in oncoming:  # the centre line: the bound on the side where the other lane lies, for both
         side = LEFT if side_of(lanes, i, j) > 0 else RIGHT
         beside.append(((i, side), (j, side), False))
-    for mine, other, same in beside:
-        if mine in shared or other in shared or not abreast(lanes[mine[0]], lanes[other[0]], same):
+    fits = abreasts(lanes, [(mine[0], other[0]) for mine, other, _ in beside], [same for *_, same in beside])
+    for (mine, other, same), fit in zip(beside, fits):
+        if mine in shared or other in shared or not fit:
             continue
         ends = ((START, START), (END, END)) if same else ((START, END), (END, START))
         if corners.join([((*mine, a), (*other, b)) for a, b in ends]):

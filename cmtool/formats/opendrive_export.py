@@ -52,10 +52,10 @@ from cmtool.core.unionfind import UnionFind
 from cmtool.maps.lanegraph import controlled_lanes
 from cmtool.maps.neighbours import (
     LANE_WIDTH_M,
-    abreast,
+    abreasts,
     graph_neighbours,
     lane_widths,
-    same_direction,
+    same_directions,
     side_of,
 )
 
@@ -145,11 +145,11 @@ def _roads(lanes, pairs, right_pairs, left_hand_city: bool) -> list[_Road]:
     takes the side that more oncoming pairs show (``left_hand_city`` decides a tie)."""
     left, right_of, oncoming, votes = {}, {}, ({}, {}), [0, 0]  # oncoming[lht]: lane -> oncoming lane on that side
     for lht, side_pairs in enumerate((pairs, right_pairs)):
-        for i, j in side_pairs:
-            same = same_direction(lanes, i, j)
+        sames = same_directions(lanes, side_pairs)
+        for (i, j), same, fit in zip(side_pairs, sames.tolist(), abreasts(lanes, side_pairs, sames).tolist()):
             votes[lht] += not same
             taken = left if same else oncoming[lht]
-            if i == j or (lht and same) or i in taken or not abreast(lanes[i], lanes[j], same):
+            if i == j or (lht and same) or i in taken or not fit:
                 continue
             if not same:
                 oncoming[lht][i] = j

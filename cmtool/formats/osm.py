@@ -6,7 +6,8 @@ residential); footways, cycleways, paths, steps, tracks and the like are skipped
 ``lanes`` (an integer 1-16, else unknown), ``oneway`` (yes/true/1 -> 1, -1/reverse -> -1, else 0;
 motorways, motorway links and roundabouts are one-way unless tagged otherwise), ``*_link`` (a
 ramp or slip road) and ``layer`` (an integer -5..5; else bridges 1, tunnels -1, other ways 0).
-Coordinates are projected with a transverse Mercator projection centred on the mean of the nodes used. A way whose
+Coordinates are projected with a transverse Mercator projection centred on the mean of the nodes used
+(:func:`~cmtool.core.geo.centre_of`: across the antimeridian too). A way whose
 nodes are partly missing from the file (a clipped extract) keeps each run of >= 2 present nodes.
 
 :func:`write_osm` writes an SD map as ``.osm`` XML (roads as ``highway`` ways with ``lanes``,
@@ -23,7 +24,7 @@ from xml.sax.saxutils import quoteattr
 import numpy as np
 
 from cmtool.core.errors import CmtoolError
-from cmtool.core.geo import LocalProjection
+from cmtool.core.geo import LocalProjection, centre_of
 from cmtool.core.jsonio import write_text_atomic
 from cmtool.formats.osmxml import read_osm_xml
 from cmtool.maps.sdmap import ROAD_CLASSES, Road, SDMap
@@ -108,7 +109,7 @@ def read_osm(path: str | os.PathLike) -> SDMap:
                           f"{hint}")
     sd = SDMap(city=None, source=f"osm:{path.name}")
     used = np.array([nodes[r] for _, _, run, _ in runs for r in set(run)])
-    lat0, lon0 = used.mean(axis=0)
+    lat0, lon0 = centre_of(used)
     proj = LocalProjection(lat0, lon0)
     sd.meta = {"lat0": float(lat0), "lon0": float(lon0)}
     for way_id, part, run, tags in runs:

@@ -7,6 +7,9 @@ line, recorded as ``oncoming`` pairs ``(i, j)``, ``i < j``: on each other's left
 traffic, on each other's right in left-hand traffic (:func:`side_of` tells which). Generated lanes get
 both from the geometry alone (:func:`find_neighbours`); imported maps keep the lane-change
 neighbours their source records and add the oncoming pairs, which no source records.
+
+Lanes piled on each other, whose search would take more pairs than ``MAX_NEAR`` allows (estimated from the first
+lanes searched, in a fixed-seed random order), are refused with :class:`Crowded` before the most of the work.
 """
 
 from __future__ import annotations
@@ -16,6 +19,8 @@ import hashlib
 import numpy as np
 import shapely
 
+from cmtool.core.errors import CmtoolError
+from cmtool.core.memory import in_batches
 from cmtool.maps.lanegraph import LaneGraph
 
 LANE_WIDTH_M = 3.5
@@ -110,16 +115,34 @@ def _beside_all(lanes, widths, candidates):
     spots = shapely.points(points)  # the samples as geometries, made once
     w = np.full(n, LANE_WIDTH_M) if widths is None else np.asarray(widths, np.float64)
     middle = SAMPLES // 2  # each lane's middle must lie beside the other: a cheap first cut
-    if candidates is None:  # lanes in batches, so a crowded map's millions of candidate pairs never meet at once
-        reach, tree = float(LATERAL[1] * w.max()), shapely.STRtree(geoms)
-        batches = (_near(tree, spots[:, middle], np.arange(start, min(start + NEAR_BATCH, n)), reach)
-                   for start in range(0, n, NEAR_BATCH))
-        lateral = LATERAL
-    else:
+    if candidates is not None:
         pairs = np.array([(i, j) for i, j in candidates if i != j], np.int64).reshape(-1, 2)
-        batches = iter([(np.concatenate([pairs[:, 0], pairs[:, 1]]), np.concatenate([pairs[:, 1], pairs[:, 0]]))])
+        a, b = np.concatenate([pairs[:, 0], pairs[:, 1]]), np.concatenate([pairs[:, 1], pairs[:, 0]])
         lateral = (0.0, np.inf)
-    found = [_beside_pairs(geoms, points, spots, tangents, w, a, b, lateral) for a, b in batches]
+        return _beside_pairs(geoms, points, spots, tangents, *_cut(geoms, spots, w, a, b, lateral), lateral)
+    reach, tree = float(LATERAL[1] * w.max()), shapely.STRtree(geoms)
+    order, found, count = np.random.default_rng(0).permutation(n), [], np.zeros(3, np.int64)
+
+    def crowded() -> bool:  # either count of pairs, estimated over all lanes from at least 256 of them, over its limit
+        return bool(np.any(count[1:] * n > np.array(MAX_NEAR) * max(count[0], min(n, 256))))
+
+    def search(lo: int, hi: int) -> int:  # lanes in a random order, so the first batches tell how crowded the map is
+        a, b = _near(tree, spots[:, middle], np.sort(order[lo:hi]), reach)
+        near = len(a)
+        count[:2] += [hi - lo, near]  # lanes searched, candidate pairs
+        if not crowded():
+            a, b, width = _cut(geoms, spots, w, a, b, LATERAL)
+            count[2] += len(a)  # pairs left to the full test
+            if not crowded():
+                found.append(_beside_pairs(geoms, points, spots, tangents, a, b, width, LATERAL))
+        return near
+
+    if in_batches(n, search, most=NEAR_BATCH, until=crowded) < n or crowded():
+        near, full = (count[1:] * n // count[0]).tolist()
+        what = (f"{near:,} candidate pairs (a lane's middle within {reach:.2f} m of the other)" if near > MAX_NEAR[0]
+                else f"{full:,} pairs to test in full")
+        raise Crowded(f"lanes piled on each other: about {what}, over the {MAX_NEAR[near <= MAX_NEAR[0]]:,} that the "
+                      "lane-change neighbour search takes")
     return tuple(np.concatenate([f[k] for f in found]) for k in range(4))
 
 
@@ -145,7 +168,12 @@ def _medians(values: np.ndarray, mask: np.ndarray) -> np.ndarray:
     return np.where(count > 0, (low + high) / 2.0, np.nan)
 
 
-NEAR_BATCH = 4096  # lanes whose candidate pairs are sought and tested together
+NEAR_BATCH = 4096  # lanes whose candidate pairs are sought and tested together, at most
+MAX_NEAR = (5_000_000, 500_000)  # candidate pairs, and pairs tested in full (a dense city: 30 and 2 a lane), at most
+
+
+class Crowded(CmtoolError):
+    """Lanes piled so thick that the neighbour search would take more pairs than ``MAX_NEAR`` allows."""
 
 
 def _near(tree, middles, lanes: np.ndarray, reach: float) -> tuple[np.ndarray, np.ndarray]:
@@ -156,9 +184,9 @@ def _near(tree, middles, lanes: np.ndarray, reach: float) -> tuple[np.ndarray, n
     return lanes[q], b
 
 
-def _beside_pairs(geoms, points, spots, tangents, w, a, b, lateral):
-    """The candidate pairs (a, b) that lie beside each other along most of both lanes, with the signed offsets of b
-    seen from a's samples and where b lies beside a: (a, b, offset, beside). Each test looks both ways at once."""
+def _cut(geoms, spots, w, a, b, lateral):
+    """The candidate pairs (a, b) that the cheap cuts leave (both middles at a lateral gap from the other lane, then
+    :func:`_may_be_beside` both ways), and their mean widths: (a, b, width)."""
     middle, m = SAMPLES // 2, len(a)
     width = 0.5 * (w[a] + w[b])
     gap = shapely.distance(spots[np.r_[a, b], middle], geoms[np.r_[b, a]]) / np.r_[width, width]
@@ -168,7 +196,12 @@ def _beside_pairs(geoms, points, spots, tangents, w, a, b, lateral):
     m = len(a)
     keep = _may_be_beside(geoms, spots, np.r_[a, b], np.r_[b, a], np.r_[width, width], lateral)
     keep = keep[:m] & keep[m:]
-    a, b, width = a[keep], b[keep], width[keep]
+    return a[keep], b[keep], width[keep]
+
+
+def _beside_pairs(geoms, points, spots, tangents, a, b, width, lateral):
+    """The pairs (a, b) of :func:`_cut` that lie beside each other along most of both lanes, with the signed offsets
+    of b seen from a's samples and where b lies beside a: (a, b, offset, beside). Each test looks both ways at once."""
     m = len(a)
     offset, beside = _beside(geoms, points, spots, tangents, np.r_[a, b], np.r_[b, a], np.r_[width, width], lateral)
     ok = (beside[:m].mean(1) >= MIN_SHARE) & (beside[m:].mean(1) >= MIN_SHARE)
@@ -250,14 +283,20 @@ def abreast(a, b, same: bool = True) -> bool:
     """Whether two neighbouring lanes start and end abreast: along each lane, the other's ends lie within
     ``ABREAST_M`` (and a third of the shorter lane) of its own, so one bound can serve both. ``same``:
     whether they run the same way (else ``b`` is compared reversed)."""
-    la = shapely.LineString(np.asarray(a, np.float64))
-    lb = shapely.LineString(np.asarray(b, np.float64)[:: 1 if same else -1])
-    tolerance = min(ABREAST_M, la.length / 3.0, lb.length / 3.0)
-    for line, other in ((la, lb), (lb, la)):
-        ends = np.array([line.project(shapely.Point(other.coords[0])), line.project(shapely.Point(other.coords[-1]))])
-        if np.any(np.abs(ends - [0.0, line.length]) > tolerance):
-            return False
-    return True
+    return bool(abreasts([a, b], [(0, 1)], [same])[0])
+
+
+def abreasts(lanes, pairs, same) -> np.ndarray:
+    """:func:`abreast` of each pair ``(i, j)`` (``same``: whether each pair runs the same way), in one pass of
+    vectorised GEOS calls."""
+    geoms = _pair_lines(lanes, pairs).reshape(-1, 2)
+    geoms[:, 1] = np.where(same, geoms[:, 1], shapely.reverse(geoms[:, 1]))
+    length = shapely.length(geoms)
+    tolerance = np.minimum(ABREAST_M, length.min(axis=1) / 3.0)
+    ends = [shapely.get_point(geoms[:, k], e) for k in (1, 0) for e in (0, -1)]  # the other lane's ends, on each
+    along = shapely.line_locate_point(geoms[:, [0, 0, 1, 1]], np.stack(ends, axis=1))
+    want = np.stack([np.zeros(len(geoms)), length[:, 0], np.zeros(len(geoms)), length[:, 1]], axis=1)
+    return ~np.any(np.abs(along - want) > tolerance[:, None], axis=1)
 
 
 def lane_widths(lanes, left_neighbors, widths=None, default: float = LANE_WIDTH_M) -> np.ndarray:

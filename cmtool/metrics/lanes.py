@@ -15,7 +15,7 @@ import numpy as np
 import shapely
 from scipy.spatial import cKDTree
 
-from cmtool.core.geometry import as_polyline
+from cmtool.core.geometry import as_polyline, equal_count_batches
 
 
 def sample_points(polylines: Sequence[np.ndarray], step: float) -> np.ndarray:
@@ -33,16 +33,6 @@ def resampled(lines: Sequence[np.ndarray], step: float) -> list[np.ndarray]:
         for k, points in zip(which, _resampled(batch, step)):
             out[k] = points
     return out
-
-
-def equal_count_batches(lines: Sequence[np.ndarray], size: int = 4096):
-    """(indices, (m, L, 2) array) of ``lines`` of equal vertex counts L, at most ``size`` at a time: for computing on
-    many lines at once with the same floating-point operations as on each alone."""
-    count = np.array([len(line) for line in lines])
-    for m in np.unique(count).tolist():
-        which = np.flatnonzero(count == m).tolist()
-        for start in range(0, len(which), size):
-            yield which[start:start + size], np.stack([lines[k] for k in which[start:start + size]])
 
 
 def _resampled(lines: np.ndarray, step: float) -> list[np.ndarray]:
@@ -92,18 +82,22 @@ def distance_to_polylines(points: np.ndarray, polylines: Sequence[np.ndarray]) -
 KD_MIN_POINTS = 20_000  # points from which distance_to_polylines searches a KD-tree instead of GEOS's STR-tree
 PIECE_M = 1.0  # the KD-tree holds the middles of pieces of the segments at most this long (longer on vast maps)
 KD_BATCH = 1 << 22  # point-candidate pairs a step of the search holds
+CROWDED_POINTS, FINEST_M = 1_000, 1e-3  # more points crowded beyond 64 pieces are searched again over finer pieces
 
 
-def _nearest_segments(points: np.ndarray, starts: np.ndarray, ends: np.ndarray) -> np.ndarray:
+def _nearest_segments(points: np.ndarray, starts: np.ndarray, ends: np.ndarray, piece: float | None = None
+                      ) -> np.ndarray:
     """The distance from each point to the nearest segment (``starts[k]``-``ends[k]``), exact (GEOS's own formula,
-    :func:`_segment_distances`): every segment is cut into pieces of at most ``piece`` metres, whose middles a
-    KD-tree holds. A segment within d of a point has a piece whose middle lies within d + half a piece, so once the
-    nearest k middles reach beyond (the best segment among theirs) + half a piece, no other segment can be nearer;
-    points where they do not are searched again with 8 times as many, then by a ball search."""
-    tree, owner, reach = _pieces(len(points), starts, ends)
+    :func:`_segment_distances`): every segment is cut into pieces of at most ``piece`` metres (:func:`_pieces`),
+    whose middles a KD-tree holds. A segment within d of a point has a piece whose middle lies within d + half a
+    piece, so once the nearest k middles reach beyond (the best segment among theirs) + half a piece, no other
+    segment can be nearer; points where they do not are searched again with 8 times as many, then by a ball search,
+    or, where over ``CROWDED_POINTS`` are left (lanes piled on each other), over pieces 8 times shorter of the
+    segments near them (down to pieces of ``FINEST_M``)."""
+    tree, owner, reach = _pieces(len(points), starts, ends, piece)
     out = np.full(len(points), np.inf)
     todo, k = np.arange(len(points)), 8
-    while len(todo) and k <= 512:
+    while len(todo) and k <= 64:
         left, size = [], max(1, KD_BATCH // k)
         for begin in range(0, len(todo), size):
             rows = todo[begin:begin + size]
@@ -121,19 +115,27 @@ def _nearest_segments(points: np.ndarray, starts: np.ndarray, ends: np.ndarray) 
             done = (near.shape[1] == len(owner)) | (near[:, -1] >= best + reach)
             left.append(rows[~done])
         todo, k = np.concatenate(left), 8 * k
-    for row in todo.tolist():  # crowded beyond 512 pieces: every piece within reach
+    if len(todo) > CROWDED_POINTS and reach > FINEST_M:  # lanes piled: the segments that may be nearer, finer cut
+        lo = points[todo].min(axis=0) - out[todo].max() - reach
+        hi = points[todo].max(axis=0) + out[todo].max() + reach
+        near = np.flatnonzero(np.all((np.minimum(starts, ends) <= hi) & (np.maximum(starts, ends) >= lo), axis=1))
+        out[todo] = _nearest_segments(points[todo], starts[near], ends[near], reach / 4.0)
+        return out
+    for row in todo.tolist():  # a few crowded points: every piece within reach
         seg = np.unique(owner[tree.query_ball_point(points[row], out[row] + reach)])
         out[row] = _segment_distances(points[row], starts[seg], ends[seg]).min()
     return out
 
 
-def _pieces(points: int, starts: np.ndarray, ends: np.ndarray) -> tuple[cKDTree, np.ndarray, float]:
-    """A KD-tree of the middles of the segments cut into pieces of at most ``PIECE_M`` metres (longer where the
-    segments are longer in all than ``PIECE_M`` per one of ``points`` query points or segments), the segment of each
-    piece, and the most any point of a segment lies from its nearest piece middle (a hair more, for rounding)."""
+def _pieces(points: int, starts: np.ndarray, ends: np.ndarray, piece: float | None = None
+            ) -> tuple[cKDTree, np.ndarray, float]:
+    """A KD-tree of the middles of the segments cut into pieces of at most ``piece`` metres (default ``PIECE_M``, longer
+    where the segments are longer in all than ``PIECE_M`` per one of ``points`` query points or segments), the
+    segment of each piece, and the most any point of a segment lies from its nearest piece middle (a hair more, for
+    rounding)."""
     vector = ends - starts
     length = np.hypot(vector[:, 0], vector[:, 1])
-    piece = max(PIECE_M, float(length.sum()) / max(points, len(starts)))
+    piece = max(PIECE_M, float(length.sum()) / max(points, len(starts))) if piece is None else piece
     count = np.maximum(np.ceil(length / piece), 1).astype(np.int64)
     owner = np.repeat(np.arange(len(starts)), count)
     at = (np.arange(len(owner)) - np.repeat(np.cumsum(count) - count, count) + 0.5) / count[owner]
@@ -228,3 +230,31 @@ def lane_scores(pred: Sequence[np.ndarray], gt: Sequence[np.ndarray], tol: float
     empty sets). Returns ``{"precision", "recall", "f1"}`` floats.
     """
     return scores_at(pair_distances(pred, gt, step), tol)
+
+
+def lane_scores_of_scenes(preds: Sequence[Sequence[np.ndarray]], gts: Sequence[Sequence[np.ndarray]],
+                          tol: float = 1.0, step: float = 0.5) -> list[dict]:
+    """:func:`lane_scores` of many scenes (``preds[k]`` against ``gts[k]``) in one search each way: the scenes are laid
+    side by side on a grid, further apart than any of their points lie from their origin plus ``tol``, so no point
+    finds another scene's lane within ``tol``. The same scores, but for a point within rounding (about 1e-11 m) of
+    ``tol``."""
+    if len(preds) != len(gts):
+        raise ValueError(f"{len(preds)} predicted scenes for {len(gts)} reference scenes")
+    if not len(preds):
+        return []
+    sides = [[[as_polyline(p) for p in scene] for scene in group] for group in (preds, gts)]
+    extent = max([float(np.abs(l).max()) for group in sides for scene in group for l in scene] or [0.0])
+    spacing, columns = 2.0 * extent + tol + 1.0, max(1, int(np.ceil(np.sqrt(len(preds)))))
+    offsets = [np.array([k % columns, k // columns], np.float64) * spacing for k in range(len(preds))]
+    placed = [[[l + o for l in scene] for scene, o in zip(group, offsets)] for group in sides]
+    shares = []
+    for own, other in ((0, 1), (1, 0)):
+        samples = resampled([l for scene in placed[own] for l in scene], step)  # every scene's lines at once
+        points = np.concatenate(samples) if samples else np.zeros((0, 2))
+        within = within_distance(points, [l for scene in placed[other] for l in scene], tol)
+        per_line = np.cumsum([0] + [len(p) for p in samples])
+        ends = per_line[np.cumsum([len(scene) for scene in placed[own]])]
+        shares.append([float(np.mean(w)) if len(w) else 1.0 for w in np.split(within, ends[:-1])])
+    return [{"precision": p, "recall": r, "f1": 2.0 * p * r / (p + r) if p + r > 0 else 0.0}
+            for p, r in zip(*shares)]
+

@@ -13,7 +13,11 @@ keypoint, and for every successor edge (a, b) the end of a and the start of b ar
 
 The Fréchet distance of two 1-D samples is ``sqrt((m_a - m_b)^2 + v_a + v_b - 2 sqrt(v_a v_b))``
 with sample variances (ddof 1); connectivity and convenience are reported x10, as SLEDGE does.
-Shortest paths come from scipy's breadth-first ``csgraph.shortest_path``, one call per scene.
+Shortest paths come from scipy's breadth-first ``csgraph.shortest_path``, one call per scene. A weakly connected set
+of over ``EXACT_COMPONENT`` keypoints (a huge map; every path of it would take time and memory that grow with the
+square of its size) contributes the reach and hop counts of ``SAMPLED_SOURCES`` of its keypoints, drawn with seed
+``SEED``: a sample of their distribution, each sampled reach standing for as many keypoints as the sources for the
+set, its hop counts counted once.
 """
 
 from __future__ import annotations
@@ -30,6 +34,8 @@ from cmtool.core.unionfind import UnionFind
 STATISTICS = ("connectivity", "density", "reach", "convenience")
 SCALE = {"connectivity": 10.0, "density": 1.0, "reach": 1.0, "convenience": 10.0}
 CHUNK = 2048  # path searches per batch (a batch holds CHUNK x component-size hop counts)
+EXACT_COMPONENT = 20_000  # keypoints: a larger weakly connected set is measured from sampled sources
+SAMPLED_SOURCES, SEED = 1_000, 0
 
 
 @dataclass
@@ -67,6 +73,10 @@ def scene_statistics(graph: KeypointGraph) -> dict[str, np.ndarray]:
     pending: list[np.ndarray] = []  # small components, searched together (paths never leave a component)
     size = 0
     for nodes in np.split(order, np.flatnonzero(np.diff(label[order])) + 1):
+        if len(nodes) > EXACT_COMPONENT:
+            sources = np.random.default_rng(SEED).choice(len(nodes), SAMPLED_SOURCES, replace=False)
+            _search(adjacency, nodes, reach, convenience, np.sort(sources))
+            continue
         if len(nodes) < 2:
             continue
         pending.append(nodes)
@@ -80,19 +90,23 @@ def scene_statistics(graph: KeypointGraph) -> dict[str, np.ndarray]:
             "convenience": np.concatenate(convenience) if convenience else np.zeros(0)}
 
 
-def _search(adjacency, nodes: np.ndarray, reach: np.ndarray, convenience: list) -> None:
-    """Hop counts from ``nodes`` (whole weakly connected components, in label order) among themselves, ``CHUNK``
-    sources at a time: each node's reach into ``reach``, the hop counts of reachable pairs (row by row, the
-    columns in order) appended to ``convenience``. Many small components go through one search, so a scene of
-    100,000 lanes is a few dozen calls, not one per component."""
+def _search(adjacency, nodes: np.ndarray, reach: np.ndarray, convenience: list, sources=None) -> None:
+    """Hop counts from ``nodes`` (whole weakly connected components, in label order) among themselves, in batches of
+    ``CHUNK`` sources (fewer in a set of over ``EXACT_COMPONENT`` keypoints): each node's reach into ``reach``, the
+    hop counts of reachable pairs (row by row, the columns in order) appended to ``convenience``. Many small
+    components go through one search, so a scene of 100,000 lanes is a few dozen calls, not one per component. With
+    ``sources`` (positions in ``nodes``), only from those: their reaches stand for all the nodes', each for as many."""
     sub = adjacency[nodes][:, nodes]
-    for start in range(0, len(nodes), CHUNK):
-        rows = np.arange(start, min(start + CHUNK, len(nodes)))
+    sources = np.arange(len(nodes)) if sources is None else sources
+    found, step = np.zeros(len(sources)), max(1, min(CHUNK, CHUNK * EXACT_COMPONENT // len(nodes)))
+    for start in range(0, len(sources), step):
+        rows = sources[start:start + step]
         hops = shortest_path(sub, directed=True, unweighted=True, indices=rows)
         hops[np.arange(len(rows)), rows] = np.inf
         reachable = np.isfinite(hops)
-        reach[nodes[rows]] = reachable.sum(axis=1)
+        found[start:start + len(rows)] = reachable.sum(axis=1)
         convenience.append(hops[reachable])
+    reach[nodes] = found[np.arange(len(nodes)) % len(sources)]
 
 
 def pooled_statistics(graphs) -> dict[str, np.ndarray]:

@@ -24,8 +24,9 @@ Huge maps: in a weakly connected set of more than ``EXACT_COMPONENT`` lanes, rou
 from ``SAMPLED_SOURCES`` lanes drawn with a fixed seed (the lanes each reaches, by breadth-first search);
 crossings are tested exactly for up to ``MAX_CROSSING_TESTS`` candidate pairs (lane pairs whose boxes
 overlap), beyond that on the pairs of a fixed-seed random share of the lanes, the count scaled up; at most
-``MAX_LISTED`` problems of a kind are listed, the rest counted. Every such estimate or cap is named in
-``estimated`` / ``unlisted`` (and the JSON); maps below the caps get exact values.
+``MAX_LISTED`` problems of a kind are listed, the rest counted; lanes piled so thick that the neighbour search
+refuses them (:class:`cmtool.maps.neighbours.Crowded`) get their routability without lane changes. Every such
+estimate or cap is named in ``estimated`` / ``unlisted`` (and the JSON); maps below the caps get exact values.
 
 Score: the share of lanes free of problems (a bad successor edge or a crossing counts against
 both its lanes); 1.0 for a map without problems, and for an empty map.
@@ -41,9 +42,9 @@ from scipy.sparse import csr_matrix
 from scipy.sparse.csgraph import breadth_first_order, connected_components
 from scipy.spatial import cKDTree
 
-from cmtool.core.geometry import padded, unit
-from cmtool.maps.neighbours import infer_neighbours, same_directions
-from cmtool.metrics.lanes import equal_count_batches
+from cmtool.core.geometry import equal_count_batches, padded, unit
+from cmtool.core.memory import in_batches
+from cmtool.maps.neighbours import Crowded, infer_neighbours, same_directions
 
 MAX_GAP_M, MAX_TURN_DEG = 1.5, 60.0
 MIN_LENGTH_M, MIN_RADIUS_M = 2.0, 4.0
@@ -137,11 +138,15 @@ def check(graph) -> Validity:
                                        f"gap {gap:.2f} m, turn {turn:.0f} deg"))
     _add_crossings(report, lanes, shapes, succ)
     report.routable_pairs, report.largest_scc, sampled = _routability(n, succ)
-    report.routable_with_changes, _, sampled_changes = _routability(n, succ + lane_changes(graph))
+    try:
+        changes = lane_changes(graph)
+    except Crowded as e:  # lanes piled on each other: no lane changes searched, and the report says so
+        changes, report.estimated["routable_with_changes"] = [], f"without lane changes ({e})"
+    report.routable_with_changes, _, sampled_changes = _routability(n, succ + changes)
     for key, done in (("routable_pairs", sampled), ("routable_with_changes", sampled_changes)):
         if done:
-            report.estimated[key] = (f"{SAMPLED_SOURCES} sources sampled (seed {SEED}) in each weakly connected set "
-                                     f"of over {EXACT_COMPONENT:,} lanes")
+            report.estimated.setdefault(key, f"{SAMPLED_SOURCES} sources sampled (seed {SEED}) in each weakly "
+                                             f"connected set of over {EXACT_COMPONENT:,} lanes")
     return report
 
 
@@ -284,23 +289,28 @@ def _add_crossings(report: Validity, lanes: list[np.ndarray], shapes: np.ndarray
 
 def _crossing_pairs(shapes: np.ndarray, exempt: np.ndarray, linked: np.ndarray):
     """Lane pairs (i < j) that cross, neither ``exempt`` nor ``linked`` (keys ``i * n + j``), in order of i, then of
-    the STR-tree. The lanes are taken in batches in a fixed-seed random order; once ``MAX_CROSSING_TESTS`` candidate
-    pairs (overlapping boxes) are tested, the rest are left: returns (i, j, the share of the lanes whose pairs were
-    tested)."""
+    the STR-tree. The lanes are taken in batches (:func:`cmtool.core.memory.in_batches`) in a fixed-seed random
+    order; once ``MAX_CROSSING_TESTS`` candidate pairs (overlapping boxes) are tested, the rest are left: returns
+    (i, j, the share of the lanes whose pairs were tested)."""
     n = len(shapes)
     tree, order = shapely.STRtree(shapes), np.random.default_rng(SEED).permutation(n)
-    found, tested, done = [], 0, 0
-    while done < n and tested < MAX_CROSSING_TESTS:
-        batch = np.sort(order[done:done + CHUNK_LANES])
-        done += len(batch)
+    found, tested = [], [0]
+
+    def search(lo: int, hi: int) -> int:
+        batch = np.sort(order[lo:hi])
         q, j = tree.query(shapes[batch])
         i = batch[q]
         keep = (i < j) & ~exempt[i] & ~exempt[j]
         i, j = i[keep], j[keep]
-        i, j = (i, j) if len(linked) == 0 else (i[~np.isin(i * n + j, linked)], j[~np.isin(i * n + j, linked)])
-        tested += len(i)
+        if len(linked):
+            free = ~np.isin(i * n + j, linked)
+            i, j = i[free], j[free]
+        tested[0] += len(i)
         cross = shapely.crosses(shapes[i], shapes[j])
         found.append((i[cross], j[cross]))
+        return len(q)
+
+    done = in_batches(n, search, most=CHUNK_LANES, until=lambda: tested[0] >= MAX_CROSSING_TESTS)
     i = np.concatenate([f[0] for f in found]) if found else np.zeros(0, np.int64)
     j = np.concatenate([f[1] for f in found]) if found else np.zeros(0, np.int64)
     first = np.argsort(i, kind="stable")

@@ -29,7 +29,7 @@ from collections import Counter
 from pathlib import Path
 
 import torch
-from safetensors import SafetensorError
+from safetensors import SafetensorError, safe_open
 from safetensors.torch import load_file, save_file
 
 from cmtool.core.errors import CmtoolError
@@ -38,6 +38,7 @@ from cmtool.core.jsonio import file_mode, os_reason, read_json
 FORMAT = "cmtool.checkpoint"
 CONFIG, WEIGHTS, INDEX = "config.json", "model.safetensors", "model.safetensors.index.json"
 STATE, STATE_META = "train_state.safetensors", "train_state.json"
+MAX_JSON_BYTES = 16 << 20  # a checkpoint's JSON file (config, weight index, training state) larger is refused unread
 KINDS = ("rvae", "dit", "controlmap")
 DIT_RECORD = ("step", "steps", "training", "recipe_path", "init_from")  # how a DiT was trained (packs keep it)
 
@@ -200,8 +201,9 @@ def weight_files(checkpoint: Path) -> list[Path]:
         return [checkpoint / WEIGHTS]
     if not (checkpoint / INDEX).is_file():
         return []
+    index = read_json(checkpoint / INDEX, MAX_JSON_BYTES)
     try:
-        names = sorted(set(read_json(checkpoint / INDEX)["weight_map"].values()))
+        names = sorted(set(index["weight_map"].values()))
     except (CmtoolError, KeyError, TypeError, AttributeError):
         raise CmtoolError(f"{checkpoint / INDEX}: not a weight index (expected a weight_map of files)") from None
     odd = [n for n in names if not (isinstance(n, str) and _WEIGHT_FILE.fullmatch(n))]
@@ -247,7 +249,7 @@ def linked(checkpoint: Path, target: str) -> Path:
 def load_config(path) -> dict:
     """The config of a checkpoint (or of a run directory's newest checkpoint)."""
     path = resolve(path) / CONFIG
-    config = read_json(path)
+    config = read_json(path, MAX_JSON_BYTES)
     if not isinstance(config, dict) or config.get("format") != FORMAT:
         raise CmtoolError(f"{path}: not a cmtool checkpoint config")
     if config.get("kind") not in KINDS:
@@ -285,11 +287,22 @@ _FIELDS = {  # top-level config fields the commands read: (valid?, what they mus
 
 
 def load_tensors(path: Path) -> dict[str, torch.Tensor]:
+    check_tensors(path)
+    try:
+        return load_file(str(path))
+    except (SafetensorError, OSError, ValueError) as e:
+        raise CmtoolError(f"{path}: unreadable weights ({type(e).__name__}: {e})") from None
+
+
+def check_tensors(path: Path) -> None:
+    """Refuse a file that is not a valid safetensors file: :func:`_check_header`, then the safetensors reader's own
+    checks (the weights themselves are not read)."""
     try:
         _check_header(Path(path))
-        return load_file(str(path))
-    except (SafetensorError, OSError, ValueError, KeyError, TypeError) as e:
-        raise CmtoolError(f"{path}: unreadable weights ({type(e).__name__}: {e})") from None
+        with safe_open(str(path), "pt"):
+            pass
+    except (SafetensorError, OSError, ValueError, KeyError, TypeError, AttributeError) as e:
+        raise CmtoolError(f"{path}: not a valid safetensors file ({type(e).__name__}: {e})") from None
 
 
 def _unique(pairs: list[tuple[str, object]]) -> dict:
@@ -341,7 +354,7 @@ def read_weights(checkpoint: Path) -> dict[str, torch.Tensor]:
         part = load_tensors(f)
         tensors.update(part)
         placed.update(dict.fromkeys(part, f.name))
-    if files[0].name != WEIGHTS and placed != read_json(checkpoint / INDEX)["weight_map"]:
+    if files[0].name != WEIGHTS and placed != read_json(checkpoint / INDEX, MAX_JSON_BYTES)["weight_map"]:
         raise CmtoolError(f"{checkpoint / INDEX}: lists other weights than its files hold")
     return tensors
 

@@ -42,23 +42,44 @@ def line_l1(pred: Tensor, gt: Tensor, frame_m: float) -> Tensor:
     return (pred - gt).abs().sum(-1).mean(-1) / (frame_m / 2.0)
 
 
-@torch.no_grad()
-def match(pred_points: Tensor, pred_logit: Tensor, gt_points: Tensor, gt_mask: Tensor,
-          cost_cfg: RVAELossConfig) -> list[tuple[np.ndarray, np.ndarray]]:
-    """Hungarian matching of queries (B, Q, P, 2) / (B, Q) to the valid targets of (B, G, P, 2) / (B, G).
+def match_cost(pred_points: Tensor, pred_logit: Tensor, gt_points: Tensor, cost_cfg: RVAELossConfig) -> Tensor:
+    """The matching cost (B, Q, G) of queries (B, Q, P, 2) / (B, Q) against targets (B, G, P, 2): ``line_l1`` of every
+    pair at once, as one L1 distance between the flattened polylines (``torch.cdist``), float32."""
+    points = pred_points.shape[-2]
+    l1 = torch.cdist(pred_points.flatten(-2).float(), gt_points.flatten(-2).float(), p=1) / (points * cost_cfg.frame_m
+                                                                                              / 2.0)
+    return cost_cfg.l1_weight * l1 + cost_cfg.existence_weight * F.softplus(-pred_logit.float())[:, :, None]
 
-    Returns per batch item ``(pred_idx, gt_idx)`` int64 arrays (gt_idx indexes the full G axis).
-    """
-    l1 = line_l1(pred_points[:, :, None], gt_points[:, None], cost_cfg.frame_m)  # (B, Q, G)
-    cost = cost_cfg.l1_weight * l1 + cost_cfg.existence_weight * F.softplus(-pred_logit)[:, :, None]
-    cost = cost.float().cpu().numpy()
-    mask = gt_mask.bool().cpu().numpy()
+
+Pairs = list[tuple[np.ndarray, np.ndarray]]  # per batch item: (query indices, target indices)
+
+
+@torch.no_grad()
+def match(sets: list[tuple[Tensor, Tensor, Tensor, Tensor]], cost_cfg: RVAELossConfig) -> list[Pairs]:
+    """Hungarian matching of each ``(pred_points, pred_logit, gt_points, gt_mask)`` set, queries (B, Q, P, 2) / (B, Q)
+    to the valid targets of (B, G, P, 2) / (B, G): the costs of every set are computed on their device in one batch
+    each and moved to the CPU together (one transfer), then scipy assigns each batch item. Returns per set and
+    batch item ``(pred_idx, gt_idx)`` int64 arrays (gt_idx indexes the full G axis)."""
+    costs = [match_cost(p, logit, g, cost_cfg) for p, logit, g, _ in sets]
+    masks = [m for *_, m in sets]
+    host = torch.cat([c.flatten() for c in costs] + [m.flatten().float() for m in masks]).cpu().numpy()
+    chunks = np.split(host, np.cumsum([c.numel() for c in costs] + [m.numel() for m in masks])[:-1])
     out = []
-    for c, m in zip(cost, mask):
-        valid = np.flatnonzero(m)
-        rows, cols = linear_sum_assignment(c[:, valid])
-        out.append((rows.astype(np.int64), valid[cols].astype(np.int64)))
+    for cost, flat, mask in zip(costs, chunks, chunks[len(costs):]):
+        pairs = []
+        for c, m in zip(flat.reshape(cost.shape), mask.reshape(cost.shape[0], cost.shape[2]) > 0):
+            valid = np.flatnonzero(m)
+            rows, cols = linear_sum_assignment(c[:, valid])
+            pairs.append((rows.astype(np.int64), valid[cols].astype(np.int64)))
+        out.append(pairs)
     return out
+
+
+def pair_index(pairs: Pairs, device) -> tuple[Tensor, Tensor, Tensor]:
+    """The (batch item, query, target) index tensors of every matched pair, moved to ``device`` in one transfer."""
+    b = np.concatenate([np.full(len(q), k, np.int64) for k, (q, _) in enumerate(pairs)])
+    index = torch.from_numpy(np.stack([b, np.concatenate([q for q, _ in pairs]), np.concatenate([g for _, g in pairs])]))
+    return tuple(index.to(device))
 
 
 def kl_divergence(mean: Tensor, logvar: Tensor) -> Tensor:
@@ -66,28 +87,22 @@ def kl_divergence(mean: Tensor, logvar: Tensor) -> Tensor:
     return -0.5 * torch.mean(1.0 + logvar - mean.square() - logvar.exp())
 
 
-def set_loss(decoded: dict[str, Tensor], batch: dict[str, Tensor],
-             config: RVAELossConfig) -> tuple[dict[str, Tensor], list[tuple[np.ndarray, np.ndarray]]]:
+def set_loss(decoded: dict[str, Tensor], batch: dict[str, Tensor], config: RVAELossConfig,
+             matched: list[Pairs]) -> dict[str, Tensor]:
     """Matched L1 and existence BCE (and direction) per element type of one set of outputs
-    (``{"l1/lines", "exist/lines", ...}``), and the matched (query, target) pairs of the lines."""
+    (``{"l1/lines", "exist/lines", ...}``), given each element type's matched (query, target) pairs."""
     parts: dict[str, Tensor] = {}
-    line_pairs = []
-    for name in ELEMENTS:
+    for name, pairs in zip(ELEMENTS, matched):
         pred, logit = decoded[name], decoded[f"{name}_logit"]
-        gt, mask = batch[name].to(pred), batch[MASK_KEYS[name]].to(pred.device)
-        pairs = match(pred, logit, gt, mask, config)
-        b = torch.cat([torch.full((len(p),), i, dtype=torch.int64) for i, (p, _) in enumerate(pairs)]).to(pred.device)
-        q = torch.from_numpy(np.concatenate([p for p, _ in pairs])).to(pred.device)
-        g = torch.from_numpy(np.concatenate([t for _, t in pairs])).to(pred.device)
+        gt = batch[name].to(pred)
+        b, q, g = pair_index(pairs, pred.device)
         target = torch.zeros_like(logit)
         target[b, q] = 1.0
         parts[f"l1/{name}"] = line_l1(pred[b, q], gt[b, g], config.frame_m).sum() / logit.numel()
         parts[f"exist/{name}"] = F.binary_cross_entropy_with_logits(logit, target)
         if config.direction_weight > 0:
             parts[f"dir/{name}"] = direction_loss(pred[b, q], gt[b, g]).sum() / logit.numel()
-        if name == "lines":
-            line_pairs = pairs
-    return parts, line_pairs
+    return parts
 
 
 def direction_loss(pred: Tensor, gt: Tensor) -> Tensor:
@@ -95,19 +110,19 @@ def direction_loss(pred: Tensor, gt: Tensor) -> Tensor:
     return (1.0 - F.cosine_similarity(pred.diff(dim=-2), gt.diff(dim=-2), dim=-1, eps=1e-6)).mean(-1)
 
 
-def successor_loss(logits: Tensor, succ: Tensor, pairs: list[tuple[np.ndarray, np.ndarray]]) -> Tensor:
+def successor_loss(logits: Tensor, succ: Tensor, pairs: Pairs) -> Tensor:
     """BCE of successor logits (B, Q, Q) between matched queries against the targets' successors
-    (B, G, G), self pairs left out."""
-    terms = []
-    for k, (q, g) in enumerate(pairs):
-        if len(q) < 2:
-            continue
-        q_t, g_t = torch.from_numpy(q).to(logits.device), torch.from_numpy(g).to(logits.device)
-        off = ~torch.eye(len(q), dtype=torch.bool, device=logits.device)
-        target = succ[k][g_t][:, g_t].to(logits.dtype)
-        terms.append(F.binary_cross_entropy_with_logits(logits[k][q_t][:, q_t][off], target[off], reduction="sum"))
-    count = sum(len(q) * (len(q) - 1) for q, _ in pairs)
-    return sum(terms) / max(count, 1) if terms else logits.sum() * 0.0
+    (B, G, G), self pairs left out: every pair of the batch in one gather."""
+    b, q, g = pair_index(pairs, logits.device)
+    target_of = torch.full(logits.shape[:2], -1, dtype=torch.int64, device=logits.device)
+    target_of[b, q] = g
+    matched = target_of >= 0
+    scored = matched[:, :, None] & matched[:, None, :] & ~torch.eye(logits.shape[1], dtype=torch.bool,
+                                                                      device=logits.device)
+    t = target_of.clamp(min=0)
+    target = succ[torch.arange(len(t), device=t.device)[:, None, None], t[:, :, None], t[:, None, :]]
+    loss = F.binary_cross_entropy_with_logits(logits[scored], target[scored].to(logits.dtype), reduction="sum")
+    return loss / scored.sum().clamp(min=1)
 
 
 def denoise_input(batch: dict[str, Tensor], config: RVAELossConfig) -> Tensor | None:
@@ -149,13 +164,18 @@ def rvae_loss(decoded: dict[str, Tensor], mean: Tensor, logvar: Tensor, batch: d
     "green"/"green_mask", "red"/"red_mask" likewise, and "succ" (B, L, L) bool (line i flows into
     line j) for the successor loss.
     """
-    parts, pairs = set_loss(decoded, batch, config)
+    sets = [decoded, *((decoded.get("aux") or []) if config.aux_weight > 0 else [])]
+    matched = match([(d[name], d[f"{name}_logit"], batch[name], batch[MASK_KEYS[name]]) for d in sets
+                     for name in ELEMENTS], config)
+    per_set = [matched[k:k + len(ELEMENTS)] for k in range(0, len(matched), len(ELEMENTS))]
+    parts = set_loss(decoded, batch, config, per_set[0])
     if config.successor_weight > 0 and "succ_logit" in decoded:
-        parts["succ/lines"] = successor_loss(decoded["succ_logit"], batch["succ"], pairs)
+        parts["succ/lines"] = successor_loss(decoded["succ_logit"], batch["succ"], per_set[0][0])
     parts["kl"] = kl_divergence(mean, logvar)
     total = _weighted({k: v for k, v in parts.items() if k != "kl"}, config) + config.kl_weight * parts["kl"]
-    if config.aux_weight > 0 and decoded.get("aux"):
-        parts["aux"] = config.aux_weight * sum(_weighted(set_loss(d, batch, config)[0], config) for d in decoded["aux"])
+    if len(sets) > 1:
+        parts["aux"] = config.aux_weight * sum(_weighted(set_loss(d, batch, config, m), config)
+                                               for d, m in zip(sets[1:], per_set[1:]))
         total = total + parts["aux"]
     if config.denoise_weight > 0 and "denoise" in decoded:
         parts["denoise"] = config.denoise_weight * denoise_loss(decoded["denoise"], batch, config)

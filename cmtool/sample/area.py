@@ -26,7 +26,7 @@ import shapely
 
 from cmtool.core import dist as D
 from cmtool.core.errors import CmtoolError
-from cmtool.core.geo import LocalProjection
+from cmtool.core.geo import LocalProjection, wrap_lon
 from cmtool.core.geometry import CV_SHIFT, ego_to_pixel, to_frame
 from cmtool.core.jsonio import OutputSet, json_text, write_text_atomic
 from cmtool.core.progress import Progress
@@ -52,6 +52,7 @@ from cmtool.viz.draw import lanes_image, legend, sd_panel, title_strip
 from cmtool.viz.recording import close_recording, open_recording
 from cmtool.viz.show import write_png
 
+EDGE_M = 10.0  # --area all: the roads' extent and this much around it (the lanes beside the outermost roads)
 ON_ROAD_M = 8.0  # an open seam this close to an SD road is one where the road goes on
 ON_SCREEN_M = 40.0  # the recording shows the SD roads this far around the box
 NEAR_M = 100.0  # roads this near the box take part in the rule layouts (tile frames reach 32 m beyond it)
@@ -72,11 +73,13 @@ class AreaMap:
 
 
 def area_box(sd_map: SDMap, spec: str, latlon: bool = True) -> tuple[float, float, float, float]:
-    """The area of ``--area SPEC`` in the SD map's metres: "all" (the extent of its roads), or two opposite corners,
-    "LAT0,LON0,LAT1,LON1" (``latlon``) or "X0,Y0,X1,Y1" (metres)."""
+    """The area of ``--area SPEC`` in the SD map's metres: "all" (the extent of its roads and ``EDGE_M`` around), or
+    two opposite corners, "LAT0,LON0,LAT1,LON1" (``latlon``: :func:`_latlon_box`) or "X0,Y0,X1,Y1" (metres). An area
+    that no road crosses is refused."""
     every = np.concatenate([r.polyline for r in sd_map.roads])
+    extent = (*(every.min(axis=0) - EDGE_M), *(every.max(axis=0) + EDGE_M))
     if spec == "all":
-        return (*map(float, every.min(axis=0)), *map(float, every.max(axis=0)))
+        return tuple(map(float, extent))
     want = "LAT0,LON0,LAT1,LON1" if latlon else "X0,Y0,X1,Y1 (metres)"
     try:
         a, b, c, d = (float(v) for v in spec.split(","))
@@ -87,15 +90,32 @@ def area_box(sd_map: SDMap, spec: str, latlon: bool = True) -> tuple[float, floa
     if latlon:
         if not (-90 <= min(a, c) and max(a, c) <= 90 and -180 <= min(b, d) and max(b, d) <= 180):
             raise CmtoolError(f"--area {spec!r}: latitudes must be in [-90, 90] and longitudes in [-180, 180]")
-        xy = LocalProjection(sd_map.meta["lat0"], sd_map.meta["lon0"]).to_metres(np.array([a, c]), np.array([b, d]))
-        a, b, c, d = xy[0, 0], xy[0, 1], xy[1, 0], xy[1, 1]
+        a, b, c, d = _latlon_box(LocalProjection(sd_map.meta["lat0"], sd_map.meta["lon0"]), (a, b, c, d), extent)
     box = (float(min(a, c)), float(min(b, d)), float(max(a, c)), float(max(b, d)))
+    if not shapely.intersects(shapely.box(*box), [shapely.LineString(r.polyline) for r in sd_map.roads]).any():
+        raise CmtoolError(f"--area {spec!r}: no road of the map lies in the area")
     if box[2] - box[0] < 1.0 or box[3] - box[1] < 1.0:
         raise CmtoolError(f"--area {spec!r}: the corners must lie at least a metre apart each way")
-    inside = (every[:, 0] >= box[0]) & (every[:, 0] <= box[2]) & (every[:, 1] >= box[1]) & (every[:, 1] <= box[3])
-    if not inside.any():
-        raise CmtoolError(f"--area {spec!r}: no road of the map lies in the area")
     return box
+
+
+def _latlon_box(proj: LocalProjection, corners, extent) -> tuple[float, float, float, float]:
+    """Two opposite corners (lat, lon, lat, lon) as metres (x, y, x, y) of ``proj``: the longitudes span the short way
+    round (across 180 where they lie more than 180 apart; -180 to 180 all the way), and the box is cut to the map's
+    ``extent`` (metres) before it is projected, so that a box far larger than the map does not fold back through the
+    projection, and after (a box beside the map comes out of no width)."""
+    lat0, lon0, lat1, lon1 = corners
+    west, east = min(lon0, lon1), max(lon0, lon1)
+    if 180 < east - west < 360:
+        west, east = east, west + 360
+    turn = 360.0 * round((0.5 * (west + east) - proj.lon0) / 360.0)  # the box's turn of the globe nearest the map
+    x0, y0, x1, y1 = extent
+    near = proj.to_latlon(np.array([[x0, y0], [x0, y1], [x1, y0], [x1, y1]]))
+    lats, lons = near[:, 0], wrap_lon(near[:, 1], proj.lon0)
+    south, north = max(min(lat0, lat1), lats.min()), min(max(lat0, lat1), lats.max())
+    west, east = max(west - turn, lons.min()), min(east - turn, lons.max())
+    (a, b), (c, d) = proj.to_metres(np.array([south, max(south, north)]), np.array([west, max(west, east)]))
+    return max(a, x0), max(b, y0), min(c, x1), min(d, y1)
 
 
 def generate_area(gen: MapGenerator, sd_map: SDMap, box, settings: SampleSettings, name: str,
@@ -148,15 +168,15 @@ def _tile_maps(gen: MapGenerator, jobs, settings: SampleSettings, tiles, cache: 
     generated (their steps recorded to ``rec`` up to ``RECORDED_TILES``), dealt among the processes of a torchrun,
     and written there as they finish (by the main process, which returns them all; the others return None); and how
     many tiles' steps were recorded."""
-    starts = list(range(0, len(jobs), settings.batch))
+    sizes = {b: len(jobs[b:b + settings.batch]) for b in range(0, len(jobs), settings.batch)}
     done, recorded = {}, 0
     if cache is not None and info.main:
-        done = _cached_batches(cache, starts, _run_key(gen, settings, tiles))
+        done = _cached_batches(cache, sizes, _run_key(gen, settings, tiles))
         if done and progress:
             print(f"resuming: {sum(map(len, done.values()))} of {len(jobs)} tiles already made ({cache})",
                   file=sys.stderr)
-    todo = D.broadcast([b for b in starts if b not in done], info)  # the main process read the cache
-    with Progress(sum(len(jobs[b:b + settings.batch]) for b in todo), "area", "tiles",
+    todo = D.broadcast([b for b in sizes if b not in done], info)  # the main process read the cache
+    with Progress(sum(sizes[b] for b in todo), "area", "tiles",
                   enabled=progress and info.main) as bar:
         for mine in D.rounds(todo, info):
             made = [(b, [g for g, _ in batch_maps(gen, jobs[b:b + settings.batch], b, settings,
@@ -164,11 +184,11 @@ def _tile_maps(gen: MapGenerator, jobs, settings: SampleSettings, tiles, cache: 
             recorded += sum(len(graphs) for b, graphs in made if b < RECORDED_TILES) if rec is not None else 0
             for part in D.gather(made, info) or []:
                 for b, graphs in part:
-                    done[b] = graphs
+                    done[b] = [LaneGraph.from_json(g.to_json()) for g in graphs]  # rounded as the cache keeps them
                     if cache is not None:
                         write_jsonl(cache / f"b{b:07d}.jsonl", graphs)
                     bar.update(len(graphs))
-    return ([g for b in starts for g in done[b]] if info.main else None), recorded
+    return ([g for b in sizes for g in done[b]] if info.main else None), recorded
 
 
 def _run_key(gen: MapGenerator, settings: SampleSettings, tiles) -> str:
@@ -179,8 +199,9 @@ def _run_key(gen: MapGenerator, settings: SampleSettings, tiles) -> str:
     return hashlib.sha256(what.encode()).hexdigest()
 
 
-def _cached_batches(cache: Path, starts: list[int], key: str) -> dict[int, list[LaneGraph]]:
-    """The batches a killed run with ``key`` left in ``cache``; a cache of another run is emptied."""
+def _cached_batches(cache: Path, sizes: dict[int, int], key: str) -> dict[int, list[LaneGraph]]:
+    """The whole batches (``sizes``: tiles per batch start) a killed run with ``key`` left in ``cache``; a batch
+    that is damaged or holds another number of tiles is made again, a cache of another run is emptied."""
     cache.mkdir(parents=True, exist_ok=True)
     stamp = cache / "run.key"
     if not stamp.is_file() or stamp.read_text().strip() != key:
@@ -188,7 +209,15 @@ def _cached_batches(cache: Path, starts: list[int], key: str) -> dict[int, list[
             old.unlink()
         write_text_atomic(stamp, key + "\n")
         return {}
-    return {b: read_jsonl(cache / f"b{b:07d}.jsonl") for b in starts if (cache / f"b{b:07d}.jsonl").is_file()}
+    done = {}
+    for b, n in sizes.items():
+        try:
+            graphs = read_jsonl(cache / f"b{b:07d}.jsonl")
+        except CmtoolError:  # missing, cut short or damaged
+            continue
+        if len(graphs) == n:
+            done[b] = graphs
+    return done
 
 
 def area_guarantee(graph: LaneGraph, sd_map: SDMap, box, centre, seams: list[Seam]) -> tuple[LaneGraph, dict]:
@@ -287,7 +316,8 @@ def run_area(gen: MapGenerator, sd_map: SDMap, box, settings: SampleSettings, ou
         return None
     centre = 0.5 * np.array([box[0] + box[2], box[1] + box[3]])
     scores = area_scores(area, sd_map, box)
-    area.graph.meta["area"] = {"box_m": [round(v - c, 3) for v, c in zip(box, (*centre, *centre))], **scores,
+    timeless = {k: v for k, v in scores.items() if k != "seconds"}  # a resumed run's map is the unbroken run's
+    area.graph.meta["area"] = {"box_m": [round(v - c, 3) for v, c in zip(box, (*centre, *centre))], **timeless,
                                "seams": [{"point": s.point, "tiles": [s.tile, s.other], "leaving": s.leaving}
                                          for s in area.seams],
                                "seams_disagreed_at": [s.point for s in area.disagreed]}

@@ -9,7 +9,9 @@ from pathlib import Path
 from cmtool.core.jsonio import OutputSet, json_text
 from cmtool.sample.inputs import ControlInput
 from cmtool.sample.layouts import layout_scenes
-from cmtool.sample.run import Job, SampledMap, score_map, write_maps
+from cmtool.sample.files import write_maps
+from cmtool.sample.run import Job, SampledMap
+from cmtool.sample.scores import score_map
 
 
 def baseline_maps(inputs: list[ControlInput], method: str, side: str | None = None) -> list[SampledMap]:

@@ -158,6 +158,6 @@ def _lent(graph: LaneGraph, rules: LaneGraph | None) -> tuple[list[tuple[np.ndar
 
 
 def raw_scores(graph: LaneGraph) -> dict:
-    """The scores :func:`cmtool.sample.run.score_map` recorded, to keep as the model's own."""
+    """The scores :func:`cmtool.sample.scores.score_map` recorded, to keep as the model's own."""
     return {k: graph.meta[k] for k in ("validity", "legal_oneway", "sd_coverage")
             if graph.meta.get(k) is not None and math.isfinite(graph.meta[k])}

@@ -15,21 +15,18 @@ from __future__ import annotations
 
 import math
 import os
-import socket
 import time
 from concurrent.futures import ThreadPoolExecutor
 from dataclasses import dataclass
 from functools import partial
 from pathlib import Path
-from urllib.parse import urlsplit
 
 import numpy as np
 import rerun as rr
 
 from cmtool.core import dist as D
 from cmtool.core.errors import CmtoolError
-from cmtool.core.geometry import polyline_length
-from cmtool.core.jsonio import OutputSet, json_text, os_reason
+from cmtool.core.jsonio import OutputSet, os_reason, temporary
 from cmtool.core.outputs import target
 from cmtool.core.progress import Progress
 from cmtool.data.layouts import layout_raster
@@ -37,29 +34,20 @@ from cmtool.data.scene import Scene
 from cmtool.diffusion.settings import SamplerSettings, SamplingError
 from cmtool.maps.hdmap import drives_on
 from cmtool.maps.lanegraph import LaneGraph
-from cmtool.metrics.geometric import legal_oneway, sd_adherence
-from cmtool.metrics.suite import weighted_mean
-from cmtool.metrics.validity import check
 from cmtool.model.controlmap import NO_LAYOUT
 from cmtool.sample.anchor import frame_roads
+from cmtool.sample.files import MAP_FILES, MapFiles
 from cmtool.sample.generator import MapGenerator
 from cmtool.sample.guarantee import guarantee, raw_scores
 from cmtool.sample.inputs import ControlInput
 from cmtool.sample.layouts import NO_INIT, check_init, layout_scenes
-from cmtool.viz.draw import graph_panel, legend, sd_panel, title_strip
-from cmtool.viz.recording import (APP_IDS, close_recording, log_decoded, log_lanes, log_layout, log_sd, open_recording,
-                                  served)
-from cmtool.viz.show import write_png
+from cmtool.sample.scores import SCORES, SCORES_NOTE, choose, score_map
+from cmtool.viz.recording import APP_IDS, close_recording, log_decoded, log_lanes, log_layout, log_sd, open_recording
 from cmtool.viz.trajectory import TrajectoryLogger, log_scores, sampling_blueprint
+from cmtool.viz.viewer import viewer_sink
 
 SERVING: list[rr.RecordingStream] = []  # recordings served with --serve, kept alive until the process ends
 AUTO = "auto"  # --city default: the source map's city when the checkpoint knows it, else none
-PANEL = 256
-VIEWER_PORT = 9876  # Rerun's default gRPC port
-SCORES = {"validity": "validity", "sd_coverage": "SD covered", "legal_oneway": "one-way ok"}  # meta key: column
-SCORES_NOTE = ("validity: share of lanes free of problems (cmtool validate); SD covered: share of the SD road with a "
-               "lane within 3 m; one-way ok: share of the lane length on one-way SD roads that runs the legal way; "
-               "-: nothing to judge")
 
 
 @dataclass(kw_only=True)
@@ -262,9 +250,9 @@ def _denoised(gen: MapGenerator, batch: list[Job], start: int, settings: SampleS
 
 
 def check_maps(batch: list[Job], graphs: list[LaneGraph], settings: SampleSettings, finish=None) -> None:
-    """Score each map in its meta (:func:`score_map`) and, unless ``settings.guarantee`` is off, replace it in
-    ``graphs`` by its guaranteed form (:func:`cmtool.sample.guarantee.guarantee`), the model's own scores kept; then
-    hand the jobs and maps to ``finish``."""
+    """Score each map in its meta (:func:`~cmtool.sample.scores.score_map`) and, unless ``settings.guarantee`` is off,
+    replace it in ``graphs`` by its guaranteed form (:func:`cmtool.sample.guarantee.guarantee`), the model's own
+    scores kept; then hand the jobs and maps to ``finish``."""
     for k, (job, graph) in enumerate(zip(batch, graphs)):
         score_map(graph, job.source.sd)
         if settings.guarantee and job.source.sd is not None:
@@ -313,37 +301,6 @@ def _checked(maps: list[SampledMap], pending, bar: Progress, since: float) -> fl
     return now
 
 
-def choose(maps: list[SampledMap], candidates: int) -> list[SampledMap]:
-    """Of each run of ``candidates`` maps drawn for one map (consecutive, as :func:`plan` orders them), the one with
-    the best mean of its validity score, SD road covered and legal one-way share (those it has; the first of equals),
-    its meta recording every candidate's mean under ``candidates``; the time is the run's."""
-    if candidates == 1:
-        return maps
-    chosen = []
-    for start in range(0, len(maps), candidates):
-        run = maps[start:start + candidates]
-        scores = [round(float(np.mean([v for v in (m.graph.meta["validity"], m.graph.meta.get("sd_coverage"),
-                                                    m.graph.meta.get("legal_oneway")) if v is not None])), 6)
-                  for m in run]
-        best = run[int(np.argmax(scores))]
-        best.graph.meta["candidates"] = {"chosen": best.job.candidate, "scores": scores}
-        best.seconds = sum(m.seconds for m in run)
-        chosen.append(best)
-    return chosen
-
-
-def score_map(graph: LaneGraph, sd: np.ndarray | None) -> None:
-    """Record in the map's meta its validity score and, against an SD raster ``sd``, the share of its lane length
-    along one-way SD roads that runs the legal way and the share of the SD road with a lane within 3 m."""
-    graph.meta["validity"] = round(check(graph).score, 6)
-    if sd is not None:
-        share, judged = legal_oneway(graph.lanes, sd)
-        graph.meta["legal_oneway"] = None if math.isnan(share) else round(share, 6)
-        graph.meta["oneway_judged_m"] = round(judged, 1)
-        covered = sd_adherence(graph.lanes, sd)["sd_coverage"]
-        graph.meta["sd_coverage"] = None if math.isnan(covered) else round(covered, 6)
-
-
 def _meta(gen: MapGenerator, job: Job, settings: SampleSettings) -> dict:
     geo = {} if job.source.geo is None else {"geo": job.source.geo}
     return {"source": job.source.source, "checkpoint": str(gen.path), "seed": settings.seed, "index": job.index,
@@ -357,7 +314,7 @@ FLUSH_S = 30.0  # the longest a finished run waits for a live viewer to take the
 
 
 def _partial(rrd: Path) -> Path:
-    return rrd.with_name(f".{rrd.name}.partial")
+    return Path(temporary(rrd, stable=True))
 
 
 def sampling_recording(rrd: Path | None, viewer: str | None) -> rr.RecordingStream:
@@ -366,7 +323,7 @@ def sampling_recording(rrd: Path | None, viewer: str | None) -> rr.RecordingStre
     if viewer is None:
         return open_recording("sample")
     rec = rr.RecordingStream(APP_IDS["sample"])
-    sinks = [_viewer_sink(rec, viewer)]
+    sinks = [viewer_sink(rec, viewer)]
     if rrd is not None:
         _room_for(rrd)
         sinks.append(rr.FileSink(str(_partial(rrd))))
@@ -391,67 +348,6 @@ def _room_for(rrd: Path) -> None:
         raise CmtoolError(f"cannot write {rrd}: {os_reason(e)}") from None
     finally:
         probe.unlink(missing_ok=True)
-
-
-def _viewer_sink(rec: rr.RecordingStream, viewer: str) -> rr.GrpcSink | rr.GrpcServerSink:
-    """A sink to a live viewer: "serve" serves the recording from this process; "spawn" starts a viewer; otherwise
-    a gRPC URL that must be reachable."""
-    if viewer == "serve":
-        return served()
-    spawn = viewer == "spawn"
-    url = f"rerun+http://127.0.0.1:{VIEWER_PORT}/proxy" if spawn else viewer
-    if spawn:
-        try:
-            rec.spawn(port=VIEWER_PORT, connect=False)
-        except Exception as e:  # no viewer executable
-            raise CmtoolError(f"--spawn: could not start the Rerun viewer ({e})") from None
-    check_viewer(url, "--spawn" if spawn else f"--connect {viewer}", wait_s=10.0 if spawn else 2.0)
-    return rr.GrpcSink(url)
-
-
-def check_viewer(url: str, name: str, wait_s: float = 2.0) -> None:
-    """Refuse (naming the option ``name``) a viewer URL that is not a Rerun gRPC URL, where nothing listens within
-    ``wait_s``, or where a server listens that does not answer as a gRPC server does."""
-    host, port = _grpc_address(url)
-    deadline = time.monotonic() + wait_s
-    while True:
-        try:
-            answers = _answers_http2(host, port)
-            break
-        except OSError:
-            if time.monotonic() > deadline:
-                why = ("the viewer did not start (is there a display?); write an .rrd and open it with `rerun "
-                       "FILE.rrd` instead" if name == "--spawn" else "is a viewer running there? `rerun` starts one")
-                raise CmtoolError(f"{name}: cannot reach a Rerun viewer at {url}: {why}") from None
-            time.sleep(0.2)
-    if not answers:
-        raise CmtoolError(f"{name}: {host}:{port} accepts connections but does not answer as a Rerun viewer (gRPC) "
-                          f"does")
-
-
-def _grpc_address(url: str) -> tuple[str, int]:
-    """(host, port) of a Rerun gRPC URL (rerun+http://HOST:PORT/proxy, port 9876 when left out)."""
-    parts = urlsplit(url)
-    try:
-        port = parts.port or 9876
-    except ValueError:
-        port = None
-    if parts.scheme not in ("rerun", "rerun+http", "rerun+https") or not parts.hostname or port is None:
-        raise CmtoolError(f"--connect {url}: expected a Rerun gRPC URL like rerun+http://127.0.0.1:9876/proxy "
-                          f"(a port from 1 to 65535)")
-    return parts.hostname, port
-
-
-def _answers_http2(host: str, port: int, wait_s: float = 2.0) -> bool:
-    """Whether a server at ``host:port`` answers an HTTP/2 greeting (as a gRPC server does) within ``wait_s``;
-    an OSError when nothing listens there."""
-    with socket.create_connection((host, port), timeout=1.0) as s:
-        s.sendall(b"PRI * HTTP/2.0\r\n\r\nSM\r\n\r\n" + bytes([0, 0, 0, 4, 0, 0, 0, 0, 0]))  # preface, SETTINGS
-        s.settimeout(wait_s)
-        try:
-            return len(s.recv(9)) > 0
-        except socket.timeout:
-            return False
 
 
 def log_run_header(rec, gen: MapGenerator, jobs: list[Job], settings: SampleSettings, command: str) -> str:
@@ -492,91 +388,3 @@ def log_map_scores(rec, header: str, maps: list[SampledMap]) -> None:
     rec.log("info", rr.TextDocument("\n".join([header, "", *rows, "", SCORES_NOTE]), media_type="text/markdown"),
             static=True)
     log_scores(rec, {name: scores[key] for key, name in SCORES.items()})
-
-
-MAP_FILES = (".json", ".gt.json", ".png")  # the files of a map named NAME: NAME.json, NAME.gt.json, NAME.png
-
-
-class MapFiles:
-    """Stages the files of sampled maps in ``outputs`` (:meth:`stage`): each map's lane graph JSON, its ground truth
-    JSON when known and (``pictures``) its picture, headed ``title(graph)``; with ``grid``, :meth:`finish` stacks
-    all pictures into that PNG."""
-
-    def __init__(self, out: Path, title, outputs: OutputSet, pictures: bool = True, grid: Path | None = None):
-        self.out, self.title, self.outputs, self.pictures, self.grid = out, title, outputs, pictures, grid
-        self.bodies: list[np.ndarray] = []  # the pictures for the grid
-
-    def stage(self, jobs: list[Job], graphs: list[LaneGraph]) -> None:
-        for job, graph in zip(jobs, graphs):
-            self.outputs.write_text(self.out / f"{job.name}.json", json_text(graph.to_json()))
-            if job.source.truth is not None:
-                self.outputs.write_text(self.out / f"{job.name}.gt.json", json_text(job.source.truth.to_json()))
-            if self.pictures:
-                body = _picture_body(job, graph, self.title(graph))
-                write_png(self.out / f"{job.name}.png", np.concatenate([body, legend(body.shape[1])], axis=0),
-                          self.outputs)
-                if self.grid is not None:
-                    self.bodies.append(body)
-
-    def finish(self) -> None:
-        if self.grid is not None and self.bodies:
-            gap = np.full((4, self.bodies[0].shape[1], 3), 12, np.uint8)
-            stacked = np.concatenate([x for body in self.bodies for x in (body, gap)][:-1], axis=0)
-            write_png(self.grid, np.concatenate([stacked, legend(stacked.shape[1])], axis=0), self.outputs)
-
-
-def write_maps(out: Path, maps: list[SampledMap], title, outputs: OutputSet, grid: Path | None = None) -> None:
-    """Stage every map's files and pictures (:class:`MapFiles`) and, when ``grid`` is given, all their pictures
-    stacked into one PNG."""
-    files = MapFiles(out, title, outputs, grid=grid)
-    files.stage([m.job for m in maps], [m.graph for m in maps])
-    files.finish()
-
-
-def _picture_body(job: Job, graph: LaneGraph, title: str) -> np.ndarray:
-    """A map's picture without its legend: SD input | the map | ground truth (those known), each titled."""
-    truth = job.source.truth
-    panels = []
-    if job.source.sd is not None:
-        panels.append((f"SD input: {job.source.name}", sd_panel(job.source.sd, PANEL)))
-    panels.append((title, graph_panel(graph, PANEL)))
-    if truth is not None:
-        panels.append(("ground truth", graph_panel(truth, PANEL)))
-    tiles = [np.concatenate([title_strip(t, PANEL), img], axis=0) for t, img in panels]
-    gap = np.full((tiles[0].shape[0], 4, 3), 12, np.uint8)
-    return np.concatenate([x for tile in tiles for x in (tile, gap)][:-1], axis=1)
-
-
-def summary_table(maps: list[SampledMap]) -> str:
-    """Per map: lanes, successor links, mean lane length, lights and the scores (:data:`SCORES_NOTE`: "-" without
-    them); then the means over the maps, what the guarantee changed, the time the maps took and what the scores
-    are."""
-    head = (f"{'map':<24} {'city':<5} {'lanes':>5} {'successors':>10} {'mean lane m':>11} {'lights':>6} "
-            + " ".join(f"{name:>10}" for name in SCORES.values()))
-    rows = [head]
-    dash = lambda v: "-" if v is None else f"{v:.3f}"  # noqa: E731
-    for m in maps:
-        g = m.graph
-        mean = np.mean([polyline_length(l) for l in g.lanes]) if g.lanes else 0.0
-        rows.append(f"{m.job.name[:24]:<24} {g.city or 'none':<5} {len(g.lanes):>5} {len(g.successors):>10} "
-                    f"{mean:>11.1f} {len(g.green_lights) + len(g.red_lights):>6} "
-                    + " ".join(f"{dash(g.meta.get(key)):>10}" for key in SCORES))
-    if len(maps) > 1:
-        shares = [m.graph.meta.get("legal_oneway") for m in maps]
-        legal = weighted_mean([math.nan if v is None else v for v in shares],
-                              [m.graph.meta.get("oneway_judged_m", 0.0) for m in maps])
-        covered = [m.graph.meta["sd_coverage"] for m in maps if m.graph.meta.get("sd_coverage") is not None]
-        rows.append(f"{len(maps)} maps: mean validity {np.mean([m.graph.meta['validity'] for m in maps]):.3f}, "
-                    f"lane length on one-way SD roads running the legal way {dash(legal)}, SD road with a lane "
-                    f"within 3 m {dash(float(np.mean(covered)) if covered else None)}")
-    fixed = [m.graph.meta["guarantee"] for m in maps if "guarantee" in m.graph.meta]
-    if fixed:
-        raw = [m.graph.meta["raw"] for m in maps if "raw" in m.graph.meta]
-        mean = lambda k: dash(float(np.mean([r[k] for r in raw if k in r])) if any(k in r for r in raw) else None)  # noqa: E731
-        rows.append(f"the guarantee turned {sum(f['turned'] for f in fixed)} lanes round and added "
-                    f"{sum(f['added'] for f in fixed)} from the rules; the model's own maps: validity "
-                    f"{mean('validity')}, one-way ok {mean('legal_oneway')}, SD covered {mean('sd_coverage')}")
-    seconds = sum(m.seconds for m in maps)
-    rows.append(f"time to generate and check: {seconds:.1f} s"
-                + (f" for {len(maps)} maps, {seconds / len(maps):.2f} s a map" if len(maps) > 1 else ""))
-    return "\n".join(rows + [SCORES_NOTE])

@@ -7,13 +7,16 @@ have seen, whatever the number of DataLoader workers.
 
 from __future__ import annotations
 
+import os
+
 import numpy as np
 import torch
 from torch.utils.data import Dataset, DistributedSampler, Sampler
 
 from cmtool.core.errors import CmtoolError
+from cmtool.core.workers import pool
 from cmtool.data.cache import SceneDataset
-from cmtool.data.hd_raster import rasterize_scene
+from cmtool.data.hd_raster import drawn_pixels, raster_from_pixels, rasterize_scene
 from cmtool.data.sd_raster import mirror_sd
 from cmtool.model.controlmap import sd_tensor
 from cmtool.model.rvae import ELEMENTS
@@ -39,19 +42,58 @@ def vector_targets(arrays: dict, i: int, mirror: bool = False) -> dict[str, torc
 
 class SceneRasters(Dataset):
     """Stage 1 items: the HD raster of a scene and its vector targets (metres, ego frame);
-    ``mirror``: of the scene mirrored left-right (right-hand traffic becomes left-hand)."""
+    ``mirror``: of the scene mirrored left-right (right-hand traffic becomes left-hand). Every scene is drawn
+    once, when the set is made (:func:`drawn_scenes`); an item's raster is filled from that record."""
 
     def __init__(self, scenes: SceneDataset, mirror: bool = False):
         self.scenes, self.mirror = scenes, mirror
+        self.size = int(round(scenes.frame_m / scenes.px_m))
+        self.index, self.values, self.offsets = drawn_scenes(scenes, mirror)
 
     def __len__(self) -> int:
         return len(self.scenes)
 
     def __getitem__(self, i: int) -> dict[str, torch.Tensor]:
-        t = vector_targets(self.scenes.arrays, i, self.mirror)
-        parts = (t[k].numpy() for k in ("lines", "line_mask", "green", "green_mask", "red", "red_mask"))
-        raster = rasterize_scene(*parts, px_m=self.scenes.px_m, frame_m=self.scenes.frame_m)
-        return {"raster": torch.from_numpy(raster), **t}
+        a, b = self.offsets[i], self.offsets[i + 1]
+        raster = raster_from_pixels(self.index[a:b], self.values[a:b], self.size)
+        return {"raster": torch.from_numpy(raster), **vector_targets(self.scenes.arrays, i, self.mirror)}
+
+
+DRAW_CHUNK = 500  # scenes a worker draws at a time
+_DRAWN = ("lines", "line_mask", "green", "green_mask", "red", "red_mask")
+
+
+def drawn_scenes(scenes: SceneDataset, mirror: bool = False,
+                 workers: int | None = None) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """:func:`drawn_pixels` of every scene (mirrored left-right on request), concatenated: pixel indices (N,),
+    values (N, 2) and each scene's offsets (S + 1,). Large sets are drawn by ``workers`` processes (default: the
+    cores, at most 8)."""
+    chunks = [({k: scenes.arrays[k][start:start + DRAW_CHUNK] for k in _DRAWN}, scenes.px_m, scenes.frame_m, mirror)
+              for start in range(0, len(scenes), DRAW_CHUNK)]
+    workers = min(8, os.cpu_count() or 1) if workers is None else workers
+    if workers > 1 and len(chunks) > 1:
+        with pool(min(workers, len(chunks))) as processes:
+            drawn = [d for part in processes.imap(_draw_chunk, chunks) for d in part]
+    else:
+        drawn = [d for chunk in chunks for d in _draw_chunk(chunk)]
+    offsets = np.concatenate([[0], np.cumsum([len(index) for index, _ in drawn])]).astype(np.int64)
+    if not drawn:
+        return np.zeros(0, np.int32), np.zeros((0, 2), np.float32), offsets
+    return np.concatenate([d[0] for d in drawn]), np.concatenate([d[1] for d in drawn]), offsets
+
+
+def _draw_chunk(job) -> list[tuple[np.ndarray, np.ndarray]]:
+    arrays, px_m, frame_m, mirror = job
+    if mirror:
+        arrays = {k: v * MIRROR if k in ELEMENTS else v for k, v in arrays.items()}
+    return [drawn_pixels(*(arrays[k][i] for k in _DRAWN), px_m=px_m, frame_m=frame_m)
+            for i in range(len(arrays["lines"]))]
+
+
+def scene_raster(scenes: SceneDataset, i: int) -> torch.Tensor:
+    """The HD raster of scene ``i``, drawn now (for a few scenes; a training set draws all of them once)."""
+    return torch.from_numpy(rasterize_scene(*(scenes.arrays[k][i] for k in _DRAWN), px_m=scenes.px_m,
+                                            frame_m=scenes.frame_m))
 
 
 class CachedPosteriors(Dataset):

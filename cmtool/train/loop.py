@@ -85,7 +85,7 @@ def lr_at(step: int, t: TrainRecipe) -> float:
     return floor + 0.5 * (t.lr - floor) * (1.0 + math.cos(math.pi * progress))
 
 
-def _optimizer(params: list[torch.nn.Parameter], t: TrainRecipe) -> torch.optim.AdamW:
+def optimizer(params: list[torch.nn.Parameter], t: TrainRecipe) -> torch.optim.AdamW:
     decay = [p for p in params if p.ndim >= 2]
     rest = [p for p in params if p.ndim < 2]
     groups = [{"params": decay, "weight_decay": t.weight_decay}, {"params": rest, "weight_decay": 0.0}]
@@ -96,6 +96,31 @@ def cpu_has_native_bf16() -> bool:
     """Whether this CPU computes bf16 natively (AVX512-BF16 or AMX), where bf16 autocast speeds training up."""
     checks = (getattr(torch.cpu, name, None) for name in ("_is_avx512_bf16_supported", "_is_amx_tile_supported"))
     return any(check() for check in checks if check is not None)
+
+
+def optimise(stage: Stage, net: torch.nn.Module, opt: torch.optim.Optimizer, params: list[torch.nn.Parameter],
+             batch: dict, autocast, step: int) -> tuple[torch.Tensor, dict[str, float], torch.Tensor]:
+    """One optimiser step of ``stage``'s loss on ``batch`` (on the device): loss (refused when not finite), the
+    stage's extra scalars, and the gradient norm before clipping."""
+    with autocast:
+        loss, logs = stage.loss(net, batch)
+    if not torch.isfinite(loss):
+        raise CmtoolError(f"loss became {loss.item()} at step {step}; lower train.lr or raise train.warmup_steps "
+                          "(the last checkpoint is intact)")
+    opt.zero_grad(set_to_none=True)
+    loss.backward()
+    grad_norm = torch.nn.utils.clip_grad_norm_(params, stage.recipe.train.grad_clip)
+    opt.step()
+    return loss, logs, grad_norm
+
+
+def precision(t: TrainRecipe, device: torch.device, warn: bool = True) -> tuple[bool, torch.autocast]:
+    """Whether ``t`` trains in bf16 on ``device`` (``auto``: on CUDA), and the autocast context that does."""
+    bf16 = t.precision == "bf16" or (t.precision == "auto" and device.type == "cuda")
+    if bf16 and warn and device.type == "cpu" and not cpu_has_native_bf16():
+        print("warning: train.precision bf16 on a CPU without native bf16 (AVX512-BF16 or AMX): autocast "
+              "emulates it, many times slower than fp32; give --precision fp32", file=sys.stderr)
+    return bf16, torch.autocast(device.type, dtype=torch.bfloat16, enabled=bf16)
 
 
 def _fingerprint(model: torch.nn.Module) -> torch.Tensor:
@@ -140,7 +165,8 @@ def _check_size(stage: Stage) -> None:
 def _load_state(model, opt, checkpoint: Path) -> None:
     """The raw weights and optimiser state of a checkpoint's training state; damaged state is a one-line error that
     names its files."""
-    tensors, meta = ckpt.load_tensors(checkpoint / ckpt.STATE), read_json(checkpoint / ckpt.STATE_META)
+    tensors = ckpt.load_tensors(checkpoint / ckpt.STATE)
+    meta = read_json(checkpoint / ckpt.STATE_META, ckpt.MAX_JSON_BYTES)
     try:
         model.load_state_dict({k[6:]: v for k, v in tensors.items() if k.startswith("model/")})
         state: dict[int, dict] = {}
@@ -175,9 +201,11 @@ def _resume_point(run_dir: Path, resume: bool, kind: str, model_config: dict) ->
     return last, config
 
 
-def train(stage: Stage, run_dir: Path, resume: bool = False, progress: bool = True, serve: int | None = None) -> Path:
+def train(stage: Stage, run_dir: Path, resume: bool = False, progress: bool = True, serve: int | None = None,
+          log: bool = True) -> Path:
     """Train ``stage`` into ``run_dir``; returns the final checkpoint directory. ``serve``: a port to serve the
-    recording on (gRPC, for viewers elsewhere) while the stage trains."""
+    recording on (gRPC, for viewers elsewhere) while the stage trains; ``log=False``: no recording (train.rrd) and
+    no previews."""
     t = stage.recipe.train
     info = D.setup(str(stage.device))
     stage.device = info.device
@@ -187,7 +215,7 @@ def train(stage: Stage, run_dir: Path, resume: bool = False, progress: bool = Tr
     _check_size(stage)
     model = stage.model().to(info.device)
     params = [p for p in model.parameters() if p.requires_grad]
-    opt = _optimizer(params, t)
+    opt = optimizer(params, t)
     ema = AveragedModel(model, multi_avg_fn=get_ema_multi_avg_fn(t.ema_decay), use_buffers=True)
     base_config = stage.config()
 
@@ -212,14 +240,10 @@ def train(stage: Stage, run_dir: Path, resume: bool = False, progress: bool = Tr
                         pin_memory=info.device.type == "cuda", persistent_workers=t.workers > 0)
     net = DistributedDataParallel(model, device_ids=[info.device.index] if info.device.type == "cuda" else None) \
         if info.world > 1 else model
-    bf16 = t.precision == "bf16" or (t.precision == "auto" and info.device.type == "cuda")
-    if bf16 and info.main and info.device.type == "cpu" and not cpu_has_native_bf16():
-        print("warning: train.precision bf16 on a CPU without native bf16 (AVX512-BF16 or AMX): autocast "
-              "emulates it, many times slower than fp32; give --precision fp32", file=sys.stderr)
-    autocast = torch.autocast(info.device.type, dtype=torch.bfloat16, enabled=bf16)
+    bf16, autocast = precision(t, info.device, warn=info.main)
 
     rec = None
-    if info.main:
+    if info.main and log:
         run_dir.mkdir(parents=True, exist_ok=True)
         rec = ReplayRecording("train", run_dir / ("train.rrd" if start == 0 else f"train_from_{start:08d}.rrd"),
                               served(serve) if serve else None)
@@ -237,7 +261,8 @@ def train(stage: Stage, run_dir: Path, resume: bool = False, progress: bool = Tr
                                    "torch": torch.__version__, "replica_fingerprints": fingerprints}}
             ckpt.save_checkpoint(target, config, ema.module.state_dict(), tensors, meta)
             ckpt.prune(run_dir, t.keep)
-            rec.write()
+            if rec is not None:
+                rec.write()
         D.barrier()
         return target
 
@@ -250,21 +275,13 @@ def train(stage: Stage, run_dir: Path, resume: bool = False, progress: bool = Tr
         for group in opt.param_groups:
             group["lr"] = lr
         torch.manual_seed(t.seed * 1_000_003 + info.rank * 7_919 + step)  # noise, dropout: exact on resume
-        with autocast:
-            loss, logs = stage.loss(net, batch)
-        if not torch.isfinite(loss):
-            raise CmtoolError(f"loss became {loss.item()} at step {step}; lower train.lr or raise train.warmup_steps "
-                              "(the last checkpoint is intact)")
-        opt.zero_grad(set_to_none=True)
-        loss.backward()
-        grad_norm = torch.nn.utils.clip_grad_norm_(params, t.grad_clip)
-        opt.step()
+        loss, logs, grad_norm = optimise(stage, net, opt, params, batch, autocast, step)
         ema.update_parameters(model)
         record["samples"] += t.batch_size
         record["last_loss"] = loss.item()
         record["time_s"] = time.perf_counter() - t0
         done = step + 1
-        if info.main and (done % t.log_every == 0 or done == t.steps):
+        if rec is not None and (done % t.log_every == 0 or done == t.steps):
             rec.set_time("train_step", sequence=done)
             rec.log("train/loss", rr.Scalars(record["last_loss"]))
             rec.log("train/lr", rr.Scalars(lr))
@@ -273,7 +290,7 @@ def train(stage: Stage, run_dir: Path, resume: bool = False, progress: bool = Tr
                 rec.log(f"train/{k}", rr.Scalars(v))
         bar.update(1, loss=f"{record['last_loss']:.4f}", lr=f"{lr:.2e}",
                    **{"samples/s": f"{record['samples'] / max(record['time_s'], 1e-9):.1f}"})
-        if info.main and t.preview_every and (done % t.preview_every == 0 or done == t.steps):
+        if rec is not None and t.preview_every and (done % t.preview_every == 0 or done == t.steps):
             rec.set_time("train_step", sequence=done)
             ema.module.eval()
             stage.preview(ema.module, rec)
@@ -285,8 +302,9 @@ def train(stage: Stage, run_dir: Path, resume: bool = False, progress: bool = Tr
         ema.module.eval()
         extra = stage.finish(ema.module, run_dir)
     final = save(t.steps, complete=True, extra=extra)
-    if info.main:
+    if rec is not None:
         rec.close()  # the final save wrote train.rrd; this frees the served port for the next stage
+    if info.main:
         print(f"{stage.name or stage.kind}: {t.steps} steps in {record['time_s']:.0f} s, last loss {record.get('last_loss', float('nan')):.4f} -> {final}",
               file=sys.stderr)
     D.cleanup()

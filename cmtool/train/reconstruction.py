@@ -23,11 +23,11 @@ from cmtool.data.cache import SceneDataset, load_dataset, load_manifest
 from cmtool.maps.hdmap import drives_on
 from cmtool.maps.lanegraph import LaneGraph, infer_successors, join_successors
 from cmtool.metrics.geometric import driving_side, oncoming_side
-from cmtool.metrics.lanes import lane_scores, pair_distances, scores_at
+from cmtool.metrics.lanes import lane_scores_of_scenes, pair_distances, scores_at
 from cmtool.metrics.suite import markdown_table, weighted_mean
 from cmtool.metrics.validity import check
 from cmtool.model.rvae import RVAE, decoded_elements
-from cmtool.train.data import SceneRasters
+from cmtool.train.data import scene_raster
 
 BATCH = 64
 TOL_M = 1.0  # lane F1 tolerance
@@ -38,10 +38,9 @@ FINE_M = 0.5  # the finer tolerance reported beside it
 def reconstruct(encoder: RVAE, decoder: RVAE, scenes: SceneDataset, idx: np.ndarray, device) -> list[dict]:
     """Decoded elements (``decoded_elements``) of scenes ``idx``, encoded by ``encoder``, decoded by
     ``decoder`` (the same RVAE, or a decoder trained on its latents)."""
-    items = SceneRasters(scenes)
     out = []
     for chunk in np.array_split(idx, max(1, len(idx) // BATCH)):
-        raster = torch.stack([items[int(i)]["raster"] for i in chunk]).to(device)
+        raster = torch.stack([scene_raster(scenes, int(i)) for i in chunk]).to(device)
         mean, _ = encoder.encode(raster)
         out += decoded_elements(decoder.decode(mean))
     return out
@@ -58,7 +57,7 @@ def reconstruction_scores(rvae: RVAE, data_dir, split: str, device, n: int, tol:
     scenes = load_dataset(data_dir, split)
     idx = spread(len(scenes), n)
     recon = reconstruct(rvae, rvae, scenes, idx, device)
-    scores = [lane_scores(list(el["lines"]), list(_truth(scenes, i)), tol=tol) for i, el in zip(idx, recon)]
+    scores = lane_scores_of_scenes([list(el["lines"]) for el in recon], [list(_truth(scenes, i)) for i in idx], tol=tol)
     out = {k: float(np.mean([s[k] for s in scores])) for k in ("precision", "recall", "f1")}
     return {**out, "tol_m": tol, "split": split, "scenes": len(scores)}
 

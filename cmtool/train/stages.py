@@ -22,7 +22,7 @@ from cmtool.model.controlmap import NO_LAYOUT, SD_CHANNELS, ControlMap, control_
 from cmtool.model.dit import DiT, DiTConfig
 from cmtool.model.rvae import ENCODER_PREFIXES, RVAE, decoded_elements, same_encoder
 from cmtool.model.rvae_loss import denoise_input, rvae_loss
-from cmtool.train.data import CachedPosteriors, Latents, SceneRasters, shift_sideways
+from cmtool.train.data import CachedPosteriors, Latents, SceneRasters, scene_raster, shift_sideways
 from cmtool.train.latents import latent_dir, mirrored_latents, read_latents, write_latents
 from cmtool.train.loop import Stage
 from cmtool.train.reconstruction import reconstruction_scores
@@ -102,13 +102,13 @@ class RVAEStage(Stage):
     def preview(self, model, rec):
         if self._preview is None:
             scenes = load_dataset(self.data_dir, _preview_split(self.data_dir))
-            self._preview = [SceneRasters(scenes)[i] for i in range(min(PREVIEWS, len(scenes)))]
-        raster = torch.stack([item["raster"] for item in self._preview]).to(self.device)
+            self._preview = [(scene_raster(scenes, i), scenes.lines[i][scenes.line_mask[i]])
+                             for i in range(min(PREVIEWS, len(scenes)))]
+        raster = torch.stack([raster for raster, _ in self._preview]).to(self.device)
         with torch.no_grad():
             mean, _ = model.encode(raster)
             elements = decoded_elements(model.decode(mean))
-        for k, (item, el) in enumerate(zip(self._preview, elements)):
-            truth = item["lines"][item["line_mask"]].numpy()
+        for k, ((_, truth), el) in enumerate(zip(self._preview, elements)):
             log_lanes(rec, f"train/preview/sample_{k}/truth/", truth)
             log_lanes(rec, f"train/preview/sample_{k}/decoded/", el["lines"], el["green"], el["red"])
 

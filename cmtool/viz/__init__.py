@@ -1,1 +1,2 @@
-"""Pictures and Rerun recordings of maps, scenes, denoising and training; their layouts; headless screenshots."""
+"""Pictures and Rerun recordings of maps, scenes, denoising and training; their layouts; live viewers; headless
+screenshots."""

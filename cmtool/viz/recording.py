@@ -8,6 +8,8 @@ at ``<prefix>control/sd`` is placed on the same 64 m square, so lanes draw over 
 from __future__ import annotations
 
 import socket
+import subprocess
+import sys
 import uuid
 import weakref
 from pathlib import Path
@@ -47,10 +49,7 @@ def in_memory(rec: rr.RecordingStream) -> bool:
 def close_recording(rec: rr.RecordingStream, path, outputs: OutputSet | None = None) -> None:
     """Close a recording of :func:`open_recording` and write it to ``path`` (an ``.rrd`` file), atomically or, with
     ``outputs``, staged with the other files of the command."""
-    memory = _MEMORY.pop(rec)
-    rec.flush()
-    data = memory.drain_as_bytes()
-    rec.disconnect()
+    data = _drained(rec)
     if outputs is not None:
         outputs.write_bytes(path, data)
     else:
@@ -58,14 +57,28 @@ def close_recording(rec: rr.RecordingStream, path, outputs: OutputSet | None = N
             f.write(data)
 
 
+def _drained(rec: rr.RecordingStream) -> bytes:
+    """Close a recording of :func:`open_recording`; returns it as the bytes of an ``.rrd`` file."""
+    memory = _MEMORY.pop(rec)
+    rec.flush()
+    data = memory.drain_as_bytes()
+    rec.disconnect()
+    return data
+
+
 class ReplayRecording:
-    """A recording of one ``kind`` that keeps what is logged to it (``set_time`` and ``log`` calls, the blueprint),
-    so :meth:`write` can write all of it to ``path`` at any time, as a long run does at each checkpoint (Rerun's
-    own file writer blocks for ever when a write fails). ``live``: also stream it to this sink (``--serve``)."""
+    """A recording of one ``kind`` that keeps what is logged to it (``set_time`` and ``log`` calls) since its last
+    :meth:`write`, as a long run does between checkpoints. A write makes those calls a Rerun stream of their own and
+    merges it into ``path`` (``rerun rrd merge``), so memory holds one checkpoint's calls, never the whole run's
+    (Rerun's own file writer blocks for ever when a write fails). ``live``: also stream it to this sink
+    (``--serve``)."""
 
     def __init__(self, kind: str, path, live: rr.GrpcServerSink | None = None):
         self.kind, self.path, self.calls, self.blueprint = kind, Path(path), [], None
+        self.part = self.path.with_name(f".{self.path.name}.part")
         self.recording_id = str(uuid.uuid4())
+        self.time = None  # the last set_time call: the next part starts at that time
+        self.written = False
         self.live = None
         if live is not None:
             self.live = rr.RecordingStream(APP_IDS[kind], recording_id=self.recording_id)
@@ -88,13 +101,27 @@ class ReplayRecording:
             getattr(self.live, name)(*args, **kwargs)
 
     def write(self) -> None:
-        """Write everything logged so far to ``path`` (atomically)."""
+        """Add what was logged since the last write to ``path`` (atomically)."""
         rec = open_recording(self.kind, self.recording_id)
-        if self.blueprint is not None:
+        if self.blueprint is not None and not self.written:
             rec.send_blueprint(self.blueprint)
-        for name, args, kwargs in self.calls:
+        for name, args, kwargs in ([("set_time", *self.time)] if self.time else []) + self.calls:
             getattr(rec, name)(*args, **kwargs)
-        close_recording(rec, self.path)
+            if name == "set_time":
+                self.time = (args, kwargs)
+        with atomic_open(self.part, "wb") as f:
+            f.write(_drained(rec))
+        try:
+            with atomic_open(self.path, "wb") as f:
+                done = subprocess.run([sys.executable, "-m", "rerun", "rrd", "merge",
+                                       *([str(self.path)] if self.written else []), str(self.part)], stdout=f,
+                                      stderr=subprocess.PIPE, text=True)
+                if done.returncode:
+                    why = (done.stderr.strip().splitlines() or ["no message"])[-1]
+                    raise CmtoolError(f"{self.path}: could not add to the recording ({why})")
+        finally:
+            self.part.unlink(missing_ok=True)
+        self.calls, self.written = [], True
 
     def close(self) -> None:
         """Stop streaming (which frees the served port); the file is as the last :meth:`write` left it."""

@@ -31,7 +31,7 @@ from pathlib import Path
 import numpy as np
 
 from cmtool.core.errors import CmtoolError
-from cmtool.core.geo import LocalProjection
+from cmtool.core.geo import LocalProjection, centre_of
 from cmtool.core.geometry import resample
 from cmtool.formats.importers.common import centerline_and_width, tidy_references
 from cmtool.formats.osmxml import OsmData, OsmRelation, read_osm_xml
@@ -114,8 +114,8 @@ def _project(osm: OsmData) -> tuple[dict[int, np.ndarray], tuple[float, float]]:
     ids = list(osm.nodes)
     lat = np.array([osm.nodes[i].lat for i in ids])
     lon = np.array([osm.nodes[i].lon for i in ids])
-    metres = LocalProjection(lat.mean(), lon.mean()).to_metres(lat, lon)
-    return dict(zip(ids, metres)), (float(lat.mean()), float(lon.mean()))
+    lat0, lon0 = centre_of(np.stack([lat, lon], axis=1))
+    return dict(zip(ids, LocalProjection(lat0, lon0).to_metres(lat, lon))), (lat0, lon0)
 
 
 def _way_xy(osm: OsmData, xy: dict, way_id: int, where: str, path: Path) -> np.ndarray:

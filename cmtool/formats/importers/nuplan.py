@@ -33,7 +33,7 @@ import shapely
 import shapely.wkb
 
 from cmtool.core.errors import CmtoolError
-from cmtool.core.geo import LocalProjection
+from cmtool.core.geo import LocalProjection, centre_of
 from cmtool.formats.importers.common import MAX_WIDTH, MIN_WIDTH, tidy_references
 from cmtool.maps.hdmap import Crosswalk, HDMap, Lane, StopLine, drives_on
 
@@ -127,7 +127,7 @@ def _read(gp: _GeoPackage, hd: HDMap) -> None:
     if gp.geographic("baseline_paths"):
         rows = gp.rows("baseline_paths", ())
         lonlat = np.concatenate([shapely.get_coordinates(r["geometry"]) for r in rows if r["geometry"] is not None])
-        gp.project = LocalProjection(*lonlat.mean(axis=0)[::-1])
+        gp.project = LocalProjection(*centre_of(lonlat[:, ::-1]))
     centerlines = {}
     for row in gp.rows("baseline_paths", ("lane_fid", "lane_connector_fid")):
         geom = row["geometry"]

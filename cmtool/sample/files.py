@@ -1,0 +1,70 @@
+"""The files of sampled maps, staged in an output set: per map its lane graph JSON, its ground truth JSON when
+known and its picture (SD input | the map | ground truth); and a grid of all pictures."""
+
+from __future__ import annotations
+
+from pathlib import Path
+from typing import TYPE_CHECKING
+
+import numpy as np
+
+from cmtool.core.jsonio import OutputSet, json_text
+from cmtool.maps.lanegraph import LaneGraph
+from cmtool.viz.draw import graph_panel, legend, sd_panel, title_strip
+from cmtool.viz.show import write_png
+
+if TYPE_CHECKING:
+    from cmtool.sample.run import Job, SampledMap
+
+PANEL = 256
+MAP_FILES = (".json", ".gt.json", ".png")  # the files of a map named NAME: NAME.json, NAME.gt.json, NAME.png
+
+
+class MapFiles:
+    """Stages the files of sampled maps in ``outputs`` (:meth:`stage`): each map's lane graph JSON, its ground truth
+    JSON when known and (``pictures``) its picture, headed ``title(graph)``; with ``grid``, :meth:`finish` stacks
+    all pictures into that PNG."""
+
+    def __init__(self, out: Path, title, outputs: OutputSet, pictures: bool = True, grid: Path | None = None):
+        self.out, self.title, self.outputs, self.pictures, self.grid = out, title, outputs, pictures, grid
+        self.bodies: list[np.ndarray] = []  # the pictures for the grid
+
+    def stage(self, jobs: list[Job], graphs: list[LaneGraph]) -> None:
+        for job, graph in zip(jobs, graphs):
+            self.outputs.write_text(self.out / f"{job.name}.json", json_text(graph.to_json()))
+            if job.source.truth is not None:
+                self.outputs.write_text(self.out / f"{job.name}.gt.json", json_text(job.source.truth.to_json()))
+            if self.pictures:
+                body = _picture_body(job, graph, self.title(graph))
+                write_png(self.out / f"{job.name}.png", np.concatenate([body, legend(body.shape[1])], axis=0),
+                          self.outputs)
+                if self.grid is not None:
+                    self.bodies.append(body)
+
+    def finish(self) -> None:
+        if self.grid is not None and self.bodies:
+            gap = np.full((4, self.bodies[0].shape[1], 3), 12, np.uint8)
+            stacked = np.concatenate([x for body in self.bodies for x in (body, gap)][:-1], axis=0)
+            write_png(self.grid, np.concatenate([stacked, legend(stacked.shape[1])], axis=0), self.outputs)
+
+
+def write_maps(out: Path, maps: list[SampledMap], title, outputs: OutputSet, grid: Path | None = None) -> None:
+    """Stage every map's files and pictures (:class:`MapFiles`) and, when ``grid`` is given, all their pictures
+    stacked into one PNG."""
+    files = MapFiles(out, title, outputs, grid=grid)
+    files.stage([m.job for m in maps], [m.graph for m in maps])
+    files.finish()
+
+
+def _picture_body(job: Job, graph: LaneGraph, title: str) -> np.ndarray:
+    """A map's picture without its legend: SD input | the map | ground truth (those known), each titled."""
+    truth = job.source.truth
+    panels = []
+    if job.source.sd is not None:
+        panels.append((f"SD input: {job.source.name}", sd_panel(job.source.sd, PANEL)))
+    panels.append((title, graph_panel(graph, PANEL)))
+    if truth is not None:
+        panels.append(("ground truth", graph_panel(truth, PANEL)))
+    tiles = [np.concatenate([title_strip(t, PANEL), img], axis=0) for t, img in panels]
+    gap = np.full((tiles[0].shape[0], 4, 3), 12, np.uint8)
+    return np.concatenate([x for tile in tiles for x in (tile, gap)][:-1], axis=1)
