@@ -66,6 +66,34 @@ def test_tracing_a_picture_takes_time_that_grows_with_its_road_pixels():
     assert time.perf_counter() - began < 15.0 and len(sd.roads) == 4
 
 
+def _thinned_pass_by_pass(mask: np.ndarray) -> np.ndarray:
+    """Zhang and Suen's thinning as it was: every pixel of the picture tested in every pass."""
+    ring = [(-1, 0), (-1, 1), (0, 1), (1, 1), (1, 0), (1, -1), (0, -1), (-1, -1)]
+    img, changed = np.pad(mask.astype(np.uint8), 1), True
+    while changed:
+        changed = False
+        for first in (True, False):
+            p = [np.roll(img, (-dr, -dc), axis=(0, 1)) for dr, dc in ring]
+            rises = sum(((p[k] == 0) & (p[(k + 1) % 8] == 1)).astype(np.uint8) for k in range(8))
+            a, b = (p[0] * p[2] * p[4], p[2] * p[4] * p[6]) if first else (p[0] * p[2] * p[6], p[0] * p[4] * p[6])
+            gone = (img == 1) & (sum(p) >= 2) & (sum(p) <= 6) & (rises == 1) & (a == 0) & (b == 0)
+            img[gone], changed = 0, changed or bool(gone.any())
+    return img[1:-1, 1:-1]
+
+
+def test_thinning_only_near_what_changed_equals_thinning_every_pixel():
+    from cmtool.data.sd_raster import drawing_roads, picture
+    from cmtool.data.sd_trace import _thin
+
+    rng = np.random.default_rng(0)
+    masks = [drawing_roads(picture(REPO / "sample_data" / name)[0]) for name in ("sketch.png", "gallery_osm.png")]
+    for k in range(60):
+        mask = (rng.random((int(rng.integers(3, 60)), int(rng.integers(3, 60)))) < rng.uniform(0.2, 0.9))
+        masks.append(cv2.dilate(mask.astype(np.uint8), np.ones((3, 3), np.uint8)) if k % 2 else mask.astype(np.uint8))
+    for mask in masks:
+        np.testing.assert_array_equal(_thin(mask), _thinned_pass_by_pass(mask))
+
+
 def test_a_picture_over_the_tracing_limit_is_refused_naming_it(tmp_path):
     from cmtool.data.sd_trace import MAX_TRACE_PIXELS
 

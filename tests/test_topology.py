@@ -101,3 +101,17 @@ def test_component_search_equals_the_all_pairs_matrix(monkeypatch):
         reach, convenience = dense(graph)
         np.testing.assert_array_equal(stats["reach"], reach)
         np.testing.assert_array_equal(np.sort(stats["convenience"]), convenience)
+
+
+def test_a_huge_connected_set_is_measured_from_sampled_sources(monkeypatch):
+    """A chain of 100,000 lanes has 5 billion reachable pairs: a set of over EXACT_COMPONENT keypoints contributes the
+    reach and hop counts of SAMPLED_SOURCES keypoints, each reach standing for as many keypoints."""
+    from cmtool.metrics import topology
+
+    monkeypatch.setattr(topology, "EXACT_COMPONENT", 500)
+    monkeypatch.setattr(topology, "SAMPLED_SOURCES", 100)
+    graph = keypoint_graph(2000, [(i, i + 1) for i in range(1999)])  # one chain of 2,001 keypoints
+    stats = topology.scene_statistics(graph)
+    assert len(stats["reach"]) == graph.n and 0 < len(stats["convenience"]) <= 100 * graph.n
+    assert stats["reach"].mean() == pytest.approx((graph.n - 1) / 2, rel=0.15)  # each reaches those after it
+    assert stats["convenience"].mean() == pytest.approx(graph.n / 3, rel=0.15)  # the mean hop count of all pairs
