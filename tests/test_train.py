@@ -4,7 +4,6 @@ checkpoints, exact resume after kill -9, DDP on two CPU processes, and `cmtool i
 import json
 import os
 import shutil
-import signal
 import subprocess
 import sys
 import time

@@ -217,7 +217,10 @@ def pair_distances(pred: Sequence[np.ndarray], gt: Sequence[np.ndarray],
 
 def scores_at(distances: tuple[np.ndarray, np.ndarray], tol: float) -> dict:
     """Precision / recall / F1 at ``tol`` m from :func:`pair_distances` (a score over no points is 1)."""
-    precision, recall = (float(np.mean(d <= tol)) if len(d) else 1.0 for d in distances)
+    return _scores(*(float(np.mean(d <= tol)) if len(d) else 1.0 for d in distances))
+
+
+def _scores(precision: float, recall: float) -> dict:
     f1 = 2.0 * precision * recall / (precision + recall) if precision + recall > 0 else 0.0
     return {"precision": precision, "recall": recall, "f1": f1}
 
@@ -255,6 +258,5 @@ def lane_scores_of_scenes(preds: Sequence[Sequence[np.ndarray]], gts: Sequence[S
         per_line = np.cumsum([0] + [len(p) for p in samples])
         ends = per_line[np.cumsum([len(scene) for scene in placed[own]])]
         shares.append([float(np.mean(w)) if len(w) else 1.0 for w in np.split(within, ends[:-1])])
-    return [{"precision": p, "recall": r, "f1": 2.0 * p * r / (p + r) if p + r > 0 else 0.0}
-            for p, r in zip(*shares)]
+    return [_scores(p, r) for p, r in zip(*shares)]
 
