@@ -5,10 +5,12 @@ from __future__ import annotations
 
 import ctypes
 import multiprocessing
+import os
 import signal
 import sys
 
 PR_SET_PDEATHSIG = 1  # prctl(2)
+STOP_S = 2.0  # the longest a stopped worker unwinds before it ends at once
 
 
 def pool(processes: int, start: str | None = None) -> multiprocessing.pool.Pool:
@@ -30,15 +32,28 @@ def _worker_signals() -> None:
         pass
 
 
+_stopping = False
+
+
 def _stop(signum, frame):
-    raise SystemExit(128 + signal.SIGTERM)  # unwinds (temporary files removed); multiprocessing prints no traceback for it
+    """Unwind (temporary files removed; multiprocessing prints no traceback for SystemExit). A ``finally`` may put
+    another error in the stop's place (zipfile's does, when the stop lands in a write), and the worker would then take
+    its next task: a second SIGTERM, or the alarm set here, ends it at once."""
+    global _stopping
+    if _stopping:
+        os._exit(128 + signal.SIGTERM)
+    _stopping = True
+    signal.setitimer(signal.ITIMER_REAL, STOP_S)
+    raise SystemExit(128 + signal.SIGTERM)
 
 
 def _stop_later(unraisable) -> None:
     """A stop that arrived inside a finalizer (``__del__``), where Python prints the exception and goes on: nothing is
-    printed, and the stop comes again a millisecond later (SIGALRM), where the worker can unwind."""
+    printed, and the stop comes again a millisecond later (SIGALRM), where the worker can unwind. Once stopping, the
+    finalizers of what the stop left half made (a zip file whose file is closed) fail unprinted."""
+    global _stopping
     if isinstance(unraisable.exc_value, SystemExit):
+        _stopping = False
         signal.setitimer(signal.ITIMER_REAL, 0.001)
-    else:
+    elif not _stopping:
         sys.__unraisablehook__(unraisable)
-
