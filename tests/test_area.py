@@ -241,12 +241,12 @@ def test_a_killed_area_run_goes_on_where_it_stopped(tmp_path, capsys, monkeypatc
     args = ("sample", "--osm", TOWN, "--area", BOX, "--steps", 4, "--sampler", "dpm++2m-sde", "--batch", 4, "--raw")
     code, _, err = in_process(capsys, *args, "--out", tmp_path / "whole")
     assert code == 0, err
-    real = interrupted_at(monkeypatch, area_module, "batch_maps", 3)
+    real = interrupted_at(monkeypatch, area_module, "write_jsonl", 3)  # as the third batch is kept
     code, _, err = in_process(capsys, *args, "--out", tmp_path / "broken")  # Ctrl-C, as the CLI reports it
     assert code == 130, err
     cache = tmp_path / "broken" / ".town_bos_area.tiles"
     assert len(list(cache.glob("b*.jsonl"))) == 2 and not (tmp_path / "broken" / "town_bos_area.json").exists()
-    monkeypatch.setattr(area_module, "batch_maps", real)
+    monkeypatch.setattr(area_module, "write_jsonl", real)
     code, _, err = in_process(capsys, *args, "--out", tmp_path / "broken")
     assert code == 0 and "resuming: 8 of" in err, err
     assert not cache.exists()

@@ -85,6 +85,17 @@ def test_eval_writes_reports_and_resumes(sampling_ckpt, tiny_data, tmp_path, cap
     assert code == 1 and "made with other settings (noise)" in err
 
 
+def test_the_guarantee_of_eval_maps_is_the_same_in_worker_processes(tiny_data):
+    from cmtool.data.cache import load_dataset
+    from cmtool.eval.evaluation import as_sampled
+
+    data = load_dataset(tiny_data, "test")
+    scenes = [data.scene(i) for i in range(min(6, len(data)))]
+    maps = [s.to_lanegraph() for s in scenes]
+    here, pooled = (as_sampled(maps, tiny_data, "test", scenes, workers) for workers in (1, 3))
+    assert len(here) == len(scenes) and [g.to_json() for g in here] == [g.to_json() for g in pooled]
+
+
 def test_unguided_and_guided_differ_only_by_the_control(sampling_ckpt, tiny_data, tmp_path, capsys):
     out = tmp_path / "w0"
     code, _, err = in_process(capsys, "eval", "--ckpt", sampling_ckpt["controlmap"], "--data", tiny_data, "--n", 4,

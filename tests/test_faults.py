@@ -1083,6 +1083,42 @@ def test_a_stop_waits_at_most_the_grace_period():
     assert time.monotonic() - began < _Watchdog.GRACE_S + 5
 
 
+def test_a_stopped_pooled_sample_run_leaves_nothing_and_runs_again_to_the_same_files(sampling_ckpt, tmp_path):
+    """SIGTERM to `sample` while its worker processes check the maps: exit 143 with no traceback, no worker left, no
+    file and no temporary in OUT; the same command then writes the files of a run never stopped."""
+    import json
+    import signal
+    import time
+
+    from cmtool.maps.hdmap import HDMap
+
+    hd = tmp_path / "sgp.json"
+    assert cli("data", "synth", "--city", "SGP", "--seed", 2, "--extent", 300, "--out", hd)[0] == 0
+    poses = tmp_path / "poses.jsonl"
+    poses.write_text("".join(json.dumps({"x": l.centerline[0][0], "y": l.centerline[0][1], "yaw": 0.0}) + "\n"
+                             for l in list(HDMap.load(hd).lanes.values())[:60]))
+    args = ("sample", "--ckpt", sampling_ckpt["controlmap"], "--from-hd", hd, "--pose", poses, "--steps", 2,
+            "--batch", 2, "--workers", 2, "--no-log", "--quiet", "--out")
+    out = tmp_path / "out"
+    proc = _subprocess(*args, out)
+    deadline = time.monotonic() + 120
+    while len(_children(proc.pid)) < 2:
+        assert proc.poll() is None and time.monotonic() < deadline, proc.stderr.read()
+        time.sleep(0.02)
+    workers = _children(proc.pid)
+    proc.send_signal(signal.SIGTERM)
+    code = proc.wait(timeout=60)
+    err = proc.stderr.read()
+    assert code == 143 and "Traceback" not in err, err
+    alive = [pid for pid in workers if Path(f"/proc/{pid}").exists()
+             and Path(f"/proc/{pid}/stat").read_text().rsplit(")", 1)[1].split()[0] != "Z"]
+    assert not alive and not (out.exists() and any(out.iterdir())), (alive, list(out.iterdir()))
+    assert cli(*args, out)[0] == 0
+    assert cli(*args[:-5], "--workers", 1, "--no-log", "--quiet", "--out", tmp_path / "unbroken")[0] == 0
+    made = {p.name: p.read_bytes() for p in sorted(out.iterdir())}
+    assert len(made) == 180 and made == {p.name: p.read_bytes() for p in sorted((tmp_path / "unbroken").iterdir())}
+
+
 def test_a_worker_stopped_inside_a_finalizer_still_stops_quietly():
     """SIGTERM landing in a ``__del__`` (where Python prints the exception and goes on): the worker stops a moment
     later where it can unwind, with no "Exception ignored" traceback (the pool's termination would wait for it)."""
@@ -1155,18 +1191,20 @@ def test_workers_a_pool_terminates_are_not_the_users_signal():
 
 def test_a_resumed_area_run_makes_the_unbroken_runs_map_byte_for_byte(tmp_path, monkeypatch):
     """An area run stopped after two batches of tiles, one of them then left with fewer tiles than the batch size (as
-    a damaged cache holds): the same command makes the unbroken run's map, byte for byte."""
+    a damaged cache holds): the same command makes the unbroken run's map, byte for byte (with one worker checking
+    the tiles, the stopped and resumed runs with three)."""
     import cmtool.sample.area as area_module
 
     hd = tmp_path / "pit.json"
     code, err = cli("data", "synth", "--city", "PIT", "--seed", 0, "--extent", 300, "--out", hd)
     assert code == 0, err
     args = ("sample", "--from-hd", hd, "--area", "90,90,210,210", "--batch", 2, "--steps", 2, "--no-log", "--quiet")
-    code, err = cli(*args, "--out", tmp_path / "whole")
+    code, err = cli(*args, "--out", tmp_path / "whole", "--workers", 1)  # the others: 3 workers
     assert code == 0, err
-    real = interrupted_at(monkeypatch, area_module, "batch_maps", 3)
+    args += ("--workers", 3)
+    real = interrupted_at(monkeypatch, area_module, "write_jsonl", 3)  # as the third batch is kept
     assert cli(*args, "--out", tmp_path / "broken")[0] == 130
-    monkeypatch.setattr(area_module, "batch_maps", real)
+    monkeypatch.setattr(area_module, "write_jsonl", real)
     batch = tmp_path / "broken" / ".pit_area.tiles" / "b0000002.jsonl"
     batch.write_text(batch.read_text().splitlines(keepends=True)[0])
     code, err = cli(*args, "--out", tmp_path / "broken")

@@ -29,7 +29,9 @@ ADDRESS_SPACE = 8 * GB  # of a command under test (torch and its libraries take 
 
 def timed(tmp_path, *args, limit: float) -> tuple[int, str, float, float]:
     """Run ``cmtool ARGS`` in a subprocess, killed after ``limit`` seconds and held to ``ADDRESS_SPACE`` (so that work
-    without bound fails here, not the machine): (exit code, stderr, seconds, peak resident bytes)."""
+    without bound fails here, not the machine): (exit code, stderr, CPU seconds of the command and its worker
+    processes, peak resident bytes). CPU seconds measure the work; a loaded machine stretches the wall time (a
+    metrics run of 108 s took 138 s beside a test suite and a training run)."""
     def held():
         resource.setrlimit(resource.RLIMIT_AS, (ADDRESS_SPACE, resource.getrlimit(resource.RLIMIT_AS)[1]))
 
@@ -44,7 +46,8 @@ def timed(tmp_path, *args, limit: float) -> tuple[int, str, float, float]:
     proc.returncode = os.waitstatus_to_exitcode(status)
     seconds = time.perf_counter() - began
     assert seconds < limit, f"cmtool {' '.join(map(str, args))}: still running after {limit:g} s"
-    return proc.returncode, (tmp_path / "stderr.txt").read_text(), seconds, usage.ru_maxrss * 1024.0
+    return proc.returncode, (tmp_path / "stderr.txt").read_text(), usage.ru_utime + usage.ru_stime, \
+        usage.ru_maxrss * 1024.0
 
 
 def one_line(err: str, *fragments: str) -> None:
@@ -137,7 +140,7 @@ def test_validating_a_pile_of_lanes_is_bounded(pile, tmp_path):
     """100,000 lanes piled in a 30 m square: ``validate`` ran past 300 s and 18 GB; now it estimates what it
     cannot count within its caps, and says so."""
     report = tmp_path / "report.json"
-    code, err, seconds, peak = timed(tmp_path, "validate", pile, "--json", report, limit=120)
+    code, err, seconds, peak = timed(tmp_path, "validate", pile, "--json", report, limit=240)
     assert code == 0, err
     assert seconds <= 60 and peak < 4 * GB, (seconds, peak / GB)
     first = json.loads(report.read_text())["reports"][0]
@@ -149,9 +152,9 @@ def test_validating_a_pile_of_lanes_is_bounded(pile, tmp_path):
 def test_metrics_of_a_pile_of_lanes_are_bounded(pile, tmp_path):
     result = tmp_path / "metrics.json"
     code, err, seconds, peak = timed(tmp_path, "metrics", "--generated", pile, "--reference", pile, "--no-features",
-                                     "--json", result, limit=240)
+                                     "--json", result, limit=480)
     assert code == 0, err
-    assert seconds <= 120 and peak < 4 * GB, (seconds, peak / GB)
+    assert seconds <= 180 and peak < 4 * GB, (seconds, peak / GB)  # 103-114 CPU s measured; it was killed at 23 GB
     assert json.loads(result.read_text())["geometry"]["chamfer_m"]["mean"] == pytest.approx(0.0)
 
 
@@ -163,7 +166,7 @@ def test_exporting_a_pile_of_lanes_is_refused_naming_it(pile, tmp_path, fmt):
 
     out = tmp_path / f"pile.{fmt}"
     code, err, seconds, peak = timed(tmp_path, "export", "--format", fmt, pile, "--origin", "60,25", "--out", out,
-                                     limit=240)
+                                     limit=480)
     if fmt == "geojson":  # no neighbours needed: written
         assert code == 0 and out.stat().st_size > PILE * 100, err
     else:

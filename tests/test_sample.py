@@ -287,6 +287,34 @@ def test_osm_and_hd_inputs(sampling_ckpt, tmp_path, capsys):
     assert "/sample_1/truth/hd/lanes" in rows
 
 
+def _hd_poses(tmp_path, capsys, n: int) -> tuple:
+    """A procedural map and ``n`` poses on it (the starts of its first lanes)."""
+    hd = tmp_path / "sgp.json"
+    assert in_process(capsys, "data", "synth", "--city", "SGP", "--seed", 2, "--extent", 300, "--out", hd)[0] == 0
+    poses = tmp_path / "poses.jsonl"
+    poses.write_text("".join(json.dumps({"x": l.centerline[0][0], "y": l.centerline[0][1], "yaw": 30.0}) + "\n"
+                             for l in list(HDMap.load(hd).lanes.values())[:n]))
+    return hd, poses
+
+
+def test_one_worker_and_several_write_the_same_files(sampling_ckpt, tmp_path, capsys):
+    """The maps' checks and files in worker processes (batches denoised meanwhile), in a thread, or after each batch
+    in turn (a recorded run): the same files byte for byte, and the summary names every map once, in order."""
+    hd, poses = _hd_poses(tmp_path, capsys, 10)
+    runs = {"recorded": ("--rrd", tmp_path / "run.rrd"), "thread": ("--workers", 1, "--no-log"),
+            "3 workers": ("--workers", 3, "--no-log")}
+    files, tables = {}, {}
+    for name, options in runs.items():
+        out = tmp_path / name.replace(" ", "_")
+        code, stdout, err = in_process(capsys, "sample", "--ckpt", sampling_ckpt["controlmap"], "--from-hd", hd,
+                                       "--pose", poses, "--steps", 2, "--batch", 3, "--quiet", "--out", out, *options)
+        assert code == 0, err
+        files[name] = {p.name: p.read_bytes() for p in sorted(out.iterdir())}
+        tables[name] = [line.split()[0] for line in stdout.splitlines() if line.startswith("sgp_")]
+    assert len(files["thread"]) == 30 and files["3 workers"] == files["thread"] == files["recorded"]
+    assert tables["3 workers"] == tables["thread"] == [f"sgp_{k}" for k in range(10)]
+
+
 def make_bad_inputs(tmp_path, ckpt, case) -> dict:
     if case == "off the roads":
         from cmtool.data.synth import generate_city
@@ -410,6 +438,31 @@ def test_bench_sample_prints_both_times_and_the_ratio(sampling_ckpt, capsys):
     assert "batch1_nolog" in out and "batch1_log" in out and "batch4_nolog" in out and "3 dpm++2m-sde steps" in out
     ratio = float(out.split("full logging / --no-log at batch 1: ")[1].split()[0])
     assert ratio > 0
+
+
+def test_loading_the_shipped_weights_imports_neither_torchvision_nor_torchs_compiler():
+    """Start-up: the sampler's RVAE is loaded without its encoder (torchvision's trunk: loaded when --init first
+    encodes), and no model is built where torch would import its compiler (about 3 s each, issue 59)."""
+    script = ("import sys\nfrom cmtool.model.release import bundled_checkpoint\n"
+              "from cmtool.sample.generator import MapGenerator\n"
+              "gen = MapGenerator.load(bundled_checkpoint())\n"
+              "print(gen.rvae.trunk is None, 'torchvision' in sys.modules, 'torch._dynamo' in sys.modules)\n"
+              "gen.encode([])\n"
+              "print(gen.rvae.trunk is not None)\n")
+    done = subprocess.run([sys.executable, "-c", script], cwd=REPO, capture_output=True, text=True, timeout=300)
+    assert done.returncode == 0 and done.stdout.split() == ["True", "False", "False", "True"], done.stderr
+
+
+def test_bench_sample_times_whole_runs_for_each_worker_count_and_the_recording(sampling_ckpt, tmp_path, capsys):
+    hd, poses = _hd_poses(tmp_path, capsys, 6)
+    code, out, err = in_process(capsys, "bench", "sample", "--ckpt", sampling_ckpt["controlmap"], "--from-hd", hd,
+                                "--pose", poses, "--steps", 2, "--batch", 2, "--repeats", 1, "--workers", 2)
+    assert code == 0, err
+    rows = [line.split(" | ") for line in out.splitlines() if line.startswith("| --no-log") or "recording" in line]
+    assert [r[0] for r in rows] == ["| --no-log, --workers 1", "| --no-log, --workers 2", "| recording on (sample.rrd)"]
+    assert all(r[1] == "6" and float(r[4]) > 0 for r in rows) and "6 frames of" in out and "CPU: " in out
+    code, _, err = in_process(capsys, "bench", "sample", "--from-hd", hd)
+    assert code == 2 and "--pose" in err
 
 
 def test_bench_sample_prints_the_quality_speed_table(sampling_ckpt, tiny_data, capsys):

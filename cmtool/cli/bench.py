@@ -5,7 +5,7 @@ from __future__ import annotations
 import click
 
 from cmtool.cli.common import (FEATURE_PRECISION_OPTION, PRECISION_OPTION, WORKERS_OPTION, DatasetDir, Finite, InPath,
-                               _device, _generator, sampler_options)
+                               _device, _generator, check_map_inputs, map_inputs, sampler_options)
 from cmtool.diffusion.settings import SAMPLERS, TABLE_STEPS
 
 
@@ -20,8 +20,9 @@ def bench():
 @click.option("--sd", "sd_path", type=InPath(), help="SD input [default: a procedural crossing].")
 @sampler_options
 @click.option("--cfg", default=1.0, show_default=True, type=Finite(min=0), help="Guidance weight.")
-@click.option("--batch", default=64, show_default=True, type=click.IntRange(2, 4096),
-              help="The large batch to compare (with --data: the batch of every row).")
+@click.option("--batch", type=click.IntRange(2, 4096),
+              help="The large batch to compare (with --data: the batch of every row) [default: 64; with --from-hd: "
+                   "16, as `cmtool sample`].")
 @click.option("--repeats", default=3, show_default=True, type=click.IntRange(1, 1000), help="Timed runs per setting.")
 @click.option("--data", type=DatasetDir(),
               help="Instead: the quality-speed table of every sampler over --table-steps, on this dataset's first --n "
@@ -33,12 +34,19 @@ def bench():
               help="With --data: the samplers, comma-separated.")
 @click.option("--features", is_flag=True,
               help="With --data: GT Recall and the features' precision and recall too (ResNet-50; --n of 64 or more).")
+@click.option("--from-hd", type=InPath(dir_okay=False),
+              help="Instead: whole runs end to end (frames in, files out) on this HD map's frames at --pose, in maps "
+                   "per second for 1 to --workers worker processes and with the recording on.")
+@click.option("--pose", help="With --from-hd: X,Y,YAW or a .jsonl file of poses (`cmtool data poses`).")
+@click.option("--workers", "max_workers", type=click.IntRange(min=1),
+              help="With --from-hd: the most worker processes to time [default: one per CPU core].")
 @click.option("--device", help="torch device [default: cuda when available, else cpu].")
 @PRECISION_OPTION
 def bench_sample_cmd(ckpt, sd_path, steps, sampler, cfg, batch, repeats, data, n, table_steps, samplers, features,
-                     device, precision):
+                     from_hd, pose, max_workers, device, precision):
     """Time sampling: per-step logging against --no-log at batch 1, and batch 1 against a large batch; with --data,
-    the quality-speed table of the samplers instead (the same noise per scene for every row)."""
+    the quality-speed table of the samplers instead (the same noise per scene for every row); with --from-hd, whole
+    runs end to end."""
     import torch
 
     from cmtool.eval.bench_sample import LOG_LIMIT, bench_sample, default_sd
@@ -48,11 +56,23 @@ def bench_sample_cmd(ckpt, sd_path, steps, sampler, cfg, batch, repeats, data, n
     settings = SampleSettings(steps=steps, cfg=cfg, sampler=sampler)
     settings.check()
     counts, names = _step_list(table_steps), _sampler_list(samplers)
+    if from_hd is not None:
+        if data is not None or sd_path is not None:
+            raise click.UsageError("--from-hd times whole runs on its own frames: leave out --data and --sd")
+        if pose is None:
+            raise click.UsageError("--from-hd: give the frames' poses with --pose (`cmtool data poses`)")
+        check_map_inputs(None, None, from_hd, pose)
+    elif pose is not None:
+        raise click.UsageError("--pose goes with --from-hd")
     gen = _generator(ckpt, device, precision=precision)
     dev = gen.device
     params = sum(p.numel() for p in gen.model.parameters())
     head = f"{gen.path}: {gen.config['kind']}, {params / 1e6:.1f}M parameters; {dev} ({torch.get_num_threads()} " \
            f"threads, {precision})"
+    if from_hd is not None:
+        _end_to_end(gen, head, settings, from_hd, pose, batch or 16, repeats, max_workers)
+        return
+    batch = batch or 64
     if data is not None:
         _table(gen, head, data, n, counts, names, cfg, batch, features, device)
         return
@@ -63,6 +83,34 @@ def bench_sample_cmd(ckpt, sd_path, steps, sampler, cfg, batch, repeats, data, n
     click.echo(f"full logging / --no-log at batch 1: {r['log_ratio']:.3f} ({verdict} the {LOG_LIMIT:.2f} limit)")
     click.echo(f"batch {batch} / batch 1, time per map: {1 / r['batch_speedup']:.3f} "
                f"({r['batch_speedup']:.1f}x faster per map)")
+
+
+def _end_to_end(gen, head: str, settings, from_hd, pose, batch: int, repeats: int, max_workers) -> None:
+    """``bench sample --from-hd``: whole runs' maps per second."""
+    import platform
+    from functools import partial
+
+    from cmtool.core.workers import cores
+    from cmtool.eval.bench_sample import E2E_HEAD, end_to_end
+
+    inputs = partial(map_inputs, None, None, None, from_hd, pose, settings.seed)
+    settings.batch = batch
+    click.echo(f"{head}; {settings.steps} {settings.sampler} steps, cfg {settings.cfg}, batch {batch}, "
+               f"{len(inputs())} frames of {from_hd}; "
+               f"CPU: {_cpu_name() or platform.processor() or 'unknown'}, {cores()} cores; seconds of a whole run "
+               "(frames read, layouts, maps, checks, files), the model loaded once")
+    click.echo(E2E_HEAD)
+    end_to_end(gen, inputs, settings, list(range(1, (max_workers or cores()) + 1)), repeats, report=click.echo)
+
+
+def _cpu_name() -> str | None:
+    try:
+        for line in open("/proc/cpuinfo"):
+            if line.startswith("model name"):
+                return line.split(":", 1)[1].strip()
+    except OSError:
+        return None
+    return None
 
 
 def _table(gen, head: str, data, n: int, counts: list[int], names: list[str], cfg: float, batch: int, features: bool,
@@ -144,12 +192,12 @@ def bench_metrics_cmd(eval_dir, method, tile, repeats, no_features, device, feat
     also the ResNet-50 passes alone on the same rasters."""
     from cmtool.eval.bench_metrics import bench_metrics, eval_set, report_table
     from cmtool.metrics.features import FeatureExtractor
-    from cmtool.metrics.scenes import cpu_count
+    from cmtool.core.workers import cores
 
     generated, reference, controls = eval_set(eval_dir, method, tile)
     extractor = None if no_features else FeatureExtractor("resnet50-seeded", None, _device(device),
                                                           precision=feature_precision)
-    click.echo(report_table(bench_metrics(generated, reference, controls, extractor, repeats, workers or cpu_count())))
+    click.echo(report_table(bench_metrics(generated, reference, controls, extractor, repeats, workers or cores())))
 
 
 @bench.command("train")

@@ -127,7 +127,7 @@ PRECISION_OPTION = click.option(
 WORKERS_OPTION = click.option(
     "--workers", type=click.IntRange(min=1),
     help="Processes that share the per-scene metrics (topology, lane distances, validity, SD adherence) of sets of "
-         "256 scenes or more [default: one per CPU core].")
+         "256 scenes or more, and eval's guarantee of the maps [default: one per CPU core].")
 
 FEATURE_PRECISION_OPTION = click.option(
     "--feature-precision", default="fp32", show_default=True, type=click.Choice(["fp32", "bf16"]),

@@ -38,7 +38,7 @@ def metrics(generated, reference, control, json_out, backbone, weights, no_featu
     from cmtool.core.jsonio import write_json
     from cmtool.formats.mapfile import read_lane_graphs
     from cmtool.metrics.features import FeatureExtractor
-    from cmtool.metrics.scenes import cpu_count
+    from cmtool.core.workers import cores
     from cmtool.metrics.suite import evaluate, load_controls, summary_table
 
     names = [p.name for p in generated]
@@ -52,7 +52,7 @@ def metrics(generated, reference, control, json_out, backbone, weights, no_featu
                                                           precision=feature_precision)
     began = time.perf_counter()
     results = {name: evaluate(gen, ref, controls, extractor, features=not no_features, progress=not quiet,
-                              workers=workers or cpu_count()) for name, gen in zip(names, sets)}
+                              workers=workers or cores()) for name, gen in zip(names, sets)}
     click.echo(summary_table(results))
     first = next(iter(results.values()))
     click.echo(f"{first['scenes']} scene pairs{f' x {len(results)} sets' if len(results) > 1 else ''} in "
@@ -103,7 +103,7 @@ def eval_cmd(ckpt, data_dir, split, n, cfg, steps, sampler, init, strength, enco
     from cmtool.core import dist as D
     from cmtool.eval.evaluation import EvalSettings, run_eval
     from cmtool.metrics.features import FeatureExtractor
-    from cmtool.metrics.scenes import cpu_count
+    from cmtool.core.workers import cores
 
     info = D.setup(str(_device(device)))
     try:
@@ -115,7 +115,7 @@ def eval_cmd(ckpt, data_dir, split, n, cfg, steps, sampler, init, strength, enco
                                 sampler=sampler, seed=seed, batch=batch, precision=precision, init=init,
                                 strength=strength if init != "none" else 1.0)
         run_eval(gen, settings, out, extractor, rrd_samples=rrd_samples, progress=not quiet, info=info,
-                 workers=workers or cpu_count())
+                 workers=workers or cores())
     finally:
         D.cleanup()
     if info.main:

@@ -76,12 +76,16 @@ Large sets in several processes (CPU or GPUs), the same maps as one process:
                                           "rules' lanes; docs/sampling.md).")
 @click.option("--no-log", is_flag=True, help="No recording (fastest).")
 @click.option("--no-pictures", is_flag=True, help="No picture per map (the lane graphs only; faster).")
+@click.option("--workers", type=click.IntRange(min=1),
+              help="Processes that check the maps (--area: the tiles' maps) and make their files while the model "
+                   "denoises the next batches (1: a thread beside it; the files are the same) [default: one per CPU "
+                   "core].")
 @click.option("--device", help="torch device [default: cuda when available, else cpu].")
 @PRECISION_OPTION
 @click.option("--quiet", is_flag=True, help="No progress line.")
 def sample(ckpt, sd_paths, osm, center, heading, from_hd, pose, area, px_m, num, candidates, seed, steps, sampler, eta,
            city, cfg, city_cfg, init, strength, encoder_path, smooth, batch, out, rrd, grid, spawn, connect_url, serve,
-           raw, no_log, no_pictures, device, precision, quiet):
+           raw, no_log, no_pictures, workers, device, precision, quiet):
     kinds = [name for name, given in (("--sd", sd_paths), ("--osm", osm), ("--from-hd", from_hd)) if given]
     if len(kinds) > 1:
         raise CmtoolError(f"give one kind of SD input, not {' and '.join(kinds)}")
@@ -103,10 +107,11 @@ def sample(ckpt, sd_paths, osm, center, heading, from_hd, pose, area, px_m, num,
     if area is not None:
         return _area(ckpt, sd_paths, px_m, osm, center, from_hd, pose, area, num, candidates, seed, steps, sampler,
                      eta, city, cfg, city_cfg, init, strength, encoder_path, smooth, batch, out, rrd, grid, spawn,
-                     connect_url, serve, raw, no_log, device, precision, quiet)
+                     connect_url, serve, raw, no_log, workers, device, precision, quiet)
     import shlex
 
     from cmtool.core import dist as D
+    from cmtool.core.workers import cores
     from cmtool.sample import inputs as src
     from cmtool.sample.run import SampleSettings, plan, run_sample
     from cmtool.sample.summary import summary_table
@@ -135,7 +140,7 @@ def sample(ckpt, sd_paths, osm, center, heading, from_hd, pose, area, px_m, num,
     command = shlex.join(["cmtool", *sys.argv[1:]])
     try:
         maps = run_sample(gen, jobs, settings, out, None if no_log else rrd, viewer, command, progress=not quiet,
-                          grid=grid, info=info, pictures=not no_pictures)
+                          grid=grid, info=info, pictures=not no_pictures, workers=workers or cores())
     finally:
         D.cleanup()
     if not info.main:
@@ -157,7 +162,7 @@ AREA_INIT, AREA_STRENGTH = "rules", 0.3  # where --area's tiles start unless --i
 
 def _area(ckpt, sd_paths, px_m, osm, center, from_hd, pose, area, num, candidates, seed, steps, sampler, eta, city,
           cfg, city_cfg, init, strength, encoder_path, smooth, batch, out, rrd, grid, spawn, connect_url, serve, raw,
-          no_log, device, precision, quiet):
+          no_log, workers, device, precision, quiet):
     """``sample --area``: one map of a whole area (:mod:`cmtool.sample.area`)."""
     if osm is None and from_hd is None and not sd_paths:
         raise CmtoolError("--area needs --osm FILE, --from-hd MAP or --sd PICTURE (the SD map of the area)")
@@ -177,6 +182,7 @@ def _area(ckpt, sd_paths, px_m, osm, center, from_hd, pose, area, num, candidate
     import shlex
 
     from cmtool.core import dist as D
+    from cmtool.core.workers import cores
     from cmtool.data.tiles import check_extent
     from cmtool.sample import inputs as src
     from cmtool.sample.area import area_box, run_area
@@ -202,7 +208,8 @@ def _area(ckpt, sd_paths, px_m, osm, center, from_hd, pose, area, num, candidate
     attach_init(gen, init, encoder_path)
     try:
         done = run_area(gen, sd_map, box, settings, out, name, progress=not quiet, info=info,
-                        rrd=None if no_log else rrd or out / "area.rrd", command=shlex.join(["cmtool", *sys.argv[1:]]))
+                        rrd=None if no_log else rrd or out / "area.rrd", command=shlex.join(["cmtool", *sys.argv[1:]]),
+                        workers=workers or cores())
     finally:
         D.cleanup()
     if done is None:

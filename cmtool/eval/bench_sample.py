@@ -1,4 +1,5 @@
-"""``cmtool bench sample``: what per-step logging costs, what batching buys, and what each sampler's steps buy.
+"""``cmtool bench sample``: what per-step logging costs, what batching buys, what each sampler's steps buy, and
+whole runs' maps per second.
 
 :func:`bench_sample` times the generation of maps from one SD raster (the default is a procedural Boston-style
 crossing) with a loaded checkpoint, after one warm-up run: at batch 1 without logging and with
@@ -9,6 +10,9 @@ its runs.
 :func:`sampler_table` makes the maps of a dataset's first scenes with every sampler at several step counts (the same
 initial noise per scene, as ``cmtool eval`` draws it) and scores them against the ground truth: the quality-speed
 table of the samplers.
+
+:func:`end_to_end` times whole ``cmtool sample`` runs in this process (the model loaded once): frames in, files out,
+for 1..N worker processes and with the recording on.
 """
 
 from __future__ import annotations
@@ -25,7 +29,7 @@ from cmtool.metrics.features import FeatureExtractor
 from cmtool.metrics.suite import evaluate, shared_features
 from cmtool.sample.generator import MapGenerator
 from cmtool.sample.inputs import ControlInput
-from cmtool.sample.run import Job, SampleSettings, generate_maps, log_run_header, sampling_recording
+from cmtool.sample.run import Job, SampleSettings, generate_maps, log_run_header, plan, run_sample, sampling_recording
 from cmtool.viz.recording import close_recording
 
 LOG_LIMIT = 1.10  # full logging may cost at most 10% over --no-log (tiny model, batch 1)
@@ -85,6 +89,45 @@ def bench_sample(gen: MapGenerator, sd: np.ndarray, settings: SampleSettings, ba
     results["log_ratio"] = results["batch1_log"] / results["batch1_nolog"]
     results["batch_speedup"] = results["batch1_nolog"] / results[f"batch{batch}_nolog"]
     return results
+
+
+def end_to_end(gen: MapGenerator, inputs, settings: SampleSettings, workers: list[int], repeats: int = 2,
+               report=print) -> list[dict]:
+    """Maps per second of whole runs as ``cmtool sample`` makes them, the model loaded once: ``inputs()`` read
+    (the map, each frame's SD raster and ground truth), the jobs planned (the rule layouts the guarantee lends from),
+    the maps generated, checked and their files written to a temporary folder; without a recording for each count
+    of ``workers``, and with one (``sample.rrd``: every step of every map). The settings take turns, ``repeats``
+    rounds after a warm-up run; one row per setting with the min and median seconds."""
+    setups = {f"--no-log, --workers {n}": (n, False) for n in workers}
+    setups["recording on (sample.rrd)"] = (workers[0], True)
+
+    def run(n: int, log: bool) -> tuple[float, int]:
+        with tempfile.TemporaryDirectory() as tmp:
+            began = time.perf_counter()
+            jobs = plan(gen, inputs(), settings)
+            out = Path(tmp) / "out"
+            run_sample(gen, jobs, settings, out, out / "sample.rrd" if log else None, progress=False, workers=n)
+            return time.perf_counter() - began, len(jobs)
+
+    run(workers[0], False)  # warm-up
+    times: dict[str, list[float]] = {key: [] for key in setups}
+    maps = 0
+    for _ in range(repeats):
+        for key, (n, log) in setups.items():
+            seconds, maps = run(n, log)
+            times[key].append(seconds)
+    rows = []
+    base = statistics.median(times[next(iter(setups))])
+    for key, runs in times.items():
+        median = statistics.median(runs)
+        rows.append({"setting": key, "maps": maps, "min_s": min(runs), "median_s": median,
+                     "maps_per_s": maps / median, "against_first": base / median})
+        report(f"| {key} | {maps} | {min(runs):.2f} | {median:.2f} | {maps / median:.1f} | {base / median:.2f} |")
+    return rows
+
+
+E2E_HEAD = ("| setting | maps | min s | median s | maps per second (median) | speed against the first row |\n"
+            "|---|---|---|---|---|---|")
 
 
 def sampler_table(gen: MapGenerator, scenes, cfg: float = 1.0, samplers=SAMPLERS, steps=TABLE_STEPS, batch: int = 64,

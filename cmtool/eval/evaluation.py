@@ -33,6 +33,7 @@ from cmtool.core import dist as D
 from cmtool.core.errors import CmtoolError
 from cmtool.core.jsonio import read_json, write_json, write_text_atomic
 from cmtool.core.progress import Progress
+from cmtool.core.workers import each
 from cmtool.data.cache import MissingSDMaps, load_dataset, scene_sd_maps
 from cmtool.data.layouts import LAYOUTS, layout_raster, scene_layouts
 from cmtool.data.rules import lane_counts
@@ -89,7 +90,8 @@ def run_eval(gen: MapGenerator, settings: EvalSettings, out: Path, extractor: Fe
              workers: int = 1, record: bool = True) -> dict | None:
     """Generate (or continue generating) both sets, compute the metrics and write the reports. Under ``torchrun``
     (``info``) the processes take turns at the batches and the main process scores and writes everything; the
-    others return None. ``workers``: processes for the per-scene metrics (:func:`cmtool.metrics.suite.evaluate`);
+    others return None. ``workers``: processes for the per-scene metrics (:func:`cmtool.metrics.suite.evaluate`) and
+    the guarantee (:func:`as_sampled`);
     ``record=False``: no ``eval.rrd``."""
     settings.check()
     if not gen.has_control:
@@ -115,7 +117,7 @@ def run_eval(gen: MapGenerator, settings: EvalSettings, out: Path, extractor: Fe
         baselines = {m: [_as_map(s, m, k) for k, s in enumerate(
                          starts if m == settings.init else scene_layouts(settings.data, settings.split, scenes, m))]
                      for m in LAYOUTS if m != "netconvert" or netconvert_path() is not None}
-        final = as_sampled(generated["controlmap"], settings.data, settings.split, scenes)
+        final = as_sampled(generated["controlmap"], settings.data, settings.split, scenes, workers)
         counts = lane_count_agreement(scenes, generated["controlmap"], scene_sd_maps(settings.data, settings.split))
         generated = {"unguided": generated["unguided"], **baselines, "controlmap": generated["controlmap"],
                      "guaranteed": final}
@@ -160,13 +162,18 @@ def lane_count_agreement(scenes, maps: list[LaneGraph], sd_maps) -> dict:
             for k, v in diffs.items() if v}
 
 
-def as_sampled(maps: list[LaneGraph], data, split: str, scenes) -> list[LaneGraph]:
+def as_sampled(maps: list[LaneGraph], data, split: str, scenes, workers: int = 1) -> list[LaneGraph]:
     """The maps of a dataset split's first scenes as ``cmtool sample`` writes them (:func:`guarantee`: laid on the
-    scenes' SD roads, turned where against one-way roads, the rules' lanes lent); raises ``MissingSDMaps`` for a
-    dataset built before SD maps were stored."""
+    scenes' SD roads, turned where against one-way roads, the rules' lanes lent), in ``workers`` processes; raises
+    ``MissingSDMaps`` for a dataset built before SD maps were stored."""
     rules = scene_layouts(data, split, scenes, "rules", roads_only=True)
-    return [guarantee(g, s.sd, r.to_lanegraph(), frame_roads(sd_map, s.pose.as_array(), s.frame_m), drives_on(s.city))
-            for g, s, r, sd_map in zip(maps, scenes, rules, scene_sd_maps(data, split))]
+    return each(_as_sampled, list(zip(maps, scenes, rules, scene_sd_maps(data, split))), workers)
+
+
+def _as_sampled(item) -> LaneGraph:
+    graph, scene, rules, sd_map = item
+    return guarantee(graph, scene.sd, rules.to_lanegraph(), frame_roads(sd_map, scene.pose.as_array(), scene.frame_m),
+                     drives_on(scene.city))
 
 
 GALLERY_SCENES = 3  # junction frames and as many others in gallery.png

@@ -10,7 +10,6 @@ OpenCV's threads) and import only this module's dependencies, not torch.
 
 from __future__ import annotations
 
-import os
 import time
 from collections.abc import Callable
 from dataclasses import dataclass
@@ -38,14 +37,6 @@ class SceneScores:
     judged: list[float]  # per scene, the lane length judged for legal one-way (with SD controls)
     statistics: dict[str, dict[str, np.ndarray]]  # per side of SIDES, the topology statistics pooled over scenes
     seconds: dict[str, float]  # per family of scores, summed over the processes
-
-
-def cpu_count() -> int:
-    """The CPU cores this process may run on."""
-    try:
-        return len(os.sched_getaffinity(0))
-    except AttributeError:  # not Linux
-        return os.cpu_count() or 1
 
 
 def scene_scores(generated, reference, controls: np.ndarray | None, sides: list[str], workers: int = 1,

@@ -18,6 +18,7 @@ maps a run directory to its newest complete checkpoint. Nothing is unpickled whe
 
 from __future__ import annotations
 
+import contextlib
 import dataclasses
 import hashlib
 import json
@@ -246,8 +247,9 @@ def linked(checkpoint: Path, target: str) -> Path:
     return path if path.is_absolute() else Path(checkpoint) / path
 
 
-def load_config(path) -> dict:
-    """The config of a checkpoint (or of a run directory's newest checkpoint)."""
+def load_config(path, encoder: bool = True) -> dict:
+    """The config of a checkpoint (or of a run directory's newest checkpoint); ``encoder=False``: an RVAE's encoder
+    is left out of the checks of its model (:func:`build_model`)."""
     path = resolve(path) / CONFIG
     config = read_json(path, MAX_JSON_BYTES)
     if not isinstance(config, dict) or config.get("format") != FORMAT:
@@ -260,12 +262,28 @@ def load_config(path) -> dict:
     for key in ("model", "control") if config["kind"] == "controlmap" else ("model",):
         if key not in config:
             raise CmtoolError(f"{path}: {key}: missing")
-    with torch.device("meta"):  # types and ranges of the model config, and its size, before anything is allocated
-        params = sum(p.numel() for p in build_model(config, str(path)).parameters())
+    with torch.device("meta"), _uninitialised():  # the config's types, ranges and size, before anything is allocated
+        params = sum(p.numel() for p in build_model(config, str(path), encoder).parameters())
     if params > MAX_PARAMS:
         raise CmtoolError(f"{path}: model: {params / 1e9:.1f} billion parameters, more than cmtool loads "
                           f"({MAX_PARAMS / 1e9:.0f} billion)")
     return config
+
+
+@contextlib.contextmanager
+def _uninitialised():
+    """Modules built without their initial values (``torch.nn.init``'s functions leave their tensor as it is, as
+    transformers' ``no_init_weights`` does): initialising a tensor on the meta device makes torch import its compiler,
+    2-3 s of every checkpoint load."""
+    names = [n for n in dir(torch.nn.init) if n.endswith("_") and not n.startswith("_")]
+    saved = {n: getattr(torch.nn.init, n) for n in names}
+    try:
+        for n in names:
+            setattr(torch.nn.init, n, lambda tensor, *args, **kwargs: tensor)
+        yield
+    finally:
+        for n, function in saved.items():
+            setattr(torch.nn.init, n, function)
 
 
 def _number(v, low: float = 0.0) -> bool:
@@ -359,9 +377,10 @@ def read_weights(checkpoint: Path) -> dict[str, torch.Tensor]:
     return tensors
 
 
-def load_weights(module: torch.nn.Module, checkpoint: Path) -> None:
-    """Load a checkpoint folder's weights into ``module``; a key or shape mismatch is a one-line error."""
-    tensors = read_weights(checkpoint)
+def load_weights(module: torch.nn.Module, checkpoint: Path, leave: tuple[str, ...] = ()) -> None:
+    """Load a checkpoint folder's weights into ``module``, those whose keys start with one of ``leave`` left out; a
+    key or shape mismatch is a one-line error."""
+    tensors = {k: v for k, v in read_weights(checkpoint).items() if not k.startswith(leave)}
     own = module.state_dict()
     missing, unexpected = sorted(set(own) - set(tensors)), sorted(set(tensors) - set(own))
     if missing or unexpected:
@@ -374,8 +393,9 @@ def load_weights(module: torch.nn.Module, checkpoint: Path) -> None:
     module.load_state_dict({k: v.to(own[k].dtype) for k, v in tensors.items()})
 
 
-def build_model(config: dict, where: str = "checkpoint") -> torch.nn.Module:
-    """An untrained model of the kind and configuration a checkpoint config describes."""
+def build_model(config: dict, where: str = "checkpoint", encoder: bool = True) -> torch.nn.Module:
+    """An untrained model of the kind and configuration a checkpoint config describes (``encoder=False``: an RVAE
+    without its encoder, as a sampler decodes with it)."""
     from cmtool.core.tables import from_table
     from cmtool.model.controlmap import ControlConfig, ControlMap
     from cmtool.model.dit import DiT, DiTConfig
@@ -384,17 +404,20 @@ def build_model(config: dict, where: str = "checkpoint") -> torch.nn.Module:
     kind = config["kind"]
     if kind == "rvae":
         return RVAE(from_table(RVAEConfig, config["model"], f"{where}: ", "model."),
-                    encoder=config.get("weights") != "decoder")
+                    encoder=encoder and config.get("weights") != "decoder")
     dit = DiT(from_table(DiTConfig, config["model"], f"{where}: ", "model."))
     if kind == "dit":
         return dit
     return ControlMap(dit, from_table(ControlConfig, config["control"], f"{where}: ", "control."))
 
 
-def load_model(path, device="cpu") -> tuple[torch.nn.Module, dict]:
-    """The model of a checkpoint (or a run's newest one) with its weights, in eval mode."""
+def load_model(path, device="cpu", encoder: bool = True) -> tuple[torch.nn.Module, dict]:
+    """The model of a checkpoint (or a run's newest one) with its weights, in eval mode; ``encoder=False``: an RVAE
+    without its encoder (faster: the encoder's trunk comes from torchvision, 2-3 s to import)."""
+    from cmtool.model.rvae import ENCODER_PREFIXES
+
     path = resolve(path)
-    config = load_config(path)
-    model = build_model(config, str(path / CONFIG))
-    load_weights(model, path)
+    config = load_config(path, encoder)
+    model = build_model(config, str(path / CONFIG), encoder)
+    load_weights(model, path, () if encoder else ENCODER_PREFIXES)
     return model.to(device).eval(), config

@@ -21,13 +21,14 @@ from cmtool.model.config import DiTConfig
 FREQ_DIM = 256
 
 
-def sincos_pos_embed_2d(dim: int, grid: int, device: torch.device | None = None) -> Tensor:
-    """Fixed 2D sine-cosine embedding ``(grid * grid, dim)``, tokens in row-major order.
+def sincos_pos_embed_2d(dim: int, grid: int) -> Tensor:
+    """Fixed 2D sine-cosine embedding ``(grid * grid, dim)``, tokens in row-major order, on the CPU (also inside a
+    meta-device block, where torch's ``arange`` imports its compiler: 2-3 s of every checkpoint load).
 
     The first half of the channels encodes the row, the second half the column.
     """
-    omega = 1.0 / 10000 ** (torch.arange(dim // 4, dtype=torch.float64, device=device) / (dim // 4))
-    pos = torch.arange(grid, dtype=torch.float64, device=device)
+    omega = 1.0 / 10000 ** (torch.arange(dim // 4, dtype=torch.float64, device="cpu") / (dim // 4))
+    pos = torch.arange(grid, dtype=torch.float64, device="cpu")
     rows, cols = torch.meshgrid(pos, pos, indexing="ij")
 
     def embed(p: Tensor) -> Tensor:

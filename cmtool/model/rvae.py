@@ -64,12 +64,13 @@ def encoder_trunk(backbone: str, in_channels: int, raster_px: int, latent_size: 
 
 
 def sine_position_encoding(size: int, dim: int, temperature: float = 10000.0) -> Tensor:
-    """Fixed 2D sine/cosine encoding (DETR) of a ``size x size`` grid -> (size * size, dim), row-major."""
+    """Fixed 2D sine/cosine encoding (DETR) of a ``size x size`` grid -> (size * size, dim), row-major, on the CPU
+    (as :func:`cmtool.model.dit.sincos_pos_embed_2d`)."""
     if dim % 4:
         raise CmtoolError(f"rvae.d_model: must be divisible by 4 for the 2D sine encoding, got {dim}")
     quarter = dim // 4
-    freq = temperature ** (-torch.arange(quarter, dtype=torch.float64) / quarter)
-    pos = torch.arange(size, dtype=torch.float64)[:, None] * freq  # (size, quarter)
+    freq = temperature ** (-torch.arange(quarter, dtype=torch.float64, device="cpu") / quarter)
+    pos = torch.arange(size, dtype=torch.float64, device="cpu")[:, None] * freq  # (size, quarter)
     enc = torch.cat([pos.sin(), pos.cos()], dim=1)  # (size, dim / 2)
     rows = enc[:, None].expand(size, size, dim // 2)
     cols = enc[None, :].expand(size, size, dim // 2)

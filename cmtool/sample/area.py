@@ -46,7 +46,8 @@ from cmtool.metrics.validity import check
 from cmtool.sample.generator import MapGenerator
 from cmtool.sample.inputs import ControlInput
 from cmtool.sample.layouts import NO_INIT
-from cmtool.sample.run import SampleSettings, batch_maps, plan
+from cmtool.sample.pool import pipelined
+from cmtool.sample.run import SampleSettings, batch_maps, denoiser, plan
 from cmtool.viz.area import area_blueprint, log_area, place_tile
 from cmtool.viz.draw import lanes_image, legend, sd_panel, title_strip
 from cmtool.viz.recording import close_recording, open_recording
@@ -120,14 +121,15 @@ def _latlon_box(proj: LocalProjection, corners, extent) -> tuple[float, float, f
 
 def generate_area(gen: MapGenerator, sd_map: SDMap, box, settings: SampleSettings, name: str,
                   progress: bool = True, cache: Path | None = None, info: D.DistInfo = D.SINGLE,
-                  rec: rr.RecordingStream | None = None) -> AreaMap | None:
+                  rec: rr.RecordingStream | None = None, workers: int = 1) -> AreaMap | None:
     """Cover the roads in ``box`` with tiles, generate a map for each and stitch them into one (the SD map's roads
     farther than ``NEAR_M`` from the box are left out of the rule layouts the tiles start from and borrow from).
     ``cache``: a folder that keeps finished batches of tiles, so that a killed run goes on where it stopped; under
     ``torchrun`` (``info``) the processes share the batches and the main process stitches (the others get None).
     ``rec``: gets the layout (:func:`cmtool.viz.area.area_blueprint`) and records the denoising of the tiles of the
     batches that start before ``RECORDED_TILES`` and that this process generates, each tile in its place in the area
-    (:func:`cmtool.viz.area.place_tile`)."""
+    (:func:`cmtool.viz.area.place_tile`). ``workers``: processes that check the tiles' maps beside the denoising
+    (:mod:`cmtool.sample.pool`)."""
     began = time.perf_counter()
     sd_map = _near(sd_map, box, NEAR_M)
     tiles = cover(sd_map, box)
@@ -142,7 +144,7 @@ def generate_area(gen: MapGenerator, sd_map: SDMap, box, settings: SampleSetting
         for k, job in enumerate(jobs[:upto]):
             job.prefix = place_tile(rec, k, tiles[k], centre)
         rec.send_blueprint(area_blueprint(upto))
-    maps, recorded = _tile_maps(gen, jobs, settings, tiles, cache, progress, info, rec)
+    maps, recorded = _tile_maps(gen, jobs, settings, tiles, cache, progress, info, rec, workers)
     if maps is None:
         return None
     graph, disagreed = stitch(maps, tiles, box, centre)
@@ -162,11 +164,13 @@ def generate_area(gen: MapGenerator, sd_map: SDMap, box, settings: SampleSetting
 
 
 def _tile_maps(gen: MapGenerator, jobs, settings: SampleSettings, tiles, cache: Path | None, progress: bool,
-               info: D.DistInfo, rec: rr.RecordingStream | None = None) -> tuple[list[LaneGraph] | None, int]:
+               info: D.DistInfo, rec: rr.RecordingStream | None = None,
+               workers: int = 1) -> tuple[list[LaneGraph] | None, int]:
     """The tiles' lane graphs, ``settings.batch`` at a time (a batch's noise depends on the seed and its first tile
     alone): batches that ``cache`` holds from a run with the same tiles and settings are read back, the others
-    generated (their steps recorded to ``rec`` up to ``RECORDED_TILES``), dealt among the processes of a torchrun,
-    and written there as they finish (by the main process, which returns them all; the others return None); and how
+    generated (their steps recorded to ``rec`` up to ``RECORDED_TILES``; checked by ``workers`` beside the
+    denoising, :func:`cmtool.sample.pool.pipelined`, or dealt among the processes of a torchrun), and written there
+    as they finish (by the main process, which returns them all; the others return None); and how
     many tiles' steps were recorded."""
     sizes = {b: len(jobs[b:b + settings.batch]) for b in range(0, len(jobs), settings.batch)}
     done, recorded = {}, 0
@@ -178,16 +182,26 @@ def _tile_maps(gen: MapGenerator, jobs, settings: SampleSettings, tiles, cache: 
     todo = D.broadcast([b for b in sizes if b not in done], info)  # the main process read the cache
     with Progress(sum(sizes[b] for b in todo), "area", "tiles",
                   enabled=progress and info.main) as bar:
-        for mine in D.rounds(todo, info):
-            made = [(b, [g for g, _ in batch_maps(gen, jobs[b:b + settings.batch], b, settings,
-                                                  rec if b < RECORDED_TILES else None, placed=True)]) for b in mine]
-            recorded += sum(len(graphs) for b, graphs in made if b < RECORDED_TILES) if rec is not None else 0
-            for part in D.gather(made, info) or []:
-                for b, graphs in part:
-                    done[b] = [LaneGraph.from_json(g.to_json()) for g in graphs]  # rounded as the cache keeps them
-                    if cache is not None:
-                        write_jsonl(cache / f"b{b:07d}.jsonl", graphs)
-                    bar.update(len(graphs))
+
+        def finished(b: int, graphs: list[LaneGraph], seconds: float | None = None) -> None:
+            done[b] = [LaneGraph.from_json(g.to_json()) for g in graphs]  # rounded as the cache keeps them
+            if cache is not None:
+                write_jsonl(cache / f"b{b:07d}.jsonl", graphs)
+            bar.update(len(graphs))
+
+        if info.world == 1:
+            denoise = denoiser(gen, settings, rec, ego=False, recorded=lambda b: b < RECORDED_TILES)
+            pipelined(jobs, settings, denoise, None, workers, finished, starts=todo)
+            recorded = sum(sizes[b] for b in todo if b < RECORDED_TILES) if rec is not None else 0
+        else:
+            for mine in D.rounds(todo, info):
+                made = [(b, [g for g, _ in batch_maps(gen, jobs[b:b + settings.batch], b, settings,
+                                                      rec if b < RECORDED_TILES else None, placed=True)])
+                        for b in mine]
+                recorded += sum(len(graphs) for b, graphs in made if b < RECORDED_TILES) if rec is not None else 0
+                for part in D.gather(made, info) or []:
+                    for b, graphs in part:
+                        finished(b, graphs)
     return ([g for b in sizes for g in done[b]] if info.main else None), recorded
 
 
@@ -303,15 +317,15 @@ def area_scores(area: AreaMap, sd_map: SDMap, box) -> dict:
 
 def run_area(gen: MapGenerator, sd_map: SDMap, box, settings: SampleSettings, out: Path, name: str,
              progress: bool = True, info: D.DistInfo = D.SINGLE, rrd: Path | None = None,
-             command: str = "") -> tuple[AreaMap, dict] | None:
+             command: str = "", workers: int = 1) -> tuple[AreaMap, dict] | None:
     """Generate the area map of ``box``, score it and write ``OUT/NAME_area.json`` (the lane graph; its meta holds
     the scores and the open seams), ``OUT/NAME_area.png`` (SD map | area map) and, unless ``rrd`` is None, the
     recording of its assembly (:mod:`cmtool.viz.area`) as one set. Finished batches of tiles wait in
     ``OUT/.NAME_area.tiles`` until then: run the same command again after a kill to go on. Under ``torchrun`` only
-    the main process returns (the others None)."""
+    the main process returns (the others None); ``workers``: as :func:`generate_area`'s."""
     cache = out / f".{name}_area.tiles"
     rec = open_recording("area") if rrd is not None and info.main else None
-    area = generate_area(gen, sd_map, box, settings, name, progress, cache, info, rec)
+    area = generate_area(gen, sd_map, box, settings, name, progress, cache, info, rec, workers)
     if area is None:
         return None
     centre = 0.5 * np.array([box[0] + box[2], box[1] + box[3]])

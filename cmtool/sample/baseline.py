@@ -36,7 +36,7 @@ def write_baseline_maps(maps: list[SampledMap], method: str, out: Path, grid: Pa
     outputs = OutputSet()
     try:
         out.mkdir(parents=True, exist_ok=True)
-        write_maps(out, maps, lambda g: method, outputs, grid)
+        write_maps(out, maps, method, outputs, grid)  # a method name has no braces
         outputs.write_text(out / f"{method}.jsonl", "".join(json_text(m.graph.to_json()) for m in maps))
         if all(m.job.source.truth is not None for m in maps):
             outputs.write_text(out / "truth.jsonl", "".join(json_text(m.job.source.truth.to_json()) for m in maps))

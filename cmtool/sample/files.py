@@ -11,7 +11,7 @@ import numpy as np
 from cmtool.core.jsonio import OutputSet, json_text
 from cmtool.maps.lanegraph import LaneGraph
 from cmtool.viz.draw import graph_panel, legend, sd_panel, title_strip
-from cmtool.viz.show import write_png
+from cmtool.viz.show import png_bytes, write_png
 
 if TYPE_CHECKING:
     from cmtool.sample.run import Job, SampledMap
@@ -22,24 +22,37 @@ MAP_FILES = (".json", ".gt.json", ".png")  # the files of a map named NAME: NAME
 
 class MapFiles:
     """Stages the files of sampled maps in ``outputs`` (:meth:`stage`): each map's lane graph JSON, its ground truth
-    JSON when known and (``pictures``) its picture, headed ``title(graph)``; with ``grid``, :meth:`finish` stacks
-    all pictures into that PNG."""
+    JSON when known and (``pictures``) its picture, headed ``title`` (``{city}``: the map's city); with ``grid``,
+    :meth:`finish` stacks all pictures into that PNG. :meth:`contents` makes the files' bytes without writing them
+    (in a worker process), :meth:`add` stages them."""
 
-    def __init__(self, out: Path, title, outputs: OutputSet, pictures: bool = True, grid: Path | None = None):
+    def __init__(self, out: Path, title: str, outputs: OutputSet, pictures: bool = True, grid: Path | None = None):
         self.out, self.title, self.outputs, self.pictures, self.grid = out, title, outputs, pictures, grid
         self.bodies: list[np.ndarray] = []  # the pictures for the grid
 
-    def stage(self, jobs: list[Job], graphs: list[LaneGraph]) -> None:
+    def contents(self, jobs: list[Job], graphs: list[LaneGraph]) -> tuple[list[tuple[Path, bytes]], list[np.ndarray]]:
+        """The maps' files as (path, bytes), and their pictures for the grid (none without ``grid``)."""
+        files, bodies = [], []
         for job, graph in zip(jobs, graphs):
-            self.outputs.write_text(self.out / f"{job.name}.json", json_text(graph.to_json()))
+            files.append((self.out / f"{job.name}.json", json_text(graph.to_json()).encode("utf-8")))
             if job.source.truth is not None:
-                self.outputs.write_text(self.out / f"{job.name}.gt.json", json_text(job.source.truth.to_json()))
+                files.append((self.out / f"{job.name}.gt.json", json_text(job.source.truth.to_json()).encode("utf-8")))
             if self.pictures:
-                body = _picture_body(job, graph, self.title(graph))
-                write_png(self.out / f"{job.name}.png", np.concatenate([body, legend(body.shape[1])], axis=0),
-                          self.outputs)
+                body = _picture_body(job, graph, self.title.format(city=graph.city or "no city"))
+                path = self.out / f"{job.name}.png"
+                files.append((path, png_bytes(path, np.concatenate([body, legend(body.shape[1])], axis=0))))
                 if self.grid is not None:
-                    self.bodies.append(body)
+                    bodies.append(body)
+        return files, bodies
+
+    def add(self, files: list[tuple[Path, bytes]], bodies: list[np.ndarray]) -> None:
+        """Stage files and grid pictures made by :meth:`contents`."""
+        for path, data in files:
+            self.outputs.write_bytes(path, data)
+        self.bodies += bodies
+
+    def stage(self, jobs: list[Job], graphs: list[LaneGraph]) -> None:
+        self.add(*self.contents(jobs, graphs))
 
     def finish(self) -> None:
         if self.grid is not None and self.bodies:
@@ -48,7 +61,7 @@ class MapFiles:
             write_png(self.grid, np.concatenate([stacked, legend(stacked.shape[1])], axis=0), self.outputs)
 
 
-def write_maps(out: Path, maps: list[SampledMap], title, outputs: OutputSet, grid: Path | None = None) -> None:
+def write_maps(out: Path, maps: list[SampledMap], title: str, outputs: OutputSet, grid: Path | None = None) -> None:
     """Stage every map's files and pictures (:class:`MapFiles`) and, when ``grid`` is given, all their pictures
     stacked into one PNG."""
     files = MapFiles(out, title, outputs, grid=grid)

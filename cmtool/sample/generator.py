@@ -54,6 +54,7 @@ class MapGenerator:
         self.scale = float(config["latent_scale"])
         self.schedule = NoiseSchedule(from_table(ScheduleConfig, config["schedule"], f"{path}: ", "schedule."))
         self.encoder = self.encoder_path = None  # another RVAE's encoder into this latent space (attach_encoder)
+        self.rvae_path: Path | None = None  # the RVAE checkpoint, when it holds an encoder that encode loads
 
     @classmethod
     def load(cls, path, device="cpu", smooth: int = DEFAULT_SMOOTH, precision: str = "fp32") -> "MapGenerator":
@@ -72,14 +73,16 @@ class MapGenerator:
             torch.backends.cuda.matmul.allow_tf32 = torch.backends.cudnn.allow_tf32 = False
         model, _ = ckpt.load_model(path, device)
         rvae_path = ckpt.linked(path, config["rvae"])
-        rvae, rvae_config = ckpt.load_model(rvae_path, device)
+        rvae, rvae_config = ckpt.load_model(rvae_path, device, encoder=False)  # its encoder: on first use (encode)
         if rvae_config["kind"] != "rvae":
             raise CmtoolError(f"{path}: its rvae {rvae_path} is a {rvae_config['kind']} checkpoint")
         have = (rvae.config.latent_channels, rvae.config.latent_size, rvae.config.latent_size)
         if have != tuple(model.latent_shape):
             raise CmtoolError(f"{path}: the model's latent {tuple(model.latent_shape)} does not match its RVAE "
                               f"{rvae_path} ({have})")
-        return cls(model, rvae, config, path, device, smooth, precision)
+        gen = cls(model, rvae, config, path, device, smooth, precision)
+        gen.rvae_path = rvae_path if rvae_config.get("weights") != "decoder" else None
+        return gen
 
     @property
     def has_control(self) -> bool:
@@ -186,6 +189,8 @@ class MapGenerator:
     def encode(self, scenes) -> torch.Tensor:
         """Scaled latents (N, C, H, W) of scenes (:class:`~cmtool.data.scene.Scene`): their HD rasters through the
         encoder's posterior mean, in the DiT's scaled space."""
+        if self.encoder is None and self.rvae.trunk is None and self.rvae_path is not None:
+            self.rvae, _ = ckpt.load_model(self.rvae_path, self.device)  # with its encoder, the first time it is used
         encoder = self.encoder if self.encoder is not None else self.rvae
         if encoder.trunk is None:
             raise CmtoolError(f"{self.path}: its RVAE holds no encoder (weights packed without --encoder); give "

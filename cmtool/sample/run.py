@@ -16,7 +16,6 @@ from __future__ import annotations
 import math
 import os
 import time
-from concurrent.futures import ThreadPoolExecutor
 from dataclasses import dataclass
 from functools import partial
 from pathlib import Path
@@ -32,16 +31,15 @@ from cmtool.core.progress import Progress
 from cmtool.data.layouts import layout_raster
 from cmtool.data.scene import Scene
 from cmtool.diffusion.settings import SamplerSettings, SamplingError
-from cmtool.maps.hdmap import drives_on
 from cmtool.maps.lanegraph import LaneGraph
 from cmtool.model.controlmap import NO_LAYOUT
-from cmtool.sample.anchor import frame_roads
+from cmtool.sample.checks import check_maps
 from cmtool.sample.files import MAP_FILES, MapFiles
 from cmtool.sample.generator import MapGenerator
-from cmtool.sample.guarantee import guarantee, raw_scores
 from cmtool.sample.inputs import ControlInput
 from cmtool.sample.layouts import NO_INIT, check_init, layout_scenes
-from cmtool.sample.scores import SCORES, SCORES_NOTE, choose, score_map
+from cmtool.sample.pool import pipelined
+from cmtool.sample.scores import SCORES, SCORES_NOTE, choose
 from cmtool.viz.recording import APP_IDS, close_recording, log_decoded, log_lanes, log_layout, log_sd, open_recording
 from cmtool.viz.trajectory import TrajectoryLogger, log_scores, sampling_blueprint
 from cmtool.viz.viewer import viewer_sink
@@ -133,11 +131,13 @@ def plan(gen: MapGenerator, inputs: list[ControlInput], settings: SampleSettings
 
 def run_sample(gen: MapGenerator, jobs: list[Job], settings: SampleSettings, out: Path, rrd: Path | None = None,
                viewer: str | None = None, command: str = "", progress: bool = True,
-               grid: Path | None = None, info: D.DistInfo = D.SINGLE, pictures: bool = True) -> list[SampledMap] | None:
+               grid: Path | None = None, info: D.DistInfo = D.SINGLE, pictures: bool = True,
+               workers: int = 1) -> list[SampledMap] | None:
     """Generate every job's map, write its files to ``out`` and (unless ``rrd`` and ``viewer`` are
     None) record every step; ``viewer`` is "spawn", "serve" (the recording is served from this process until it
     ends) or a Rerun gRPC URL to stream to live; ``grid`` is a PNG that gets all maps' pictures stacked;
-    ``pictures``: a picture per map (else the lane graphs only). Under
+    ``pictures``: a picture per map (else the lane graphs only); ``workers``: processes that check the maps and make
+    their files (:mod:`cmtool.sample.pool`; 1: a thread of this process). Under
     ``torchrun`` (``info``, several processes, no recording) the main process writes the files and returns the maps,
     the others only generate their share and return None."""
     if info.world > 1 and (rrd is not None or viewer is not None):
@@ -156,10 +156,9 @@ def run_sample(gen: MapGenerator, jobs: list[Job], settings: SampleSettings, out
             rec = sampling_recording(rrd, viewer)
             header = log_run_header(rec, gen, jobs, settings, command)
         strength = f", city cfg {settings.city_cfg:g}" if settings.city_cfg != 1 else ""
-        files = MapFiles(out, lambda g: f"generated: {g.city or 'no city'}, w = {settings.cfg:g}{strength}", outputs,
-                         pictures, grid)
+        files = MapFiles(out, f"generated: {{city}}, w = {settings.cfg:g}{strength}", outputs, pictures, grid)
         early = settings.candidates == 1  # each map's files staged as soon as it is checked, else the chosen ones
-        made = generate_maps(gen, jobs, settings, rec, progress, info, files.stage if early else None)
+        made = generate_maps(gen, jobs, settings, rec, progress, info, files if early else None, workers)
         if rec is not None:
             log_map_scores(rec, header, made)
         maps = choose(made, settings.candidates)
@@ -192,22 +191,41 @@ def run_sample(gen: MapGenerator, jobs: list[Job], settings: SampleSettings, out
 
 
 def generate_maps(gen: MapGenerator, jobs: list[Job], settings: SampleSettings, rec, progress: bool,
-                  info: D.DistInfo = D.SINGLE, finish=None) -> list[SampledMap] | None:
-    """Sample, decode and (when ``rec`` is a recording) log every step of the jobs' maps, in batches; ``finish`` (on
-    the main process) gets each batch's jobs and checked maps. Under ``torchrun`` (``info``) the processes take turns
-    at the batches and the main process gets all maps (the others None); one process without a recording checks and
-    finishes each batch beside the denoising of the next when there are several (:func:`_pipelined`)."""
+                  info: D.DistInfo = D.SINGLE, files: MapFiles | None = None,
+                  workers: int = 1) -> list[SampledMap] | None:
+    """Sample, decode and (when ``rec`` is a recording) log every step of the jobs' maps, in batches, each map checked
+    (:func:`~cmtool.sample.checks.check_maps`) and, with ``files`` (on the main process), its files staged there.
+    Under ``torchrun`` (``info``) the processes take turns at the batches and the main process gets all maps (the
+    others None); one process checks each batch in ``workers`` beside the denoising of the batches after it when
+    there are several (:func:`cmtool.sample.pool.pipelined`)."""
     maps = []
     with Progress(len(jobs), "sample", "maps", enabled=progress and len(jobs) > 1 and info.main) as bar:
-        if info.world == 1 and rec is None and len(jobs) > settings.batch:
-            return _pipelined(gen, jobs, settings, bar, finish)
+        if info.world == 1 and len(jobs) > settings.batch:
+            decoded: dict[int, list[LaneGraph]] = {}  # with a recording: each batch's maps as decoded, until logged
+            recorded = denoiser(gen, settings, rec)
+
+            def denoise(batch: list[Job], start: int) -> list[LaneGraph]:
+                graphs = recorded(batch, start)
+                if rec is not None:
+                    decoded[start] = list(graphs)
+                return graphs
+
+            def finished(start: int, graphs: list[LaneGraph], seconds: float) -> None:
+                batch = jobs[start:start + len(graphs)]
+                if rec is not None:
+                    _log_maps(rec, batch, graphs, decoded.pop(start))
+                maps.extend(SampledMap(job, graph, seconds) for job, graph in zip(batch, graphs))
+                bar.update(len(graphs))
+
+            pipelined(jobs, settings, denoise, files, workers, finished)
+            return maps
         for mine in D.rounds(list(range(0, len(jobs), settings.batch)), info):
             made = [(start, batch_maps(gen, jobs[start:start + settings.batch], start, settings, rec))
                     for start in mine]
             for part in D.gather(made, info) or []:
                 for start, batch in part:
-                    if finish is not None:
-                        finish(jobs[start:start + len(batch)], [graph for graph, _ in batch])
+                    if files is not None:
+                        files.stage(jobs[start:start + len(batch)], [graph for graph, _ in batch])
                     maps += [SampledMap(jobs[start + k], graph, seconds) for k, (graph, seconds) in enumerate(batch)]
                     bar.update(len(batch))
     return maps if info.main else None
@@ -219,23 +237,48 @@ def batch_maps(gen: MapGenerator, batch: list[Job], start: int, settings: Sample
     time; the batch's noise depends on the seed and ``start`` alone, as in ``cmtool eval``. ``rec``: records every
     step of each map under its job's prefix, and the map; ``placed``: only the steps, the caller placing each prefix
     (:class:`~cmtool.viz.trajectory.TrajectoryLogger`'s ``ego``)."""
-    logger = None
-    if rec is not None:
-        logger = TrajectoryLogger(rec, [j.prefix for j in batch], partial(gen.decode, preview=True), settings.cfg,
-                                  ego=not placed)
+    logger = None if rec is None else _step_logger(gen, rec, batch, settings, ego=not placed)
     began = time.perf_counter()
     graphs = _denoised(gen, batch, start, settings, logger)
     decoded = list(graphs)
     check_maps(batch, graphs, settings)
     if logger is not None:
         logger.finish()
-        for job, graph, raw in zip(batch, graphs, decoded) if not placed else ():
-            log_lanes(rec, job.prefix, graph.lanes, graph.green_lights, graph.red_lights, graph.successors,
-                      static=True)
-            if graph is not raw:
-                log_decoded(rec, job.prefix, raw.lanes)
+        if not placed:
+            _log_maps(rec, batch, graphs, decoded)
     seconds = (time.perf_counter() - began) / len(batch)
     return [(graph, seconds) for graph in graphs]
+
+
+def denoiser(gen: MapGenerator, settings: SampleSettings, rec, ego: bool = True, recorded=None):
+    """``denoise(batch, start)``: a batch's lane graphs as the model drew them (:func:`_denoised`), every step
+    recorded to ``rec`` (when not None) for the batches whose start ``recorded(start)`` is true (all by default);
+    ``ego``: as :class:`~cmtool.viz.trajectory.TrajectoryLogger`'s."""
+    def denoise(batch: list[Job], start: int) -> list[LaneGraph]:
+        logger = None
+        if rec is not None and (recorded is None or recorded(start)):
+            logger = _step_logger(gen, rec, batch, settings, ego)
+        graphs = _denoised(gen, batch, start, settings, logger)
+        if logger is not None:
+            logger.finish()
+        return graphs
+    return denoise
+
+
+def _step_logger(gen: MapGenerator, rec, batch: list[Job], settings: SampleSettings, ego: bool = True):
+    return TrajectoryLogger(rec, [j.prefix for j in batch], partial(gen.decode, preview=True), settings.cfg, ego=ego)
+
+
+def _log_maps(rec, batch: list[Job], graphs: list[LaneGraph], decoded: list[LaneGraph]) -> None:
+    """Log each job's map and, where the checks changed it, the map as decoded beneath it."""
+    for job, graph, raw in zip(batch, graphs, decoded):
+        log_lanes(rec, job.prefix, graph.lanes, graph.green_lights, graph.red_lights, graph.successors, static=True)
+        if graph.meta.get("guarantee") is not None and not _same_lanes(graph, raw):
+            log_decoded(rec, job.prefix, raw.lanes)
+
+
+def _same_lanes(a: LaneGraph, b: LaneGraph) -> bool:
+    return len(a.lanes) == len(b.lanes) and all(np.array_equal(x, y) for x, y in zip(a.lanes, b.lanes))
 
 
 def _denoised(gen: MapGenerator, batch: list[Job], start: int, settings: SampleSettings,
@@ -247,58 +290,6 @@ def _denoised(gen: MapGenerator, batch: list[Job], start: int, settings: SampleS
     return gen.generate(sd, [j.label for j in batch], settings, start, city_cfg=settings.city_cfg, eta=settings.eta,
                         init=init, strength=settings.strength, layouts=[j.layout for j in batch],
                         metas=[_meta(gen, j, settings) for j in batch], callback=logger)
-
-
-def check_maps(batch: list[Job], graphs: list[LaneGraph], settings: SampleSettings, finish=None) -> None:
-    """Score each map in its meta (:func:`~cmtool.sample.scores.score_map`) and, unless ``settings.guarantee`` is off,
-    replace it in ``graphs`` by its guaranteed form (:func:`cmtool.sample.guarantee.guarantee`), the model's own
-    scores kept; then hand the jobs and maps to ``finish``."""
-    for k, (job, graph) in enumerate(zip(batch, graphs)):
-        score_map(graph, job.source.sd)
-        if settings.guarantee and job.source.sd is not None:
-            raw = raw_scores(graph)
-            src = job.source
-            roads = frame_roads(src.sd_map, src.pose, graph.frame_m) if src.sd_map is not None else None
-            fixed = guarantee(graph, src.sd, job.rules, roads, drives_on(graph.city))
-            if fixed is not graph:  # a map the guarantee left alone keeps its scores
-                graphs[k] = graph = fixed
-                score_map(graph, job.source.sd)
-            graph.meta["raw"] = raw
-            graph.meta.setdefault("guarantee", {"turned": 0, "added": 0, "replaced": 0})
-    if finish is not None:
-        finish(batch, graphs)
-
-
-def _pipelined(gen: MapGenerator, jobs: list[Job], settings: SampleSettings, bar: Progress,
-               finish=None) -> list[SampledMap]:
-    """:func:`generate_maps` in one process without a recording: each batch's maps are checked (:func:`check_maps`)
-    and finished in a second thread while this one denoises the next batch. The checks are mostly Python and torch's
-    kernels run outside the GIL, so the two overlap (torch keeps all its threads: on 2 cores, 28-32 maps a second
-    against 23-24 with one thread fewer, docs/speed.md). A batch's time runs from the end of the batch before's
-    checks (the start, for the first) to the end of its own, so the maps' times add up to the run's."""
-    maps: list[SampledMap] = []
-    with ThreadPoolExecutor(1, thread_name_prefix="cmtool-checks") as checker:
-        pending, since = None, time.perf_counter()
-        for start in range(0, len(jobs), settings.batch):
-            batch = jobs[start:start + settings.batch]
-            graphs = _denoised(gen, batch, start, settings, None)
-            since = _checked(maps, pending, bar, since)
-            pending = (batch, graphs, checker.submit(check_maps, batch, graphs, settings, finish))
-        _checked(maps, pending, bar, since)
-    return maps
-
-
-def _checked(maps: list[SampledMap], pending, bar: Progress, since: float) -> float:
-    """Wait for the checks of the ``pending`` batch (None: none) and append its maps to ``maps``, sharing the time
-    from ``since`` to now; returns now (``since`` when none is pending)."""
-    if pending is None:
-        return since
-    batch, graphs, checks = pending
-    checks.result()
-    now = time.perf_counter()
-    maps += [SampledMap(job, graph, (now - since) / len(batch)) for job, graph in zip(batch, graphs)]
-    bar.update(len(batch))
-    return now
 
 
 def _meta(gen: MapGenerator, job: Job, settings: SampleSettings) -> dict:

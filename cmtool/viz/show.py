@@ -39,17 +39,23 @@ def scene_tile(scene, title: str, panel: int = PANEL) -> np.ndarray:
 
 def write_png(path, image: np.ndarray, outputs: OutputSet | None = None) -> None:
     """Write an RGB picture as a PNG file, atomically or, with ``outputs``, staged with the command's other files."""
+    png = png_bytes(path, image)
+    if outputs is not None:
+        outputs.write_bytes(path, png)
+    else:
+        with atomic_open(path, "wb") as f:
+            f.write(png)
+
+
+def png_bytes(path, image: np.ndarray) -> bytes:
+    """The PNG file of an RGB picture that is to be written to ``path`` (named in errors)."""
     path = Path(path)
     if path.suffix.lower() != ".png":
         raise CmtoolError(f"{path}: a picture is written as PNG; give a path ending in .png")
     ok, png = cv2.imencode(".png", cv2.cvtColor(image, cv2.COLOR_RGB2BGR), PNG_OPTIONS)
     if not ok:
         raise CmtoolError(f"{path}: could not encode the picture")
-    if outputs is not None:
-        outputs.write_bytes(path, png.tobytes())
-    else:
-        with atomic_open(path, "wb") as f:
-            f.write(png.tobytes())
+    return png.tobytes()
 
 
 def show_dataset(data_dir, n: int = 16, png=None, rrd=None, split: str | None = None, seed: int = 0) -> None:

@@ -1,0 +1,32 @@
+"""The checks of sampled maps: each map scored in its meta and, unless off, replaced by its guaranteed form."""
+
+from __future__ import annotations
+
+from typing import TYPE_CHECKING
+
+from cmtool.maps.hdmap import drives_on
+from cmtool.maps.lanegraph import LaneGraph
+from cmtool.sample.anchor import frame_roads
+from cmtool.sample.guarantee import guarantee, raw_scores
+from cmtool.sample.scores import score_map
+
+if TYPE_CHECKING:
+    from cmtool.sample.run import Job, SampleSettings
+
+
+def check_maps(batch: list[Job], graphs: list[LaneGraph], settings: SampleSettings) -> None:
+    """Score each map in its meta (:func:`~cmtool.sample.scores.score_map`) and, unless ``settings.guarantee`` is off,
+    replace it in ``graphs`` by its guaranteed form (:func:`cmtool.sample.guarantee.guarantee`), the model's own
+    scores kept."""
+    for k, (job, graph) in enumerate(zip(batch, graphs)):
+        score_map(graph, job.source.sd)
+        if settings.guarantee and job.source.sd is not None:
+            raw = raw_scores(graph)
+            src = job.source
+            roads = frame_roads(src.sd_map, src.pose, graph.frame_m) if src.sd_map is not None else None
+            fixed = guarantee(graph, src.sd, job.rules, roads, drives_on(graph.city))
+            if fixed is not graph:  # a map the guarantee left alone keeps its scores
+                graphs[k] = graph = fixed
+                score_map(graph, job.source.sd)
+            graph.meta["raw"] = raw
+            graph.meta.setdefault("guarantee", {"turned": 0, "added": 0, "replaced": 0})

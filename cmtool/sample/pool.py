@@ -1,0 +1,78 @@
+"""Each batch's per-map work beside the denoising of the batches after it: the maps' checks and guarantee
+(:func:`cmtool.sample.checks.check_maps`) and their files' bytes (:meth:`cmtool.sample.files.MapFiles.contents`), in
+``workers`` processes, or with one worker in a second thread of the denoising process. Only the denoising process
+writes (it stages the bytes the workers send back, in the jobs' order), so the files are the same byte for byte
+whatever the number of workers, and a stopped run leaves no temporary file of a worker's behind."""
+
+from __future__ import annotations
+
+import time
+from collections import deque
+from concurrent.futures import ThreadPoolExecutor
+from functools import partial
+from typing import TYPE_CHECKING
+
+from cmtool.core import workers as W
+from cmtool.maps.lanegraph import LaneGraph
+from cmtool.sample.checks import check_maps
+from cmtool.sample.files import MapFiles
+
+if TYPE_CHECKING:
+    from cmtool.sample.run import Job, SampleSettings
+
+
+def pipelined(jobs: list[Job], settings: SampleSettings, denoise, files: MapFiles | None, workers: int,
+              finished, starts: list[int] | None = None) -> None:
+    """Denoise the jobs batch after batch (``denoise(batch, start)``: the batch's lane graphs as the model drew them;
+    ``starts``: the first jobs of the batches to make, every batch by default) while ``workers`` check the batches
+    before; with ``files``, each checked batch's files are staged there, and ``finished(start, graphs, seconds)``
+    gets its checked maps and each map's share of the time, batch after batch: a batch's time runs from the end of
+    the batch before (the start, for the first) to the end of its own, so the maps' times add up to the run's. At
+    most ``workers`` + 1 batches wait for their checks; a stop (an error, Ctrl-C) drops those still waiting."""
+    if workers > 1:
+        executor = W.pool(workers, W.FORK, _start, (jobs, settings, files))
+        submit = lambda start, graphs: executor.apply_async(_in_worker, (start, graphs))  # noqa: E731
+        result, ready = (lambda h: h.get()), (lambda h: h.ready())
+    else:
+        executor = ThreadPoolExecutor(1, thread_name_prefix="cmtool-checks")
+        work = partial(_finish, jobs, settings, files)
+        submit = lambda start, graphs: executor.submit(work, start, graphs)  # noqa: E731
+        result, ready = (lambda h: h.result()), (lambda h: h.done())
+    waiting: deque = deque()
+    since = time.perf_counter()
+
+    def collect() -> None:
+        nonlocal since
+        start, handle = waiting.popleft()
+        graphs, contents = result(handle)
+        if files is not None:
+            files.add(*contents)
+        now = time.perf_counter()
+        finished(start, graphs, (now - since) / len(graphs))
+        since = now
+
+    with executor:
+        for start in range(0, len(jobs), settings.batch) if starts is None else starts:
+            waiting.append((start, submit(start, denoise(jobs[start:start + settings.batch], start))))
+            while len(waiting) > workers or (len(waiting) > 1 and ready(waiting[0][1])):
+                collect()
+        while waiting:
+            collect()
+
+
+_RUN: dict = {}  # in a worker process: the run's jobs, settings and files (:func:`_start`)
+
+
+def _start(jobs: list[Job], settings: SampleSettings, files: MapFiles | None) -> None:
+    _RUN.update(jobs=jobs, settings=settings, files=files)
+
+
+def _in_worker(start: int, graphs: list[LaneGraph]):
+    return _finish(_RUN["jobs"], _RUN["settings"], _RUN["files"], start, graphs)
+
+
+def _finish(jobs: list[Job], settings: SampleSettings, files: MapFiles | None, start: int, graphs: list[LaneGraph]):
+    """The checked maps of the batch of ``jobs`` from ``start`` and, with ``files``, their files' bytes."""
+    batch = jobs[start:start + len(graphs)]
+    check_maps(batch, graphs, settings)
+    return graphs, files.contents(batch, graphs) if files is not None else None
