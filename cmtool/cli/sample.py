@@ -79,7 +79,7 @@ Large sets in several processes (CPU or GPUs), the same maps as one process:
 @click.option("--workers", type=click.IntRange(min=1),
               help="Processes that check the maps (--area: the tiles' maps) and make their files while the model "
                    "denoises the next batches (1: a thread beside it; the files are the same) [default: one per CPU "
-                   "core].")
+                   "core with more than two, else 1].")
 @click.option("--device", help="torch device [default: cuda when available, else cpu].")
 @PRECISION_OPTION
 @click.option("--quiet", is_flag=True, help="No progress line.")
@@ -111,8 +111,8 @@ def sample(ckpt, sd_paths, osm, center, heading, from_hd, pose, area, px_m, num,
     import shlex
 
     from cmtool.core import dist as D
-    from cmtool.core.workers import cores
     from cmtool.sample import inputs as src
+    from cmtool.sample.pool import default_workers
     from cmtool.sample.run import SampleSettings, plan, run_sample
     from cmtool.sample.summary import summary_table
 
@@ -140,7 +140,7 @@ def sample(ckpt, sd_paths, osm, center, heading, from_hd, pose, area, px_m, num,
     command = shlex.join(["cmtool", *sys.argv[1:]])
     try:
         maps = run_sample(gen, jobs, settings, out, None if no_log else rrd, viewer, command, progress=not quiet,
-                          grid=grid, info=info, pictures=not no_pictures, workers=workers or cores())
+                          grid=grid, info=info, pictures=not no_pictures, workers=workers or default_workers())
     finally:
         D.cleanup()
     if not info.main:
@@ -182,10 +182,10 @@ def _area(ckpt, sd_paths, px_m, osm, center, from_hd, pose, area, num, candidate
     import shlex
 
     from cmtool.core import dist as D
-    from cmtool.core.workers import cores
     from cmtool.data.tiles import check_extent
     from cmtool.sample import inputs as src
     from cmtool.sample.area import area_box, run_area
+    from cmtool.sample.pool import default_workers
     from cmtool.sample.run import SampleSettings
 
     settings = SampleSettings(seed=seed, steps=steps, sampler=sampler, eta=eta, cfg=cfg, city=city, city_cfg=city_cfg,
@@ -209,7 +209,7 @@ def _area(ckpt, sd_paths, px_m, osm, center, from_hd, pose, area, num, candidate
     try:
         done = run_area(gen, sd_map, box, settings, out, name, progress=not quiet, info=info,
                         rrd=None if no_log else rrd or out / "area.rrd", command=shlex.join(["cmtool", *sys.argv[1:]]),
-                        workers=workers or cores())
+                        workers=workers or default_workers())
     finally:
         D.cleanup()
     if done is None:

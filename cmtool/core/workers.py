@@ -11,8 +11,6 @@ import sys
 
 PR_SET_PDEATHSIG = 1  # prctl(2)
 STOP_S = 2.0  # the longest a stopped worker unwinds before it ends at once
-# where processes fork, workers start with their parent's memory (what they work on need not be pickled to them)
-FORK = "fork" if "fork" in multiprocessing.get_all_start_methods() else None
 
 
 def cores() -> int:
@@ -28,28 +26,36 @@ def pool(processes: int, start: str | None = None, initializer=None,
     """A process pool (``start``: "fork", "spawn" or the platform's default) whose workers first run
     ``initializer(*initargs)``; leaving its ``with`` block, also by an error or a signal, terminates the workers."""
     context = multiprocessing.get_context(start)
-    return context.Pool(processes, initializer=_worker_signals, initargs=(initializer, initargs))
+    got: list[int] = []
+    held = _hold_signals(got)  # a stop while the workers start (and read what they are sent) waits until they have
+    try:
+        made = context.Pool(processes, initializer=_worker_signals, initargs=(initializer, initargs))
+    finally:
+        for signum, handler in held.items():
+            signal.signal(signum, signal.SIG_DFL if handler is None else handler)
+    if got:
+        made.terminate()
+        signal.raise_signal(got[0])
+    return made
 
 
-def each(function, items: list, workers: int) -> list:
-    """``[function(item) for item in items]`` in ``workers`` processes (in order; one worker: in this process). Where
-    processes fork, the workers start with ``function`` and ``items`` in memory (nothing pickled but the results);
-    elsewhere both are pickled once for each worker."""
-    if workers <= 1 or len(items) < 2:
+def _hold_signals(got: list[int]) -> dict:
+    """Replace the handlers of SIGINT and SIGTERM by one that notes each in ``got``; returns the handlers replaced
+    (none outside the main thread, where no handler runs)."""
+    try:
+        return {s: signal.signal(s, lambda signum, frame: got.append(signum)) for s in (signal.SIGINT, signal.SIGTERM)}
+    except ValueError:
+        return {}
+
+
+def each(function, items: list, workers: int, least: int = 2) -> list:
+    """``[function(item) for item in items]`` in ``workers`` fresh processes ("spawn": they share no lock with this
+    process's threads; ``function`` must be importable without torch to start fast), in order; in this process when
+    ``workers`` is 1 or there are fewer than ``least`` items."""
+    if workers <= 1 or len(items) < max(2, least):
         return [function(item) for item in items]
-    with pool(min(workers, len(items)), FORK, _keep, (function, items)) as p:
-        return p.map(_call, range(len(items)), chunksize=max(1, len(items) // (4 * workers)))
-
-
-_KEPT: list = []  # in a worker of each(): its function and items
-
-
-def _keep(function, items: list) -> None:
-    _KEPT[:] = [function, items]
-
-
-def _call(k: int):
-    return _KEPT[0](_KEPT[1][k])
+    with pool(min(workers, len(items)), "spawn") as p:
+        return p.map(function, items, chunksize=max(1, len(items) // (4 * workers)))
 
 
 def _worker_signals(initializer=None, initargs: tuple = ()) -> None:

@@ -51,8 +51,8 @@ from cmtool.model.controlmap import NO_LAYOUT
 from cmtool.model.release import BUNDLED
 from cmtool.sample import DEFAULT_SMOOTH
 from cmtool.sample.anchor import drawn_lane_counts, frame_roads
+from cmtool.sample.checks import guaranteed
 from cmtool.sample.generator import MapGenerator
-from cmtool.sample.guarantee import guarantee
 from cmtool.sample.layouts import NO_INIT, check_init
 from cmtool.viz.draw import graph_panel, grid, sd_panel, title_strip
 from cmtool.viz.recording import close_recording, log_lanes, log_sd, open_recording
@@ -91,7 +91,7 @@ def run_eval(gen: MapGenerator, settings: EvalSettings, out: Path, extractor: Fe
     """Generate (or continue generating) both sets, compute the metrics and write the reports. Under ``torchrun``
     (``info``) the processes take turns at the batches and the main process scores and writes everything; the
     others return None. ``workers``: processes for the per-scene metrics (:func:`cmtool.metrics.suite.evaluate`) and
-    the guarantee (:func:`as_sampled`);
+    the guarantee (:func:`as_sampled`, 64 scenes or more);
     ``record=False``: no ``eval.rrd``."""
     settings.check()
     if not gen.has_control:
@@ -167,13 +167,10 @@ def as_sampled(maps: list[LaneGraph], data, split: str, scenes, workers: int = 1
     scenes' SD roads, turned where against one-way roads, the rules' lanes lent), in ``workers`` processes; raises
     ``MissingSDMaps`` for a dataset built before SD maps were stored."""
     rules = scene_layouts(data, split, scenes, "rules", roads_only=True)
-    return each(_as_sampled, list(zip(maps, scenes, rules, scene_sd_maps(data, split))), workers)
+    return each(guaranteed, list(zip(maps, scenes, rules, scene_sd_maps(data, split))), workers, least=AS_SAMPLED_POOL)
 
 
-def _as_sampled(item) -> LaneGraph:
-    graph, scene, rules, sd_map = item
-    return guarantee(graph, scene.sd, rules.to_lanegraph(), frame_roads(sd_map, scene.pose.as_array(), scene.frame_m),
-                     drives_on(scene.city))
+AS_SAMPLED_POOL = 64  # fewer maps are laid in this process: starting workers costs a second or two
 
 
 GALLERY_SCENES = 3  # junction frames and as many others in gallery.png

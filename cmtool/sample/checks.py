@@ -30,3 +30,11 @@ def check_maps(batch: list[Job], graphs: list[LaneGraph], settings: SampleSettin
                 score_map(graph, job.source.sd)
             graph.meta["raw"] = raw
             graph.meta.setdefault("guarantee", {"turned": 0, "added": 0, "replaced": 0})
+
+
+def guaranteed(item) -> LaneGraph:
+    """A dataset scene's map as ``cmtool sample`` writes it (:func:`cmtool.sample.guarantee.guarantee`): ``item`` is
+    (the map, its scene, the scene's rule layout as a scene, the scene's SD map)."""
+    graph, scene, rules, sd_map = item
+    return guarantee(graph, scene.sd, rules.to_lanegraph(), frame_roads(sd_map, scene.pose.as_array(), scene.frame_m),
+                     drives_on(scene.city))

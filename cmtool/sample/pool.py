@@ -2,7 +2,9 @@
 (:func:`cmtool.sample.checks.check_maps`) and their files' bytes (:meth:`cmtool.sample.files.MapFiles.contents`), in
 ``workers`` processes, or with one worker in a second thread of the denoising process. Only the denoising process
 writes (it stages the bytes the workers send back, in the jobs' order), so the files are the same byte for byte
-whatever the number of workers, and a stopped run leaves no temporary file of a worker's behind."""
+whatever the number of workers, and a stopped run leaves no temporary file of a worker's behind. The workers are
+started afresh ("spawn": a process forked from one with torch's, Rerun's or a test runner's threads can wait for
+ever on a lock one of them held) and get the run's jobs once each."""
 
 from __future__ import annotations
 
@@ -21,6 +23,12 @@ if TYPE_CHECKING:
     from cmtool.sample.run import Job, SampleSettings
 
 
+def default_workers() -> int:
+    """One per core where there are more than two; else 1, the thread: on two cores torch's two threads and the
+    checks' thread keep both busy, and processes measured no faster (docs/speed.md)."""
+    return W.cores() if W.cores() > 2 else 1
+
+
 def pipelined(jobs: list[Job], settings: SampleSettings, denoise, files: MapFiles | None, workers: int,
               finished, starts: list[int] | None = None) -> None:
     """Denoise the jobs batch after batch (``denoise(batch, start)``: the batch's lane graphs as the model drew them;
@@ -30,7 +38,7 @@ def pipelined(jobs: list[Job], settings: SampleSettings, denoise, files: MapFile
     the batch before (the start, for the first) to the end of its own, so the maps' times add up to the run's. At
     most ``workers`` + 1 batches wait for their checks; a stop (an error, Ctrl-C) drops those still waiting."""
     if workers > 1:
-        executor = W.pool(workers, W.FORK, _start, (jobs, settings, files))
+        executor = W.pool(workers, "spawn", _start, (jobs, settings, files))
         submit = lambda start, graphs: executor.apply_async(_in_worker, (start, graphs))  # noqa: E731
         result, ready = (lambda h: h.get()), (lambda h: h.ready())
     else:
