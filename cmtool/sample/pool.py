@@ -4,14 +4,18 @@
 writes (it stages the bytes the workers send back, in the jobs' order), so the files are the same byte for byte
 whatever the number of workers, and a stopped run leaves no temporary file of a worker's behind. The workers are
 started afresh ("spawn": a process forked from one with torch's, Rerun's or a test runner's threads can wait for
-ever on a lock one of them held) and get the run's jobs once each."""
+ever on a lock one of them held) and each reads the run's jobs from one file."""
 
 from __future__ import annotations
 
+import contextlib
+import pickle
+import tempfile
 import time
 from collections import deque
 from concurrent.futures import ThreadPoolExecutor
 from functools import partial
+from pathlib import Path
 from typing import TYPE_CHECKING
 
 from cmtool.core import workers as W
@@ -37,29 +41,31 @@ def pipelined(jobs: list[Job], settings: SampleSettings, denoise, files: MapFile
     gets its checked maps and each map's share of the time, batch after batch: a batch's time runs from the end of
     the batch before (the start, for the first) to the end of its own, so the maps' times add up to the run's. At
     most ``workers`` + 1 batches wait for their checks; a stop (an error, Ctrl-C) drops those still waiting."""
-    if workers > 1:
-        executor = W.pool(workers, "spawn", _start, (jobs, settings, files))
-        submit = lambda start, graphs: executor.apply_async(_in_worker, (start, graphs))  # noqa: E731
-        result, ready = (lambda h: h.get()), (lambda h: h.ready())
-    else:
-        executor = ThreadPoolExecutor(1, thread_name_prefix="cmtool-checks")
-        work = partial(_finish, jobs, settings, files)
-        submit = lambda start, graphs: executor.submit(work, start, graphs)  # noqa: E731
-        result, ready = (lambda h: h.result()), (lambda h: h.done())
     waiting: deque = deque()
     since = time.perf_counter()
+    with contextlib.ExitStack() as stack:
+        if workers > 1:  # the jobs reach the workers through a file each reads: they start at once, side by side
+            folder = Path(stack.enter_context(tempfile.TemporaryDirectory(prefix="cmtool-run-")))
+            (folder / "jobs.pickle").write_bytes(pickle.dumps((jobs, settings, files), pickle.HIGHEST_PROTOCOL))
+            executor = stack.enter_context(W.pool(workers, "spawn", _start, (str(folder / "jobs.pickle"),)))
+            submit = lambda start, graphs: executor.apply_async(_in_worker, (start, graphs))  # noqa: E731
+            result, ready = (lambda h: h.get()), (lambda h: h.ready())
+        else:
+            executor = stack.enter_context(ThreadPoolExecutor(1, thread_name_prefix="cmtool-checks"))
+            work = partial(_finish, jobs, settings, files)
+            submit = lambda start, graphs: executor.submit(work, start, graphs)  # noqa: E731
+            result, ready = (lambda h: h.result()), (lambda h: h.done())
 
-    def collect() -> None:
-        nonlocal since
-        start, handle = waiting.popleft()
-        graphs, contents = result(handle)
-        if files is not None:
-            files.add(*contents)
-        now = time.perf_counter()
-        finished(start, graphs, (now - since) / len(graphs))
-        since = now
+        def collect() -> None:
+            nonlocal since
+            start, handle = waiting.popleft()
+            graphs, contents = result(handle)
+            if files is not None:
+                files.add(*contents)
+            now = time.perf_counter()
+            finished(start, graphs, (now - since) / len(graphs))
+            since = now
 
-    with executor:
         for start in range(0, len(jobs), settings.batch) if starts is None else starts:
             waiting.append((start, submit(start, denoise(jobs[start:start + settings.batch], start))))
             while len(waiting) > workers or (len(waiting) > 1 and ready(waiting[0][1])):
@@ -71,8 +77,9 @@ def pipelined(jobs: list[Job], settings: SampleSettings, denoise, files: MapFile
 _RUN: dict = {}  # in a worker process: the run's jobs, settings and files (:func:`_start`)
 
 
-def _start(jobs: list[Job], settings: SampleSettings, files: MapFiles | None) -> None:
-    _RUN.update(jobs=jobs, settings=settings, files=files)
+def _start(path: str) -> None:
+    with open(path, "rb") as f:
+        _RUN["jobs"], _RUN["settings"], _RUN["files"] = pickle.load(f)
 
 
 def _in_worker(start: int, graphs: list[LaneGraph]):
