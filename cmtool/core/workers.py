@@ -26,6 +26,8 @@ def pool(processes: int, start: str | None = None, initializer=None,
     """A process pool (``start``: "fork", "spawn" or the platform's default) whose workers first run
     ``initializer(*initargs)``; leaving its ``with`` block, also by an error or a signal, terminates the workers."""
     context = multiprocessing.get_context(start)
+    if context.get_start_method() == "fork":  # at once, nothing sent; a forked worker would inherit held handlers
+        return context.Pool(processes, initializer=_worker_signals, initargs=(initializer, initargs))
     got: list[int] = []
     held = _hold_signals(got)  # a stop while the workers start (and read what they are sent) waits until they have
     try:
