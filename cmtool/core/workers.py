@@ -5,6 +5,7 @@ from __future__ import annotations
 
 import ctypes
 import multiprocessing
+import multiprocessing.pool
 import os
 import signal
 import sys
@@ -27,11 +28,11 @@ def pool(processes: int, start: str | None = None, initializer=None,
     ``initializer(*initargs)``; leaving its ``with`` block, also by an error or a signal, terminates the workers."""
     context = multiprocessing.get_context(start)
     if context.get_start_method() == "fork":  # at once, nothing sent; a forked worker would inherit held handlers
-        return context.Pool(processes, initializer=_worker_signals, initargs=(initializer, initargs))
+        return _Pool(processes, _worker_signals, (initializer, initargs), context=context)
     got: list[int] = []
     held = _hold_signals(got)  # a stop while the workers start (and read what they are sent) waits until they have
     try:
-        made = context.Pool(processes, initializer=_worker_signals, initargs=(initializer, initargs))
+        made = _Pool(processes, _worker_signals, (initializer, initargs), context=context)
     finally:
         for signum, handler in held.items():
             signal.signal(signum, signal.SIG_DFL if handler is None else handler)
@@ -39,6 +40,19 @@ def pool(processes: int, start: str | None = None, initializer=None,
         made.terminate()
         signal.raise_signal(got[0])
     return made
+
+
+class _Pool(multiprocessing.pool.Pool):
+    """A pool whose workers, when its ``with`` block ends normally, finish and leave (no signal: terminating them
+    while one was still starting left it waiting for ever on the task queue's lock, which terminate holds); after an
+    error or a stop they are terminated."""
+
+    def __exit__(self, exc_type, exc, tb):
+        if exc_type is None:
+            self.close()
+            self.join()
+        else:
+            self.terminate()
 
 
 def _hold_signals(got: list[int]) -> dict:
