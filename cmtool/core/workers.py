@@ -25,7 +25,8 @@ def cores() -> int:
 def pool(processes: int, start: str | None = None, initializer=None,
          initargs: tuple = ()) -> multiprocessing.pool.Pool:
     """A process pool (``start``: "fork", "spawn" or the platform's default) whose workers first run
-    ``initializer(*initargs)``; leaving its ``with`` block, also by an error or a signal, terminates the workers."""
+    ``initializer(*initargs)``; when its ``with`` block ends the workers finish and leave, or, after an error or a
+    signal, are terminated (:class:`_Pool`)."""
     context = multiprocessing.get_context(start)
     if context.get_start_method() == "fork":  # at once, nothing sent; a forked worker would inherit held handlers
         return _Pool(processes, _worker_signals, (initializer, initargs), context=context)
