@@ -1162,26 +1162,31 @@ def test_a_worker_whose_finally_replaces_the_stop_still_ends_quietly():
               "    finally:\n"
               "        raise ValueError('the stop replaced')\n"
               "began = time.monotonic()\n"
-              "with workers.pool(1, 'fork') as p:\n"
-              "    p.map_async(task, [0, 1, 2])\n"
-              "    time.sleep(1)\n"
-              "print('left', round(time.monotonic() - began))\n")
+              "try:\n"
+              "    with workers.pool(1, 'fork') as p:  # left by an error: the workers are terminated\n"
+              "        p.map_async(task, [0, 1, 2])\n"
+              "        time.sleep(1)\n"
+              "        raise LookupError\n"
+              "except LookupError:\n"
+              "    print('left', round(time.monotonic() - began))\n")
     done = subprocess.run([sys.executable, "-c", script], cwd=REPO, capture_output=True, text=True, timeout=120)
     assert done.stdout.startswith("left") and "Traceback" not in done.stderr, done.stderr
     assert int(done.stdout.split()[1]) < 1 + workers.STOP_S + 20, done.stdout
 
 
 def test_workers_a_pool_terminates_are_not_the_users_signal():
-    """Leaving a pool while its workers are busy terminates them with SIGTERM; the command goes on past the watchdog's
-    grace period (issue 58: `train pipeline` and `data build` ended themselves with 143 ten seconds later)."""
+    """Leaving a pool by an error while its workers are busy terminates them with SIGTERM; the command goes on past
+    the watchdog's grace period (issue 58: `train pipeline` and `data build` ended themselves with 143 ten seconds
+    later)."""
     import subprocess
     import sys
 
     script = ("import time\nfrom cmtool.cli import cli, main, _Watchdog\nfrom cmtool.core import workers\n"
               "_Watchdog.GRACE_S = 1.0\n"
               "@cli.command('work')\ndef work():\n"
-              "    with workers.pool(2, 'fork') as p:\n        p.map_async(time.sleep, [30, 30])\n        time.sleep(1)\n"
-              "    time.sleep(4)\n    print('finished', flush=True)\n"
+              "    try:\n        with workers.pool(2, 'fork') as p:\n"
+              "            p.map_async(time.sleep, [30, 30])\n            time.sleep(1)\n            raise LookupError\n"
+              "    except LookupError:\n        time.sleep(4)\n        print('finished', flush=True)\n"
               "main(['work'])\n")
     result = subprocess.run([sys.executable, "-c", script], cwd=REPO, capture_output=True, text=True, timeout=120)
     assert result.returncode == 0 and result.stdout.strip() == "finished", result.stderr
