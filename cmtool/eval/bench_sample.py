@@ -29,8 +29,8 @@ from cmtool.metrics.features import FeatureExtractor
 from cmtool.metrics.suite import evaluate, shared_features
 from cmtool.sample.generator import MapGenerator
 from cmtool.sample.inputs import ControlInput
-from cmtool.sample.run import Job, SampleSettings, generate_maps, log_run_header, plan, run_sample, sampling_recording
-from cmtool.viz.recording import close_recording
+from cmtool.sample.run import Job, SampleSettings, generate_maps, log_run_header, plan, run_sample
+from cmtool.viz.recording import close_recording, open_recording
 
 LOG_LIMIT = 1.10  # full logging may cost at most 10% over --no-log (tiny model, batch 1)
 
@@ -50,7 +50,7 @@ def _timed(gen: MapGenerator, jobs: list[Job], settings: SampleSettings, log: bo
     if log:
         with tempfile.TemporaryDirectory() as tmp:
             rrd = Path(tmp) / "bench.rrd"
-            rec = sampling_recording(rrd, None)
+            rec = open_recording("sample")
             log_run_header(rec, gen, jobs, settings, "cmtool bench sample")
             generate_maps(gen, jobs, settings, rec, progress=False)
             close_recording(rec, rrd)

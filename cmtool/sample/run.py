@@ -14,7 +14,6 @@ a failed run leaves earlier files as they were.
 from __future__ import annotations
 
 import math
-import os
 import time
 from dataclasses import dataclass
 from functools import partial
@@ -25,7 +24,7 @@ import rerun as rr
 
 from cmtool.core import dist as D
 from cmtool.core.errors import CmtoolError
-from cmtool.core.jsonio import OutputSet, os_reason, temporary
+from cmtool.core.jsonio import OutputSet
 from cmtool.core.outputs import target
 from cmtool.core.progress import Progress
 from cmtool.data.layouts import layout_raster
@@ -40,11 +39,10 @@ from cmtool.sample.inputs import ControlInput
 from cmtool.sample.layouts import NO_INIT, check_init, layout_scenes
 from cmtool.sample.pool import pipelined
 from cmtool.sample.scores import SCORES, SCORES_NOTE, choose
-from cmtool.viz.recording import APP_IDS, close_recording, log_decoded, log_lanes, log_layout, log_sd, open_recording
+from cmtool.viz.recording import log_decoded, log_lanes, log_layout, log_sd
 from cmtool.viz.trajectory import TrajectoryLogger, log_scores, sampling_blueprint
-from cmtool.viz.viewer import viewer_sink
+from cmtool.viz.viewer import drop_recording, finish_recording, run_recording
 
-SERVING: list[rr.RecordingStream] = []  # recordings served with --serve, kept alive until the process ends
 AUTO = "auto"  # --city default: the source map's city when the checkpoint knows it, else none
 
 
@@ -153,7 +151,7 @@ def run_sample(gen: MapGenerator, jobs: list[Job], settings: SampleSettings, out
     try:
         out.mkdir(parents=True, exist_ok=True)
         if rrd is not None or viewer is not None:
-            rec = sampling_recording(rrd, viewer)
+            rec = run_recording("sample", rrd, viewer)
             header = log_run_header(rec, gen, jobs, settings, command)
         strength = f", city cfg {settings.city_cfg:g}" if settings.city_cfg != 1 else ""
         files = MapFiles(out, f"generated: {{city}}, w = {settings.cfg:g}{strength}", outputs, pictures, grid)
@@ -166,25 +164,14 @@ def run_sample(gen: MapGenerator, jobs: list[Job], settings: SampleSettings, out
             files.stage([m.job for m in maps], [m.graph for m in maps])
         files.finish()
         if rec is not None:
-            if viewer is None:
-                close_recording(rec, rrd, outputs)
-            else:
-                rec.flush(timeout_sec=FLUSH_S)
-                if viewer == "serve":  # the stream owns the server: keep it until the process ends
-                    SERVING.append(rec)
-                else:
-                    rec.disconnect()
-                if rrd is not None:
-                    _partial(rrd).replace(rrd)
+            finish_recording(rec, rrd, viewer, outputs)
             rec = None
         outputs.commit()
         return maps
     except BaseException:
         if rec is not None:
-            rec.disconnect()
+            drop_recording(rec, rrd)
         outputs.discard()
-        if rrd is not None:
-            _partial(rrd).unlink(missing_ok=True)
         if created and out.is_dir() and not any(out.iterdir()):
             out.rmdir()
         raise
@@ -299,46 +286,6 @@ def _meta(gen: MapGenerator, job: Job, settings: SampleSettings) -> dict:
             "eta": settings.eta, "smooth": gen.smooth, "precision": gen.precision, **geo,
             **({"init": settings.init, "strength": settings.strength} if settings.init != NO_INIT else {}),
             **({"layout": gen.layout if job.layout is not None else NO_LAYOUT} if gen.layout != NO_LAYOUT else {})}
-
-
-FLUSH_S = 30.0  # the longest a finished run waits for a live viewer to take the rest of the recording
-
-
-def _partial(rrd: Path) -> Path:
-    return Path(temporary(rrd, stable=True))
-
-
-def sampling_recording(rrd: Path | None, viewer: str | None) -> rr.RecordingStream:
-    """A recording for ``rrd`` (kept in memory and written with the maps), or streamed to a viewer and, when ``rrd``
-    is given, written by Rerun to a file beside it that is renamed into place at the end."""
-    if viewer is None:
-        return open_recording("sample")
-    rec = rr.RecordingStream(APP_IDS["sample"])
-    sinks = [viewer_sink(rec, viewer)]
-    if rrd is not None:
-        _room_for(rrd)
-        sinks.append(rr.FileSink(str(_partial(rrd))))
-    rec.set_sinks(*sinks)
-    return rec
-
-
-PROBE_BYTES = 1 << 20
-
-
-def _room_for(rrd: Path) -> None:
-    """Refuse a recording that Rerun's own file writer would fail to write (a full disk, a size limit, no
-    permission): that writer blocks for ever when a write fails, so a megabyte is written and removed first."""
-    probe = _partial(rrd)
-    try:
-        probe.parent.mkdir(parents=True, exist_ok=True)
-        with open(probe, "wb") as f:
-            f.write(bytes(PROBE_BYTES))
-            f.flush()
-            os.fsync(f.fileno())
-    except OSError as e:
-        raise CmtoolError(f"cannot write {rrd}: {os_reason(e)}") from None
-    finally:
-        probe.unlink(missing_ok=True)
 
 
 def log_run_header(rec, gen: MapGenerator, jobs: list[Job], settings: SampleSettings, command: str) -> str:

@@ -1,16 +1,83 @@
 """Live Rerun viewers a run streams to: one started for it (``--spawn``), one at a gRPC URL (``--connect``), or
-this process serving the recording (``--serve``: :func:`cmtool.viz.recording.served`)."""
+this process serving the recording (``--serve``: :func:`cmtool.viz.recording.served`); and a run's recording, kept
+in memory and written with its files or streamed to such a viewer (:func:`run_recording`)."""
 
 from __future__ import annotations
 
+import os
 import socket
 import time
+from pathlib import Path
 from urllib.parse import urlsplit
 
 import rerun as rr
 
 from cmtool.core.errors import CmtoolError
-from cmtool.viz.recording import GRPC_PORT, served
+from cmtool.core.jsonio import OutputSet, os_reason, temporary
+from cmtool.viz.recording import APP_IDS, GRPC_PORT, close_recording, open_recording, served
+
+SERVING: list[rr.RecordingStream] = []  # recordings served with --serve, kept alive until the process ends
+FLUSH_S = 30.0  # the longest a finished run waits for a live viewer to take the rest of the recording
+PROBE_BYTES = 1 << 20
+
+
+def run_recording(kind: str, rrd: Path | None, viewer: str | None) -> rr.RecordingStream:
+    """A recording of one ``kind`` (a key of :data:`~cmtool.viz.recording.APP_IDS`) for ``rrd``, kept in memory
+    and written with the run's files, or, with ``viewer`` ("spawn", "serve" or a gRPC URL: :func:`viewer_sink`),
+    streamed to it and, when ``rrd`` is given, written by Rerun to a file beside ``rrd`` that
+    :func:`finish_recording` renames into place."""
+    if viewer is None:
+        return open_recording(kind)
+    rec = rr.RecordingStream(APP_IDS[kind])
+    sinks = [viewer_sink(rec, viewer)]
+    if rrd is not None:
+        _room_for(rrd)
+        sinks.append(rr.FileSink(str(_partial(rrd))))
+    rec.set_sinks(*sinks)
+    return rec
+
+
+def finish_recording(rec: rr.RecordingStream, rrd: Path | None, viewer: str | None, outputs: OutputSet) -> None:
+    """End a run's recording that succeeded: written to ``rrd`` with the run's ``outputs``, or, streamed to a
+    ``viewer``, flushed to it (at most :data:`FLUSH_S`), kept served until the process ends ("serve") or
+    disconnected, and its file renamed into place."""
+    if viewer is None:
+        close_recording(rec, rrd, outputs)
+        return
+    rec.flush(timeout_sec=FLUSH_S)
+    if viewer == "serve":  # the stream owns the server: keep it until the process ends
+        SERVING.append(rec)
+    else:
+        rec.disconnect()
+    if rrd is not None:
+        _partial(rrd).replace(rrd)
+
+
+def drop_recording(rec: rr.RecordingStream, rrd: Path | None) -> None:
+    """End a run's recording after a failure: disconnected, its partial file removed."""
+    rec.disconnect()
+    if rrd is not None:
+        _partial(rrd).unlink(missing_ok=True)
+
+
+def _partial(rrd: Path) -> Path:
+    return Path(temporary(rrd, stable=True))
+
+
+def _room_for(rrd: Path) -> None:
+    """Refuse a recording that Rerun's own file writer would fail to write (a full disk, a size limit, no
+    permission): that writer blocks for ever when a write fails, so a megabyte is written and removed first."""
+    probe = _partial(rrd)
+    try:
+        probe.parent.mkdir(parents=True, exist_ok=True)
+        with open(probe, "wb") as f:
+            f.write(bytes(PROBE_BYTES))
+            f.flush()
+            os.fsync(f.fileno())
+    except OSError as e:
+        raise CmtoolError(f"cannot write {rrd}: {os_reason(e)}") from None
+    finally:
+        probe.unlink(missing_ok=True)
 
 
 def viewer_sink(rec: rr.RecordingStream, viewer: str) -> rr.GrpcSink | rr.GrpcServerSink:
