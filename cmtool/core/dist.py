@@ -79,6 +79,16 @@ def rounds(items: list, info: DistInfo) -> list[list]:
     return [chunk[info.rank:info.rank + 1] for chunk in per_round]
 
 
+def dealt(items: list, info: DistInfo, make):
+    """``make(item)`` for each of ``items``, the processes taking turns (:func:`rounds`): yields each result on the
+    main process, in the order of ``items``, round by round as they are gathered, and nothing on the others (every
+    process must run the generator to its end)."""
+    for mine in rounds(items, info):
+        made = [make(item) for item in mine]
+        for part in gather(made, info) or []:
+            yield from part
+
+
 def hardware(info: DistInfo) -> str:
     """A short description of where this run trains, for the checkpoint's record."""
     if info.device.type == "cuda":

@@ -224,18 +224,16 @@ def _generate(gen: MapGenerator, scenes, settings: EvalSettings, cache: Path, pr
         raise start
     with Progress(len(scenes), "eval", "scenes", enabled=progress and info.main) as bar:
         bar.update(start)
-        for mine in D.rounds(list(range(start, len(scenes), settings.batch)), info):
-            made = [_batch_lines(gen, scenes[b0:b0 + settings.batch], b0, settings,
-                                 None if starts is None else starts[b0:b0 + settings.batch],
-                                 None if layouts is None else layouts[b0:b0 + settings.batch]) for b0 in mine]
-            for part in D.gather(made, info) or []:
-                for lines in part:
-                    for m in METHODS:
-                        with (cache / f"{m}.jsonl").open("a", encoding="utf-8") as f:
-                            f.write("".join(line + "\n" for line in lines[m]))
-                        # scored as cached (coordinates to the millimetre): a resumed run scores what a whole one does
-                        done[m] += [LaneGraph.from_json(json.loads(line)) for line in lines[m]]
-                    bar.update(len(lines[METHODS[0]]))
+        make = lambda b0: _batch_lines(gen, scenes[b0:b0 + settings.batch], b0, settings,  # noqa: E731
+                                       None if starts is None else starts[b0:b0 + settings.batch],
+                                       None if layouts is None else layouts[b0:b0 + settings.batch])
+        for lines in D.dealt(list(range(start, len(scenes), settings.batch)), info, make):
+            for m in METHODS:
+                with (cache / f"{m}.jsonl").open("a", encoding="utf-8") as f:
+                    f.write("".join(line + "\n" for line in lines[m]))
+                # scored as cached (coordinates to the millimetre): a resumed run scores what a whole one does
+                done[m] += [LaneGraph.from_json(json.loads(line)) for line in lines[m]]
+            bar.update(len(lines[METHODS[0]]))
     return done
 
 

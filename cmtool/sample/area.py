@@ -194,14 +194,14 @@ def _tile_maps(gen: MapGenerator, jobs, settings: SampleSettings, tiles, cache: 
             pipelined(jobs, settings, denoise, None, workers, finished, starts=todo)
             recorded = sum(sizes[b] for b in todo if b < RECORDED_TILES) if rec is not None else 0
         else:
-            for mine in D.rounds(todo, info):
-                made = [(b, [g for g, _ in batch_maps(gen, jobs[b:b + settings.batch], b, settings,
-                                                      rec if b < RECORDED_TILES else None, placed=True)])
-                        for b in mine]
-                recorded += sum(len(graphs) for b, graphs in made if b < RECORDED_TILES) if rec is not None else 0
-                for part in D.gather(made, info) or []:
-                    for b, graphs in part:
-                        finished(b, graphs)
+            def make(b: int) -> tuple[int, list[LaneGraph]]:
+                nonlocal recorded
+                recorded += len(jobs[b:b + settings.batch]) if rec is not None and b < RECORDED_TILES else 0
+                return b, [g for g, _ in batch_maps(gen, jobs[b:b + settings.batch], b, settings,
+                                                    rec if b < RECORDED_TILES else None, placed=True)]
+
+            for b, graphs in D.dealt(todo, info, make):
+                finished(b, graphs)
     return ([g for b in sizes for g in done[b]] if info.main else None), recorded
 
 

@@ -206,15 +206,12 @@ def generate_maps(gen: MapGenerator, jobs: list[Job], settings: SampleSettings, 
 
             pipelined(jobs, settings, denoise, files, workers, finished)
             return maps
-        for mine in D.rounds(list(range(0, len(jobs), settings.batch)), info):
-            made = [(start, batch_maps(gen, jobs[start:start + settings.batch], start, settings, rec))
-                    for start in mine]
-            for part in D.gather(made, info) or []:
-                for start, batch in part:
-                    if files is not None:
-                        files.stage(jobs[start:start + len(batch)], [graph for graph, _ in batch])
-                    maps += [SampledMap(jobs[start + k], graph, seconds) for k, (graph, seconds) in enumerate(batch)]
-                    bar.update(len(batch))
+        make = lambda start: (start, batch_maps(gen, jobs[start:start + settings.batch], start, settings, rec))  # noqa: E731
+        for start, batch in D.dealt(list(range(0, len(jobs), settings.batch)), info, make):
+            if files is not None:
+                files.stage(jobs[start:start + len(batch)], [graph for graph, _ in batch])
+            maps += [SampledMap(jobs[start + k], graph, seconds) for k, (graph, seconds) in enumerate(batch)]
+            bar.update(len(batch))
     return maps if info.main else None
 
 
