@@ -45,12 +45,14 @@ def find_neighbours(lanes, widths=None, recorded=None) -> tuple[list[tuple[int, 
     return [(i, j) for i, j in left if same[i, j]], oncoming
 
 
-def relaned(graph, lanes, successors, meta: dict | None = None):
+def relaned(graph, lanes, successors, meta: dict | None = None, found: bool = True):
     """A copy of lane graph ``graph`` with other ``lanes`` and ``successors`` (and ``meta``, when given): its
-    neighbours and widths found anew from the geometry, its lights, city and frame kept."""
-    left, oncoming = find_neighbours(lanes)
+    neighbours and widths found anew from the geometry (``found`` False: left unrecorded, for a graph changed again
+    before it is used), its lights, city and frame kept."""
+    left, oncoming = find_neighbours(lanes) if found else (None, None)
     return LaneGraph(lanes=lanes, successors=sorted(set(successors)), left_neighbors=left, oncoming=oncoming,
-                     widths=lane_widths(lanes, left).round(2).tolist(), green_lights=graph.green_lights,
+                     widths=lane_widths(lanes, left).round(2).tolist() if found else None,
+                     green_lights=graph.green_lights,
                      red_lights=graph.red_lights, city=graph.city, frame_m=graph.frame_m,
                      meta=graph.meta if meta is None else meta)
 

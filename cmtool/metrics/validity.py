@@ -74,9 +74,9 @@ class Problem:
 class Validity:
     lanes: int
     problems: list[Problem] = field(default_factory=list)
-    routable_pairs: float = 1.0
-    routable_with_changes: float = 1.0
-    largest_scc: int = 0
+    routable_pairs: float | None = None  # None: not computed (``check(..., routes=False)``)
+    routable_with_changes: float | None = None
+    largest_scc: int | None = None
     unlisted: dict[str, int] = field(default_factory=dict)  # problems counted beyond ``MAX_LISTED``, per kind
     unlisted_lanes: set[int] = field(default_factory=set)  # the lanes of those
     estimated: dict[str, str] = field(default_factory=dict)  # quantity -> how it was estimated (huge maps)
@@ -102,12 +102,15 @@ class Validity:
                 **caps, "problems": [p.to_json() for p in self.problems]}
 
 
-def check(graph) -> Validity:
-    """The validity report of one lane graph (``lanes``, ``successors``, ``frame_m``)."""
+def check(graph, routes: bool = True) -> Validity:
+    """The validity report of one lane graph (``lanes``, ``successors``, ``frame_m``); ``routes``: False leaves out
+    the routability figures (None), for callers that need only the problems and the score."""
     lanes = [np.asarray(l, np.float64) for l in graph.lanes]
     n = len(lanes)
     report = Validity(n)
     if n == 0:
+        if routes:
+            report.routable_pairs, report.routable_with_changes, report.largest_scc = 1.0, 1.0, 0
         return report
     succ = [(int(i), int(j)) for i, j in graph.successors]
     joined = np.zeros(n, bool)
@@ -137,6 +140,8 @@ def check(graph) -> Validity:
         report.problems.append(Problem("bad_successor", [i, j], lanes[i][-1].tolist(),
                                        f"gap {gap:.2f} m, turn {turn:.0f} deg"))
     _add_crossings(report, lanes, shapes, succ)
+    if not routes:
+        return report
     report.routable_pairs, report.largest_scc, sampled = _routability(n, succ)
     try:
         changes = lane_changes(graph)

@@ -295,7 +295,7 @@ def area_scores(area: AreaMap, sd_map: SDMap, box) -> dict:
         x, y = t.x - centre[0], t.y - centre[1]
         window = cropper.extract(Pose(float(x), float(y), t.yaw), num_lines=300, num_lights=50).to_lanegraph()
         sd = rasterize_sd(sd_map, t.x, t.y, t.yaw) * _inside(box, t)[..., None]
-        validity.append(check(window).score)
+        validity.append(check(window, routes=False).score)
         share, metres = legal_oneway(window.lanes, sd)
         if not math.isnan(share):
             legal.append(share * metres)

@@ -19,12 +19,12 @@ def check_maps(batch: list[Job], graphs: list[LaneGraph], settings: SampleSettin
     replace it in ``graphs`` by its guaranteed form (:func:`cmtool.sample.guarantee.guarantee`), the model's own
     scores kept."""
     for k, (job, graph) in enumerate(zip(batch, graphs)):
-        score_map(graph, job.source.sd)
+        checked = score_map(graph, job.source.sd)
         if settings.guarantee and job.source.sd is not None:
             raw = raw_scores(graph)
             src = job.source
             roads = frame_roads(src.sd_map, src.pose, graph.frame_m) if src.sd_map is not None else None
-            fixed = guarantee(graph, src.sd, job.rules, roads, drives_on(graph.city))
+            fixed = guarantee(graph, src.sd, job.rules, roads, drives_on(graph.city), checked)
             if fixed is not graph:  # a map the guarantee left alone keeps its scores
                 graphs[k] = graph = fixed
                 score_map(graph, job.source.sd)

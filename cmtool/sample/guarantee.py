@@ -35,7 +35,7 @@ from cmtool.maps.neighbours import relaned
 from cmtool.maps.sdmap import Road
 from cmtool.metrics.geometric import legal_oneway_by_lane
 from cmtool.metrics.lanes import resampled, within_distance
-from cmtool.metrics.validity import BORDER_M, check
+from cmtool.metrics.validity import BORDER_M, Validity, check
 from cmtool.sample.anchor import anchor
 
 COVER_M = 3.0  # a rule lane farther than this from the map's lanes along most of its length is added
@@ -44,13 +44,15 @@ LEND_TURN_DEG = 60.0
 
 
 def guarantee(graph: LaneGraph, sd: np.ndarray | None, rules: LaneGraph | None = None,
-              roads: list[Road] | None = None, side: str = "right") -> LaneGraph:
+              roads: list[Road] | None = None, side: str = "right", checked: Validity | None = None) -> LaneGraph:
     """``graph`` with lanes against one-way SD roads (on the SD raster ``sd``) turned round, its lanes laid on the
     frame's SD ``roads`` (:func:`cmtool.sample.anchor.frame_roads`; None: not laid; ``side``: the driving side) and
-    the lanes of the rule layout ``rules`` of the same frame lent where the map has none (module doc)."""
+    the lanes of the rule layout ``rules`` of the same frame lent where the map has none (module doc); ``checked``:
+    ``graph``'s validity report, when the caller has it."""
+    drawn = graph  # the steps' graphs have their neighbours found once, at the end
     graph, turned = _turned(graph, sd)
     if roads is not None:
-        graph = _no_worse(graph, anchor(graph, roads, side))
+        graph = _no_worse(graph, anchor(graph, roads, side, found=False), None if turned else checked)
         graph, again = _turned(graph, sd)  # a lane that laying made run mostly against a one-way road
         turned += again
     added, replaced = _lent(graph, rules)
@@ -58,7 +60,7 @@ def guarantee(graph: LaneGraph, sd: np.ndarray | None, rules: LaneGraph | None =
         return graph
     meta = dict(graph.meta) | {"guarantee": {"turned": turned, "added": len(added), "replaced": len(replaced)}}
     if not added:
-        return replace(graph, meta=meta)
+        return replace(graph, meta=meta) if graph is drawn else relaned(graph, graph.lanes, graph.successors, meta)
     first = len(graph.lanes)
     index = {k: first + n for n, (_, _, k) in enumerate(added)}
     successors = list(graph.successors) + [(i, j) for i, j in rules.successors if i in index and j in index]
@@ -84,14 +86,15 @@ def _turned(graph: LaneGraph, sd: np.ndarray | None) -> tuple[LaneGraph, int]:
         lanes[k] = lanes[k][::-1].copy()
     successors = [(i, j) for i, j in graph.successors if i not in turned and j not in turned]
     successors += [(i, j) for i, j in infer_successors(lanes) if i in turned or j in turned]
-    return relaned(graph, lanes, successors, dict(graph.meta)), len(turned)
+    return relaned(graph, lanes, successors, dict(graph.meta), found=False), len(turned)
 
 
-def _no_worse(graph: LaneGraph, laid: LaneGraph) -> LaneGraph:
+def _no_worse(graph: LaneGraph, laid: LaneGraph, checked: Validity | None = None) -> LaneGraph:
     """``laid`` (``graph``'s lanes laid on the SD roads, one for one) with every lane that laying gave a problem
-    (:func:`cmtool.metrics.validity.check`) the model's lane did not have put back as the model drew it."""
-    before = {k for p in check(graph).problems for k in p.lanes}
-    worse = {k for p in check(laid).problems for k in p.lanes} - before
+    (:func:`cmtool.metrics.validity.check`; ``checked``: ``graph``'s report, when known) the model's lane did not
+    have put back as the model drew it."""
+    before = {k for p in (checked or check(graph, routes=False)).problems for k in p.lanes}
+    worse = {k for p in check(laid, routes=False).problems for k in p.lanes} - before
     if not worse:
         return laid
     while True:  # and the lanes joined to those whose shared end laying moved, so that each join stays whole
@@ -103,7 +106,8 @@ def _no_worse(graph: LaneGraph, laid: LaneGraph) -> LaneGraph:
     lanes = [graph.lanes[k] if k in worse else lane for k, lane in enumerate(laid.lanes)]
     successors = [(i, j) for i, j in laid.successors if i not in worse and j not in worse]
     successors += [(i, j) for i, j in graph.successors if i in worse or j in worse]
-    return relaned(laid, lanes, successors, dict(laid.meta, anchored=dict(laid.meta["anchored"], undone=len(worse))))
+    return relaned(laid, lanes, successors, dict(laid.meta, anchored=dict(laid.meta["anchored"], undone=len(worse))),
+                   found=False)
 
 
 def _lent(graph: LaneGraph, rules: LaneGraph | None) -> tuple[list[tuple[np.ndarray, list, int]], set[int]]:

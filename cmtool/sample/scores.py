@@ -10,7 +10,7 @@ import numpy as np
 
 from cmtool.maps.lanegraph import LaneGraph
 from cmtool.metrics.geometric import legal_oneway, sd_adherence
-from cmtool.metrics.validity import check
+from cmtool.metrics.validity import Validity, check
 
 if TYPE_CHECKING:
     from cmtool.sample.run import SampledMap
@@ -21,16 +21,19 @@ SCORES_NOTE = ("validity: share of lanes free of problems (cmtool validate); SD 
                "-: nothing to judge")
 
 
-def score_map(graph: LaneGraph, sd: np.ndarray | None) -> None:
+def score_map(graph: LaneGraph, sd: np.ndarray | None) -> Validity:
     """Record in the map's meta its validity score and, against an SD raster ``sd``, the share of its lane length
-    along one-way SD roads that runs the legal way and the share of the SD road with a lane within 3 m."""
-    graph.meta["validity"] = round(check(graph).score, 6)
+    along one-way SD roads that runs the legal way and the share of the SD road with a lane within 3 m; returns the
+    validity report (without routability)."""
+    report = check(graph, routes=False)
+    graph.meta["validity"] = round(report.score, 6)
     if sd is not None:
         share, judged = legal_oneway(graph.lanes, sd)
         graph.meta["legal_oneway"] = None if math.isnan(share) else round(share, 6)
         graph.meta["oneway_judged_m"] = round(judged, 1)
         covered = sd_adherence(graph.lanes, sd)["sd_coverage"]
         graph.meta["sd_coverage"] = None if math.isnan(covered) else round(covered, 6)
+    return report
 
 
 def choose(maps: list[SampledMap], candidates: int) -> list[SampledMap]:

@@ -96,7 +96,7 @@ def reconstruction_report(encoder: RVAE, decoder: RVAE, data_dir, device, n: int
                          "f1": float(np.mean(f1)), f"f1_{FINE_M:g}m": float(np.mean(fine)),
                          "succ_precision": _ratio(links[0], links[1]), "succ_recall": _ratio(links[0], links[2]),
                          "succ_f1": _ratio(2 * links[0], links[1] + links[2]),
-                         "validity": float(np.mean([check(g).score for g in graphs])),
+                         "validity": float(np.mean([check(g, routes=False).score for g in graphs])),
                          "left_hand_truth": _left(truth, sds), "left_hand_recon": _left(recon, sds),
                          "left_hand_oncoming_truth": _left(truth), "left_hand_oncoming_recon": _left(recon)})
             bar.update()
