@@ -15,6 +15,7 @@ lanes searched, in a fixed-seed random order), are refused with :class:`Crowded`
 from __future__ import annotations
 
 import hashlib
+from dataclasses import replace
 
 import numpy as np
 import shapely
@@ -49,12 +50,20 @@ def relaned(graph, lanes, successors, meta: dict | None = None, found: bool = Tr
     """A copy of lane graph ``graph`` with other ``lanes`` and ``successors`` (and ``meta``, when given): its
     neighbours and widths found anew from the geometry (``found`` False: left unrecorded, for a graph changed again
     before it is used), its lights, city and frame kept."""
-    left, oncoming = find_neighbours(lanes) if found else (None, None)
-    return LaneGraph(lanes=lanes, successors=sorted(set(successors)), left_neighbors=left, oncoming=oncoming,
-                     widths=lane_widths(lanes, left).round(2).tolist() if found else None,
-                     green_lights=graph.green_lights,
-                     red_lights=graph.red_lights, city=graph.city, frame_m=graph.frame_m,
-                     meta=graph.meta if meta is None else meta)
+    out = LaneGraph(lanes=lanes, successors=sorted(set(successors)), green_lights=graph.green_lights,
+                    red_lights=graph.red_lights, city=graph.city, frame_m=graph.frame_m,
+                    meta=graph.meta if meta is None else meta)
+    return with_neighbours(out) if found else out
+
+
+def with_neighbours(graph):
+    """``graph`` with its neighbours and widths found from its geometry where it records none (the same object
+    where it does)."""
+    if graph.left_neighbors is not None:
+        return graph
+    lanes = [np.asarray(l, np.float64) for l in graph.lanes]
+    left, oncoming = find_neighbours(lanes)
+    return replace(graph, left_neighbors=left, oncoming=oncoming, widths=lane_widths(lanes, left).round(2).tolist())
 
 
 def graph_neighbours(graph) -> tuple[list[tuple[int, int]], list[tuple[int, int]]]:

@@ -6,6 +6,7 @@ from typing import TYPE_CHECKING
 
 from cmtool.maps.hdmap import drives_on
 from cmtool.maps.lanegraph import LaneGraph
+from cmtool.maps.neighbours import with_neighbours
 from cmtool.sample.anchor import frame_roads
 from cmtool.sample.guarantee import guarantee, raw_scores
 from cmtool.sample.scores import score_map
@@ -17,7 +18,7 @@ if TYPE_CHECKING:
 def check_maps(batch: list[Job], graphs: list[LaneGraph], settings: SampleSettings) -> None:
     """Score each map in its meta (:func:`~cmtool.sample.scores.score_map`) and, unless ``settings.guarantee`` is off,
     replace it in ``graphs`` by its guaranteed form (:func:`cmtool.sample.guarantee.guarantee`), the model's own
-    scores kept."""
+    scores kept; each map's lane neighbours found where it records none."""
     for k, (job, graph) in enumerate(zip(batch, graphs)):
         checked = score_map(graph, job.source.sd)
         if settings.guarantee and job.source.sd is not None:
@@ -30,6 +31,7 @@ def check_maps(batch: list[Job], graphs: list[LaneGraph], settings: SampleSettin
                 score_map(graph, job.source.sd)
             graph.meta["raw"] = raw
             graph.meta.setdefault("guarantee", {"turned": 0, "added": 0, "replaced": 0})
+        graphs[k] = with_neighbours(graph)
 
 
 def guaranteed(item) -> LaneGraph:

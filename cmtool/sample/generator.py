@@ -25,7 +25,7 @@ from cmtool.diffusion.samplers import sample
 from cmtool.diffusion.schedule import NoiseSchedule
 from cmtool.diffusion.settings import DEFAULT_SAMPLER, SamplerSettings
 from cmtool.maps.lanegraph import LaneGraph, infer_successors, join_successors
-from cmtool.maps.neighbours import find_neighbours, lane_widths
+from cmtool.maps.neighbours import with_neighbours
 from cmtool.model import checkpoint as ckpt
 from cmtool.model.config import ScheduleConfig
 from cmtool.model.controlmap import NO_LAYOUT, ControlMap, control_images, sd_tensor
@@ -123,19 +123,23 @@ class MapGenerator:
 
     def generate(self, sd: np.ndarray | None, labels, settings: SamplerSettings, first: int = 0, *,
                  city_cfg: float = 1.0, eta: float = 0.0, init: torch.Tensor | None = None, strength: float = 1.0,
-                 layouts: list | None = None, metas: list[dict] | None = None, callback=None) -> list[LaneGraph]:
+                 layouts: list | None = None, metas: list[dict] | None = None, callback=None,
+                 found: bool = True) -> list[LaneGraph]:
         """The lane graphs of one batch: maps ``first, first + 1, ...`` of a run sampled as ``settings`` say, for SD
         rasters ``sd`` (B, 128, 128, 3) uint8 (None: the DiT alone) and label indices ``labels`` (B,); ``init``,
         ``strength``: start from these latents (:meth:`encode`); ``layouts``: each map's layout raster
         (:func:`cmtool.data.layouts.layout_raster`, None: none) when the branch reads one (:attr:`layout`);
         ``metas``: each map's meta entries; ``callback``: called with every step's
-        :class:`~cmtool.diffusion.samplers.StepInfo`. The noise depends on ``settings.seed`` and ``first`` alone."""
+        :class:`~cmtool.diffusion.samplers.StepInfo`; ``found``: False leaves the lanes' neighbours to be found
+        later (:func:`~cmtool.maps.neighbours.with_neighbours`). The noise depends on ``settings.seed`` and ``first``
+        alone."""
         noise, steps = self.batch_noise(len(labels), settings.seed, first)
         z = self.sample(sd, labels, cfg=settings.cfg, city_cfg=city_cfg, steps=settings.steps,
                         sampler=settings.sampler, eta=eta, noise=noise, generator=steps, init=init,
                         strength=strength, layouts=layouts, callback=callback)
         metas = metas or [{} for _ in labels]
-        return [self.lane_graph(el, self.city_name(y), meta) for el, y, meta in zip(self.decode(z), labels, metas)]
+        return [self.lane_graph(el, self.city_name(y), meta, found)
+                for el, y, meta in zip(self.decode(z), labels, metas)]
 
     def generate_all(self, sds: np.ndarray | None, labels, settings: SamplerSettings, metas: list[dict] | None = None,
                      city_cfg: float = 1.0, init: torch.Tensor | None = None, strength: float = 1.0,
@@ -222,17 +226,18 @@ class MapGenerator:
                     el["lines"].shape)
         return elements
 
-    def lane_graph(self, elements: dict[str, np.ndarray], city: str | None, meta: dict) -> LaneGraph:
+    def lane_graph(self, elements: dict[str, np.ndarray], city: str | None, meta: dict,
+                   found: bool = True) -> LaneGraph:
         """A decoded latent as a lane graph: successors as the graph decoder predicted them, else inferred
         from endpoint proximity (``meta["successors"]`` says which); points rounded to the millimetre, as the
-        file keeps them, so that what is scored here is what a reader of the file scores."""
+        file keeps them, so that what is scored here is what a reader of the file scores; ``found``: as
+        :meth:`generate`'s."""
         lanes = [np.round(np.asarray(l, np.float64), 3) for l in elements["lines"]]
         predicted = "successors" in elements
         successors = [(int(i), int(j)) for i, j in elements["successors"]] if predicted else infer_successors(lanes)
         meta = meta | {"successors": "predicted" if predicted else "endpoint proximity"}
-        left, oncoming = find_neighbours(lanes)
-        return LaneGraph(lanes=lanes, successors=successors, left_neighbors=left, oncoming=oncoming,
-                         widths=lane_widths(lanes, left).round(2).tolist(),
-                         green_lights=[np.round(np.asarray(l, np.float64), 3) for l in elements["green"]],
-                         red_lights=[np.round(np.asarray(l, np.float64), 3) for l in elements["red"]],
-                         city=city, frame_m=float(self.rvae.config.frame_m), meta=meta)
+        graph = LaneGraph(lanes=lanes, successors=successors,
+                          green_lights=[np.round(np.asarray(l, np.float64), 3) for l in elements["green"]],
+                          red_lights=[np.round(np.asarray(l, np.float64), 3) for l in elements["red"]],
+                          city=city, frame_m=float(self.rvae.config.frame_m), meta=meta)
+        return with_neighbours(graph) if found else graph

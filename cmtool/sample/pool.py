@@ -48,6 +48,7 @@ def pipelined(jobs: list[Job], settings: SampleSettings, denoise, files: MapFile
             folder = Path(stack.enter_context(tempfile.TemporaryDirectory(prefix="cmtool-run-")))
             (folder / "jobs.pickle").write_bytes(pickle.dumps((jobs, settings, files), pickle.HIGHEST_PROTOCOL))
             executor = stack.enter_context(W.pool(workers, "spawn", _start, (str(folder / "jobs.pickle"),)))
+            stack.enter_context(_denoising_threads())
             submit = lambda start, graphs: executor.apply_async(_in_worker, (start, graphs))  # noqa: E731
             result, ready = (lambda h: h.get()), (lambda h: h.ready())
         else:
@@ -72,6 +73,21 @@ def pipelined(jobs: list[Job], settings: SampleSettings, denoise, files: MapFile
                 collect()
         while waiting:
             collect()
+
+
+@contextlib.contextmanager
+def _denoising_threads():
+    """torch's threads in the denoising process at most half the cores while the workers run beside it: with all
+    of them, its threads and the workers' processes waited on each other (2 cores, ``--workers 2``: 33-36 s for
+    256 maps with two threads, 24-30 s with one; the maps the same byte for byte, docs/speed.md)."""
+    import torch  # here, not at the top: the workers import this module and need no torch
+
+    before = torch.get_num_threads()
+    torch.set_num_threads(max(1, min(before, W.cores() // 2)))
+    try:
+        yield
+    finally:
+        torch.set_num_threads(before)
 
 
 _RUN: dict = {}  # in a worker process: the run's jobs, settings and files (:func:`_start`)

@@ -267,13 +267,14 @@ def _same_lanes(a: LaneGraph, b: LaneGraph) -> bool:
 
 def _denoised(gen: MapGenerator, batch: list[Job], start: int, settings: SampleSettings,
               logger: TrajectoryLogger | None) -> list[LaneGraph]:
-    """The jobs' lane graphs as the model made them (:meth:`MapGenerator.generate`), ``logger`` getting every step."""
+    """The jobs' lane graphs as the model made them (:meth:`MapGenerator.generate`), ``logger`` getting every step;
+    their lanes' neighbours are left to the checks (:func:`~cmtool.sample.checks.check_maps`, in the workers)."""
     sds = [j.source.sd for j in batch]
     sd = None if all(s is None for s in sds) else np.stack(sds)
     init = gen.encode([j.init for j in batch]) if settings.init != NO_INIT else None
     return gen.generate(sd, [j.label for j in batch], settings, start, city_cfg=settings.city_cfg, eta=settings.eta,
                         init=init, strength=settings.strength, layouts=[j.layout for j in batch],
-                        metas=[_meta(gen, j, settings) for j in batch], callback=logger)
+                        metas=[_meta(gen, j, settings) for j in batch], callback=logger, found=False)
 
 
 def _meta(gen: MapGenerator, job: Job, settings: SampleSettings) -> dict:
