@@ -227,7 +227,7 @@ def batch_maps(gen: MapGenerator, batch: list[Job], start: int, settings: Sample
     decoded = list(graphs)
     check_maps(batch, graphs, settings)
     if logger is not None:
-        logger.finish()
+        logger.finish(_estimates(decoded))
         if not placed:
             _log_maps(rec, batch, graphs, decoded)
     seconds = (time.perf_counter() - began) / len(batch)
@@ -244,9 +244,14 @@ def denoiser(gen: MapGenerator, settings: SampleSettings, rec, ego: bool = True,
             logger = _step_logger(gen, rec, batch, settings, ego)
         graphs = _denoised(gen, batch, start, settings, logger)
         if logger is not None:
-            logger.finish()
+            logger.finish(_estimates(graphs))
         return graphs
     return denoise
+
+
+def _estimates(graphs: list[LaneGraph]) -> list[dict]:
+    """The maps as decoded, as :meth:`~cmtool.viz.trajectory.TrajectoryLogger.finish` takes them."""
+    return [{"lines": g.lanes, "green": g.green_lights, "red": g.red_lights} for g in graphs]
 
 
 def _step_logger(gen: MapGenerator, rec, batch: list[Job], settings: SampleSettings, ego: bool = True):

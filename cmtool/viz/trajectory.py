@@ -176,9 +176,9 @@ class TrajectoryLogger:
         if time.perf_counter() - self.last_flush >= self.flush_s:
             self.flush()
 
-    def flush(self) -> None:
+    def flush(self, last: list[dict] | None = None) -> None:
         """Send the pending steps of every map as columns: each step's latent at its own number, what its model
-        pass predicted at the next."""
+        pass predicted at the next; ``last``: as :meth:`finish`'s."""
         if not self.pending:
             return
         steps, self.pending = self.pending, []
@@ -187,7 +187,9 @@ class TrajectoryLogger:
         n, b = len(steps), len(self.prefixes)
         import torch
 
-        decoded = self.decode(torch.cat([s["x0"] for s in steps]))  # step-major: row i * b + k
+        estimates = [s["x0"] for s in (steps if last is None else steps[:-1])]
+        decoded = self.decode(torch.cat(estimates)) if estimates else []  # step-major: row i * b + k
+        decoded += last or []
         timesteps = rr.TimeColumn("timestep", sequence=[s["t"] for s in steps])
         inputs = [rr.TimeColumn("diffusion_step", sequence=[s["step"] for s in steps]), timesteps]
         times = [rr.TimeColumn("diffusion_step", sequence=[s["step"] + 1 for s in steps]), timesteps]
@@ -211,10 +213,12 @@ class TrajectoryLogger:
                      columns=rr.Scalars.columns(scalars=[float(s["residual_norms"][m][k]) for s in steps]))
         self.last_flush = time.perf_counter()
 
-    def finish(self) -> None:
+    def finish(self, last: list[dict] | None = None) -> None:
         """Flush, then record the clean latent the sampler ended on after the last step (its last model pass's
-        clean estimate: every sampler's last update lands on it), without a timestep."""
-        self.flush()
+        clean estimate: every sampler's last update lands on it), without a timestep; ``last``: each map as that
+        latent was decoded (``{"lines", "green", "red"}``), when the caller has it, so that it is not decoded again
+        as the last step's estimate."""
+        self.flush(last)
         if self.last is None:
             return
         final = self.last["x0"].float().cpu().numpy()[:, None]  # (B, 1, C, H, W)
