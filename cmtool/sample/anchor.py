@@ -87,10 +87,10 @@ def frame_roads(sd_map: SDMap, pose, frame_m: float = 64.0) -> list[Road]:
     return out
 
 
-def anchor(graph: LaneGraph, roads: list[Road], side: str, found: bool = True) -> LaneGraph:
+def anchor(graph: LaneGraph, roads: list[Road], side: str) -> LaneGraph:
     """``graph`` with its lanes along the SD ``roads`` (the frame's, :func:`frame_roads`) laid on them (module doc);
-    ``side``: "right" or "left", the driving side; ``found``: as :func:`~cmtool.maps.neighbours.relaned`'s.
-    ``meta.anchored``: lanes laid, metres laid."""
+    ``side``: "right" or "left", the driving side. ``meta.anchored``: lanes laid, metres laid. A laid map's lane
+    neighbours are left unrecorded: the guarantee changes it again and finds them once, at its end."""
     lanes = [np.asarray(l, np.float64) for l in graph.lanes]
     if not lanes or not roads:
         return graph
@@ -117,7 +117,7 @@ def anchor(graph: LaneGraph, roads: list[Road], side: str, found: bool = True) -
     successors += [(i, j) for i, j in infer_successors(new) if i in moved or j in moved]
     metres = sum(r.last - r.first for mine in by_lane.values() for r in mine) * STEP_M
     meta = dict(graph.meta) | {"anchored": {"lanes": len(by_lane), "metres": round(metres, 1)}}
-    return relaned(graph, new, successors, meta, found)
+    return relaned(graph, new, successors, meta, found=False)
 
 
 def _samples(line: np.ndarray) -> np.ndarray:

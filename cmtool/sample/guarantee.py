@@ -52,7 +52,7 @@ def guarantee(graph: LaneGraph, sd: np.ndarray | None, rules: LaneGraph | None =
     drawn = graph  # the steps' graphs have their neighbours found once, at the end
     graph, turned = _turned(graph, sd)
     if roads is not None:
-        graph = _no_worse(graph, anchor(graph, roads, side, found=False), None if turned else checked)
+        graph = _no_worse(graph, anchor(graph, roads, side), None if turned else checked)
         graph, again = _turned(graph, sd)  # a lane that laying made run mostly against a one-way road
         turned += again
     added, replaced = _lent(graph, rules)
