@@ -88,15 +88,13 @@ def test_eval_writes_reports_and_resumes(sampling_ckpt, tiny_data, tmp_path, cap
 def test_the_guarantee_of_eval_maps_is_the_same_in_worker_processes(tiny_data):
     from cmtool.core.workers import each
     from cmtool.data.cache import load_dataset, scene_sd_maps
-    from cmtool.data.layouts import scene_layouts
     from cmtool.eval.evaluation import as_sampled
     from cmtool.sample.checks import guaranteed
 
     data = load_dataset(tiny_data, "test")
     scenes = [data.scene(i) for i in range(min(6, len(data)))]
     maps = [s.to_lanegraph() for s in scenes]
-    items = list(zip(maps, scenes, scene_layouts(tiny_data, "test", scenes, "rules", roads_only=True),
-                     scene_sd_maps(tiny_data, "test")))
+    items = [(m, s, sd_map, "class") for m, s, sd_map in zip(maps, scenes, scene_sd_maps(tiny_data, "test"))]
     here, pooled = as_sampled(maps, tiny_data, "test", scenes), each(guaranteed, items, 3)
     assert len(here) == len(scenes) and [g.to_json() for g in here] == [g.to_json() for g in pooled]
 

@@ -159,12 +159,13 @@ def _random_scene(rng):
 def test_batched_kinks_and_crossings_equal_the_one_by_one_check():
     """The check's batched kink radii and chunked crossing search against the per-lane and all-pairs code they
     replaced, on 300 random scenes with bent, noisy and looping lanes, forks and merges."""
-    from cmtool.metrics.validity import _min_radii, check
+    from cmtool.core.radius import min_radii
+    from cmtool.metrics.validity import check
 
     rng = np.random.default_rng(1)
     for _ in range(300):
         lanes, succ = _random_scene(rng)
-        radius, _ = _min_radii(lanes)
+        radius, _ = min_radii(lanes)
         assert radius.tolist() == [_old_min_radius(lane) for lane in lanes]
         report = check(LaneGraph(lanes=[l.tolist() for l in lanes], successors=succ, frame_m=64.0))
         assert [p.lanes for p in report.problems if p.kind == "crossing"] == _old_crossings(lanes, succ)

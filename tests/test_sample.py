@@ -165,14 +165,15 @@ def test_every_map_s_scores_are_in_the_recording_and_the_table_says_what_they_ar
 
 
 def test_the_recording_shows_the_decoded_lanes_under_the_final_ones(sampled, sampling_ckpt, tmp_path):
-    """With the guarantee (the picture's roads traced, lanes laid on them) the map's view holds the lanes as decoded
-    (``decoded/``) beside the final ones (``hd/``); a --raw run has only the model's."""
+    """With the guarantee (the picture's roads traced, the map composed from them) the map's view holds the lanes as
+    decoded (``decoded/``, those the map left out in red) beside the final ones (``hd/``); a --raw run has only the
+    model's."""
     r = run_cli_once("sample", "--ckpt", sampling_ckpt["controlmap"], "--sd", SD_PNG, "--steps", 2, "--out", tmp_path,
                      "--quiet")
     assert r.returncode == 0, r.stderr
     rows = read_rrd(tmp_path / "sample.rrd")
     meta = json.loads((tmp_path / "sd_bos.json").read_text())["meta"]
-    assert "anchored" in meta and "guarantee" in meta
+    assert "composed" in meta and "raw" in meta
     assert rows["/decoded/lanes"] and rows["/hd/lanes"]
     assert not [p for p in sampled["rows"] if "/decoded/" in str(p)]
 

@@ -118,6 +118,12 @@ def sampler_options(fn):
         sampler(command))
 
 
+LANE_COUNTS_OPTION = click.option(
+    "--lane-counts", default="class", show_default=True, type=click.Choice(["class", "model"]),
+    help="Lanes per direction of an SD road without a lanes tag: its class's usual count, or as many as the model drew "
+         "along it (the class's where it drew none). The shipped weights' counts match real roads less often than "
+         "the class's (docs/baselines.md).")
+
 PRECISION_OPTION = click.option(
     "--precision", default="fp32", show_default=True, type=click.Choice(["fp32", "bf16"]),
     help="bf16: the denoising model (and the decoding of recorded step previews) under bf16 autocast, faster where "

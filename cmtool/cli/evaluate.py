@@ -7,7 +7,7 @@ import time
 import click
 
 from cmtool.core.errors import CmtoolError
-from cmtool.cli.common import (FEATURE_PRECISION_OPTION, PRECISION_OPTION, SEED, SMOOTH_OPTION, WORKERS_OPTION,
+from cmtool.cli.common import (FEATURE_PRECISION_OPTION, LANE_COUNTS_OPTION, PRECISION_OPTION, SEED, SMOOTH_OPTION, WORKERS_OPTION,
                                DatasetDir, Finite, InPath, OutPath, _device, _generator, attach_init, init_options,
                                sampler_options)
 
@@ -91,12 +91,13 @@ def metrics(generated, reference, control, json_out, backbone, weights, no_featu
 @click.option("--no-features", is_flag=True, help="Skip the feature metrics.")
 @click.option("--rrd-samples", default=64, show_default=True, type=click.IntRange(min=0),
               help="Scenes whose maps go into eval.rrd (scores go in for all).")
+@LANE_COUNTS_OPTION
 @click.option("--device", help="torch device [default: cuda when available, else cpu].")
 @PRECISION_OPTION
 @WORKERS_OPTION
 @click.option("--quiet", is_flag=True, help="No progress line.")
 def eval_cmd(ckpt, data_dir, split, n, cfg, steps, sampler, init, strength, encoder_path, seed, smooth, batch, out,
-             backbone, weights, no_features, rrd_samples, device, precision, workers, quiet):
+             backbone, weights, no_features, rrd_samples, lane_counts, device, precision, workers, quiet):
     """Evaluate a ControlMap checkpoint on a test split against its unguided DiT (paper Tables 1-2).
     Under torchrun the processes share the generation (the same maps as one process)."""
 
@@ -113,7 +114,7 @@ def eval_cmd(ckpt, data_dir, split, n, cfg, steps, sampler, init, strength, enco
         extractor = None if no_features or not info.main else FeatureExtractor(backbone, weights, gen.device)
         settings = EvalSettings(data=str(data_dir.resolve()), split=split, n=n, cfg=cfg, steps=steps,
                                 sampler=sampler, seed=seed, batch=batch, precision=precision, init=init,
-                                strength=strength if init != "none" else 1.0)
+                                strength=strength if init != "none" else 1.0, lane_counts=lane_counts)
         run_eval(gen, settings, out, extractor, rrd_samples=rrd_samples, progress=not quiet, info=info,
                  workers=workers or cores())
     finally:

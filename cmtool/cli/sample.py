@@ -8,7 +8,7 @@ from pathlib import Path
 
 import click
 
-from cmtool.cli.common import (CITY_CFG_HELP, PRECISION_OPTION, SEED, SMOOTH_OPTION, Finite, InPath, OutPath, _device,
+from cmtool.cli.common import (CITY_CFG_HELP, LANE_COUNTS_OPTION, PRECISION_OPTION, SEED, SMOOTH_OPTION, Finite, InPath, OutPath, _device,
                                _generator, attach_init, check_map_inputs, init_options, map_input_options, map_inputs,
                                sampler_options)
 from cmtool.core.errors import CmtoolError
@@ -71,9 +71,10 @@ Large sets in several processes (CPU or GPUs), the same maps as one process:
 @click.option("--connect", "connect_url", help="Also stream live to a running viewer at this gRPC URL.")
 @click.option("--serve", is_flag=True, help="Also serve the recording and Rerun's web viewer from this machine "
                                             "(ports 9876 and 9090), until Ctrl-C: for a browser elsewhere.")
-@click.option("--raw", is_flag=True, help="Keep the model's maps as it drew them: no guarantee (by default no lane "
-                                          "leaves against a one-way SD road, and SD roads without a lane get the "
-                                          "rules' lanes; docs/sampling.md).")
+@click.option("--raw", is_flag=True, help="Keep the model's maps as it drew them (by default each map is composed "
+                                          "from its SD map: every SD road carries its lanes and nothing else does, "
+                                          "the model deciding the junctions' movements; docs/sampling.md).")
+@LANE_COUNTS_OPTION
 @click.option("--no-log", is_flag=True, help="No recording (fastest).")
 @click.option("--no-pictures", is_flag=True, help="No picture per map (the lane graphs only; faster).")
 @click.option("--workers", type=click.IntRange(min=1),
@@ -85,7 +86,7 @@ Large sets in several processes (CPU or GPUs), the same maps as one process:
 @click.option("--quiet", is_flag=True, help="No progress line.")
 def sample(ckpt, sd_paths, osm, center, heading, from_hd, pose, area, px_m, num, candidates, seed, steps, sampler, eta,
            city, cfg, city_cfg, init, strength, encoder_path, smooth, batch, out, rrd, grid, spawn, connect_url, serve,
-           raw, no_log, no_pictures, workers, device, precision, quiet):
+           raw, lane_counts, no_log, no_pictures, workers, device, precision, quiet):
     kinds = [name for name, given in (("--sd", sd_paths), ("--osm", osm), ("--from-hd", from_hd)) if given]
     if len(kinds) > 1:
         raise CmtoolError(f"give one kind of SD input, not {' and '.join(kinds)}")
@@ -107,7 +108,7 @@ def sample(ckpt, sd_paths, osm, center, heading, from_hd, pose, area, px_m, num,
     if area is not None:
         return _area(ckpt, sd_paths, px_m, osm, center, from_hd, pose, area, num, candidates, seed, steps, sampler,
                      eta, city, cfg, city_cfg, init, strength, encoder_path, smooth, batch, out, rrd, grid, spawn,
-                     connect_url, serve, raw, no_log, workers, device, precision, quiet)
+                     connect_url, serve, raw, lane_counts, no_log, workers, device, precision, quiet)
     import shlex
 
     from cmtool.core import dist as D
@@ -118,7 +119,7 @@ def sample(ckpt, sd_paths, osm, center, heading, from_hd, pose, area, px_m, num,
 
     settings = SampleSettings(num=num, seed=seed, steps=steps, sampler=sampler, eta=eta, cfg=cfg, city=city,
                               city_cfg=city_cfg, batch=batch, init=init, strength=strength if init != "none" else 1.0,
-                              guarantee=not raw, candidates=candidates)
+                              guarantee=not raw, lane_counts=lane_counts, candidates=candidates)
     settings.check()
     inputs = src.image_inputs(sd_paths) if sd_paths else map_inputs(osm, center, heading, from_hd, pose, seed)
     if not inputs:
@@ -162,7 +163,7 @@ AREA_INIT, AREA_STRENGTH = "rules", 0.3  # where --area's tiles start unless --i
 
 def _area(ckpt, sd_paths, px_m, osm, center, from_hd, pose, area, num, candidates, seed, steps, sampler, eta, city,
           cfg, city_cfg, init, strength, encoder_path, smooth, batch, out, rrd, grid, spawn, connect_url, serve, raw,
-          no_log, workers, device, precision, quiet):
+          lane_counts, no_log, workers, device, precision, quiet):
     """``sample --area``: one map of a whole area (:mod:`cmtool.sample.area`)."""
     if osm is None and from_hd is None and not sd_paths:
         raise CmtoolError("--area needs --osm FILE, --from-hd MAP or --sd PICTURE (the SD map of the area)")
@@ -189,7 +190,8 @@ def _area(ckpt, sd_paths, px_m, osm, center, from_hd, pose, area, num, candidate
     from cmtool.sample.run import SampleSettings
 
     settings = SampleSettings(seed=seed, steps=steps, sampler=sampler, eta=eta, cfg=cfg, city=city, city_cfg=city_cfg,
-                              batch=batch, init=init, strength=strength if init != "none" else 1.0, guarantee=not raw)
+                              batch=batch, init=init, strength=strength if init != "none" else 1.0, guarantee=not raw,
+                              lane_counts=lane_counts)
     settings.check()
     if osm is not None:
         sd_map, name = src.osm_sd_map(osm), Path(osm).name.split(".")[0]

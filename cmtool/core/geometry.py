@@ -158,6 +158,34 @@ def insert_vertex(line: np.ndarray, point: np.ndarray, snap: float = 1e-6) -> tu
     return np.concatenate([line[:k + 1], p[None], line[k + 1:]]), p
 
 
+def rounded_corners(line: np.ndarray, radius: float, step_deg: float = 10.0) -> np.ndarray:
+    """``line`` with each interior vertex replaced by a circular arc of ``radius`` tangent to its two segments (a
+    smaller one where the segments are too short: each gives at most half its length to each arc), a point every
+    ``step_deg`` of it; the ends stay."""
+    out = [line[0]]
+    for k in range(1, len(line) - 1):
+        u1, u2 = line[k] - line[k - 1], line[k + 1] - line[k]
+        l1, l2 = float(np.linalg.norm(u1)), float(np.linalg.norm(u2))
+        if l1 < 1e-9 or l2 < 1e-9:
+            continue
+        u1, u2 = u1 / l1, u2 / l2
+        turn = math.atan2(u1[0] * u2[1] - u1[1] * u2[0], float(u1 @ u2))
+        if abs(turn) < 1e-3 or abs(turn) > math.pi - 1e-3:
+            out.append(line[k])
+            continue
+        t = min(radius * math.tan(abs(turn) / 2.0), l1 / 2.0, l2 / 2.0)
+        r = t / math.tan(abs(turn) / 2.0)
+        start = line[k] - t * u1
+        normal = np.array([-u1[1], u1[0]]) * math.copysign(1.0, turn)  # towards the centre
+        centre = start + r * normal
+        a0 = math.atan2(*(start - centre)[::-1])
+        n = max(2, int(math.ceil(math.degrees(abs(turn)) / step_deg)) + 1)
+        angles = a0 + np.linspace(0.0, turn, n)
+        out.extend(centre + r * np.stack([np.cos(angles), np.sin(angles)], axis=1))
+    out.append(line[-1])
+    return np.array(out)
+
+
 def moved_start(points: np.ndarray, to: np.ndarray, fade_m: float) -> np.ndarray:
     """``points`` with its first point moved to ``to``, the move fading linearly to none ``fade_m`` along it, or at
     its other end if that comes first (so a join bends a lane without a kink and leaves its other end in place)."""

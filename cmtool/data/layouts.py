@@ -12,48 +12,33 @@ from cmtool.data.hd_raster import draw_direction_lines
 from cmtool.data.rules import rule_layout
 from cmtool.data.scene import Scene, SceneCropper
 from cmtool.formats.sumo import netconvert_layout
-from cmtool.maps.hdmap import HDMap, drives_on
+from cmtool.maps.hdmap import drives_on
 
 LAYOUTS = {"rules": rule_layout, "netconvert": netconvert_layout}  # SD map, driving side -> HD map
 LAYOUT_CHANNELS = 2  # the layout's lanes as the HD raster draws them: 0.5 (cos h, sin h) + 0.5, background 0
 
 
-def without_connectors(hd: HDMap) -> HDMap:
-    """``hd`` without its connector lanes through junctions (in place), the road lanes' links to them dropped."""
-    hd.lanes = {k: lane for k, lane in hd.lanes.items() if not lane.in_intersection}
-    for lane in hd.lanes.values():
-        lane.successors = [s for s in lane.successors if s in hd.lanes]
-        lane.predecessors = [p for p in lane.predecessors if p in hd.lanes]
-    return hd
-
-
-def cropped_layouts(frames, method: str, roads_only: bool = False, **crop) -> list[Scene]:
+def cropped_layouts(frames, method: str, **crop) -> list[Scene]:
     """The ``method`` layout (one of ``LAYOUTS``) of each frame's SD map, cropped to the frame: ``frames`` are
-    (SD map, pose, driving side); one layout per SD map; ``roads_only``: without the connector lanes through
-    junctions; ``crop``: :meth:`SceneCropper.extract`'s sizes."""
+    (SD map, pose, driving side); one layout per SD map; ``crop``: :meth:`SceneCropper.extract`'s sizes."""
     croppers: dict[int, SceneCropper] = {}
     scenes = []
     for sd_map, pose, side in frames:
         if id(sd_map) not in croppers:
-            if method == "rules" and roads_only:  # no connectors laid out only to be dropped
-                hd = rule_layout(sd_map, side, connectors=False)
-            else:
-                hd = LAYOUTS[method](sd_map, side)
-            croppers[id(sd_map)] = SceneCropper(without_connectors(hd) if roads_only else hd)
+            croppers[id(sd_map)] = SceneCropper(LAYOUTS[method](sd_map, side))
         scenes.append(croppers[id(sd_map)].extract(pose, **crop))
     return scenes
 
 
-def scene_layouts(data_dir, split: str, scenes, method: str, roads_only: bool = False,
-                  side: str | None = None) -> list[Scene]:
+def scene_layouts(data_dir, split: str, scenes, method: str, side: str | None = None) -> list[Scene]:
     """The ``method`` layout of each of the first scenes of a dataset split (in order) from the SD map its SD raster
-    was drawn from, cropped as the dataset cropped the scene; ``roads_only``: without its junction connectors;
-    ``side``: drive on this side [default: the scene's city's]."""
+    was drawn from, cropped as the dataset cropped the scene; ``side``: drive on this side [default: the scene's
+    city's]."""
     recipe = load_manifest(data_dir)["recipe"]
     crop = {k: recipe[k] for k in ("num_lines", "num_points", "num_lights", "frame_m", "min_piece_m")}
     frames = [(sd_map, s.pose, side or drives_on(s.city))
               for s, sd_map in zip(scenes, scene_sd_maps(data_dir, split))]
-    return cropped_layouts(frames, method, roads_only, **crop)
+    return cropped_layouts(frames, method, **crop)
 
 
 def layout_raster(scene: Scene, size: int = 128, width_m: float = 1.0) -> np.ndarray:

@@ -4,7 +4,8 @@ drawing, or a picture in the SD raster's colours (:mod:`cmtool.data.sd_raster`),
 The road pixels are thinned to lines one pixel wide (Zhang and Suen's thinning); pixels where the lines meet or end
 are nodes (touching ones one node, at their mean); the lines between nodes become roads, in metres east and north
 of the picture's centre. Spurs of the thinning (a line from a node to an end shorter than ``SPUR_WIDTHS`` road
-widths) are dropped, and nodes closer than a road width are one. In the SD raster's colours a road takes its lane
+widths) are dropped, and nodes closer than a road width are one; a road end that the thinning left short of the
+picture's edge (within a road width of it, heading out) goes on to the edge. In the SD raster's colours a road takes its lane
 count (G) and, where most of its pixels say one-way (B), its direction: the picture's up is north, as a raster's up
 is ahead.
 """
@@ -49,7 +50,8 @@ def trace_picture(img: np.ndarray, coloured: bool, px_m: float, city: str | None
         np.arange(len(lines)), [len(line) for line in lines])), SIMPLIFY_PX) if lines else np.zeros(0, object)
     simple, which = shapely.get_coordinates(shapes, return_index=True)  # (col, row)
     metres = np.stack([(simple[:, 0] + 0.5 - w / 2.0) * px_m, (h / 2.0 - simple[:, 1] - 0.5) * px_m], axis=1)
-    metres = np.split(metres, np.flatnonzero(np.diff(which)) + 1)
+    metres = _to_edge(np.split(metres, np.flatnonzero(np.diff(which)) + 1), (w / 2.0 * px_m, h / 2.0 * px_m),
+                      width * px_m)
     roads = []
     for k in np.flatnonzero(shapely.length(shapes) >= 1.0):  # shorter: a link of two touching nodes
         lanes, oneway = _attributes(img, lines[k]) if coloured else (None, 0)
@@ -57,6 +59,33 @@ def trace_picture(img: np.ndarray, coloured: bool, px_m: float, city: str | None
     if not roads:
         raise CmtoolError(f"{path}: no road lines could be traced in the picture")
     return SDMap(city=city, roads=roads, source=f"drawing:{path}", meta={"px_m": px_m})
+
+
+def _to_edge(lines: list[np.ndarray], half: tuple[float, float], reach: float) -> list[np.ndarray]:
+    """Each line end that no other line shares and that lies within ``reach`` of the picture's edge (``half``: its
+    half width and height, metres about its centre) along its heading (from the point ``reach`` back along the line:
+    the thinning bends the last pixels), taken on to the edge."""
+    ends = np.array([(line[0], line[-1]) for line in lines]).reshape(-1, 2)
+    shared = np.unique(np.round(ends, 6), axis=0, return_counts=True)
+    alone = {tuple(p) for p, n in zip(*shared) if n == 1}
+    out = []
+    for line in lines:
+        line = line.copy()
+        for end in (0, -1):
+            if len(line) < 2 or tuple(np.round(line[end], 6)) not in alone:
+                continue
+            back = line if end == 0 else line[::-1]
+            far = np.flatnonzero(np.linalg.norm(back - back[0], axis=1) >= reach)
+            d = back[0] - back[far[0] if len(far) else -1]
+            d = d / max(float(np.linalg.norm(d)), 1e-9)
+            with np.errstate(divide="ignore", invalid="ignore"):
+                steps = np.where(np.abs(d) > 1e-9, (np.sign(d) * np.array(half) - line[end]) / d, np.inf)
+            step = float(np.min(steps))
+            if 0.0 < step <= reach:
+                tip = line[end] + step * d
+                line = np.vstack([tip[None], line]) if end == 0 else np.vstack([line, tip[None]])
+        out.append(line)
+    return out
 
 
 def _thin(mask: np.ndarray) -> np.ndarray:

@@ -50,7 +50,8 @@ from cmtool.model import checkpoint as ckpt
 from cmtool.model.controlmap import NO_LAYOUT
 from cmtool.model.release import BUNDLED
 from cmtool.sample import DEFAULT_SMOOTH
-from cmtool.sample.anchor import drawn_lane_counts, frame_roads
+from cmtool.sample.compose import DEFAULT_COUNTS, check_counts
+from cmtool.sample.roads import drawn_lane_counts, frame_roads
 from cmtool.sample.checks import guaranteed
 from cmtool.sample.generator import MapGenerator
 from cmtool.sample.layouts import NO_INIT, check_init
@@ -79,10 +80,12 @@ class EvalSettings(SamplerSettings):
     precision: str = "fp32"  # of the denoising model (MapGenerator.precision)
     init: str = NO_INIT  # ControlMap starts from this layout of the scene's SD map (cmtool.sample.layouts), encoded
     strength: float = 1.0  # ... noised this far up the schedule
+    lane_counts: str = DEFAULT_COUNTS  # an untagged road's lanes in the "+ guarantee" maps (cmtool.sample.compose)
 
     def check(self, prefix: str = "--") -> None:
         super().check(prefix)
         check_init(self.init, self.strength, prefix)
+        check_counts(self.lane_counts, prefix)
 
 
 def run_eval(gen: MapGenerator, settings: EvalSettings, out: Path, extractor: FeatureExtractor | None,
@@ -117,7 +120,7 @@ def run_eval(gen: MapGenerator, settings: EvalSettings, out: Path, extractor: Fe
         baselines = {m: [_as_map(s, m, k) for k, s in enumerate(
                          starts if m == settings.init else scene_layouts(settings.data, settings.split, scenes, m))]
                      for m in LAYOUTS if m != "netconvert" or netconvert_path() is not None}
-        final = as_sampled(generated["controlmap"], settings.data, settings.split, scenes, workers)
+        final = as_sampled(generated["controlmap"], settings.data, settings.split, scenes, settings.lane_counts, workers)
         counts = lane_count_agreement(scenes, generated["controlmap"], scene_sd_maps(settings.data, settings.split))
         generated = {"unguided": generated["unguided"], **baselines, "controlmap": generated["controlmap"],
                      "guaranteed": final}
@@ -146,8 +149,8 @@ def run_eval(gen: MapGenerator, settings: EvalSettings, out: Path, extractor: Fe
 
 def lane_count_agreement(scenes, maps: list[LaneGraph], sd_maps) -> dict:
     """How many lanes a direction of each SD road in the frames has: the model's ``maps`` and the rules' guess (the
-    road's ``lanes`` tag, else its class's usual count) against the ground truth, both maps counted as anchoring
-    counts them (:func:`drawn_lane_counts`), over the road directions where the ground truth has lanes: the share
+    road's ``lanes`` tag, else its class's usual count) against the ground truth, both maps' lanes counted by
+    :func:`drawn_lane_counts`, over the road directions where the ground truth has lanes: the share
     equal to the truth's, the mean difference and the mean absolute difference."""
     diffs = {"model": [], "rules": []}
     for scene, graph, sd_map in zip(scenes, maps, sd_maps):
@@ -162,12 +165,13 @@ def lane_count_agreement(scenes, maps: list[LaneGraph], sd_maps) -> dict:
             for k, v in diffs.items() if v}
 
 
-def as_sampled(maps: list[LaneGraph], data, split: str, scenes, workers: int = 1) -> list[LaneGraph]:
-    """The maps of a dataset split's first scenes as ``cmtool sample`` writes them (:func:`guarantee`: laid on the
-    scenes' SD roads, turned where against one-way roads, the rules' lanes lent), in ``workers`` processes; raises
+def as_sampled(maps: list[LaneGraph], data, split: str, scenes, counts: str = DEFAULT_COUNTS,
+               workers: int = 1) -> list[LaneGraph]:
+    """The maps of a dataset split's first scenes as ``cmtool sample`` writes them (:func:`guaranteed`: composed from
+    the scenes' SD maps; ``counts``: :func:`cmtool.sample.compose.compose`'s), in ``workers`` processes; raises
     ``MissingSDMaps`` for a dataset built before SD maps were stored."""
-    rules = scene_layouts(data, split, scenes, "rules", roads_only=True)
-    return each(guaranteed, list(zip(maps, scenes, rules, scene_sd_maps(data, split))), workers, least=AS_SAMPLED_POOL)
+    items = [(m, s, sd_map, counts) for m, s, sd_map in zip(maps, scenes, scene_sd_maps(data, split))]
+    return each(guaranteed, items, workers, least=AS_SAMPLED_POOL)
 
 
 AS_SAMPLED_POOL = 64  # fewer maps are laid in this process: starting workers costs a second or two
@@ -243,7 +247,7 @@ def _open_cache(cache: Path, settings: EvalSettings) -> tuple[int, dict[str, lis
     cache.mkdir(parents=True, exist_ok=True)
     meta = cache / "settings.json"
     mine = {k: v for k, v in asdict(settings).items()  # caches from before --init have no init entries
-            if k != "n" and not (k in ("init", "strength") and settings.init == NO_INIT)}
+            if k not in ("n", "lane_counts") and not (k in ("init", "strength") and settings.init == NO_INIT)}
     if meta.is_file():
         theirs = read_json(meta)
         if theirs != mine:

@@ -26,7 +26,7 @@ from __future__ import annotations
 import json
 import math
 import os
-from dataclasses import dataclass, field
+from dataclasses import dataclass, field, replace
 from pathlib import Path
 
 import numpy as np
@@ -71,6 +71,15 @@ class LaneGraph:
             **({} if self.widths is None else {"widths": [round(float(w), 3) for w in self.widths]}),
             "meta": self.meta,
         }
+
+    def as_written(self) -> "LaneGraph":
+        """The lane graph as its file holds it: coordinates and widths to the millimetre (:meth:`to_json`), so that
+        what is judged in memory is judged alike when the file is read back."""
+        def mm(lines):
+            return [np.round(np.asarray(l, dtype=np.float64), 3) for l in lines]
+
+        return replace(self, lanes=mm(self.lanes), green_lights=mm(self.green_lights), red_lights=mm(self.red_lights),
+                       widths=None if self.widths is None else [round(float(w), 3) for w in self.widths])
 
     @classmethod
     def from_json(cls, obj, where: str = "scene") -> "LaneGraph":

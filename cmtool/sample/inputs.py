@@ -59,8 +59,8 @@ def image_inputs(paths) -> list[ControlInput]:
 
 def _traced(sd: np.ndarray) -> dict:
     """The SD map traced from an SD raster's roads (:func:`cmtool.data.sd_trace.trace_picture`) and the frame's pose
-    in it (the raster's up is ahead), for what needs the roads' lines: the guarantee's anchoring and rules; nothing
-    where no line can be traced."""
+    in it (the raster's up is ahead), for what needs the roads' lines: the guarantee's composed map and the rules;
+    nothing where no line can be traced."""
     try:
         sd_map = trace_picture(sd, True, FRAME_M / sd.shape[0])
     except CmtoolError:

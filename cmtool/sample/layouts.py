@@ -24,12 +24,11 @@ def check_init(init: str, strength: float, prefix: str = "--") -> None:
         raise SamplingError(f"{prefix}strength: must be in (0, 1], got {strength}")
 
 
-def layout_scenes(inputs: list[ControlInput], method: str, side: str | None = None,
-                  roads_only: bool = False) -> list[Scene]:
+def layout_scenes(inputs: list[ControlInput], method: str, side: str | None = None) -> list[Scene]:
     """:func:`cropped_layouts` of sampling inputs; ``side``: the driving side [default: the input's city's]."""
     for item in inputs:
         if item.sd_map is None or item.pose is None:
             raise CmtoolError(f"{item.name}: {method} needs an SD map, and no roads could be traced in the picture: "
                               "give --osm or --from-hd")
     return cropped_layouts([(item.sd_map, Pose(*item.pose), side or drives_on(item.city)) for item in inputs],
-                           method, roads_only)
+                           method)

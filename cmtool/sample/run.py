@@ -33,11 +33,13 @@ from cmtool.diffusion.settings import SamplerSettings, SamplingError
 from cmtool.maps.lanegraph import LaneGraph
 from cmtool.model.controlmap import NO_LAYOUT
 from cmtool.sample.checks import check_maps
+from cmtool.sample.compose import DEFAULT_COUNTS, check_counts, unexplained
 from cmtool.sample.files import MAP_FILES, MapFiles
 from cmtool.sample.generator import MapGenerator
 from cmtool.sample.inputs import ControlInput
 from cmtool.sample.layouts import NO_INIT, check_init, layout_scenes
 from cmtool.sample.pool import pipelined
+from cmtool.sample.roads import frame_roads
 from cmtool.sample.scores import SCORES, SCORES_NOTE, choose
 from cmtool.viz.recording import log_decoded, log_lanes, log_layout, log_sd
 from cmtool.viz.trajectory import TrajectoryLogger, log_scores, sampling_blueprint
@@ -56,12 +58,14 @@ class SampleSettings(SamplerSettings):
     city_cfg: float = 1.0  # guidance on the city label (1: the label as trained)
     init: str = NO_INIT  # start from this rule-based layout of the input (cmtool.sample.layouts), encoded
     strength: float = 1.0  # with init: how far up the noise schedule the layout is noised before denoising
-    guarantee: bool = True  # no lane against a one-way SD road, no SD road without a lane (cmtool.sample.guarantee)
+    guarantee: bool = True  # each map composed from its SD map (cmtool.sample.guarantee)
+    lane_counts: str = DEFAULT_COUNTS  # where an untagged road's lane counts come from (cmtool.sample.compose)
     candidates: int = 1  # maps drawn per map asked for; the best (:func:`choose`) is kept
 
     def check(self, prefix: str = "--") -> None:
         super().check(prefix)
         check_init(self.init, self.strength, prefix)
+        check_counts(self.lane_counts, prefix)
         if not (math.isfinite(self.city_cfg) and self.city_cfg >= 0):
             raise SamplingError(f"{prefix}city-cfg: guidance weight must be a finite number >= 0, got {self.city_cfg}")
         if self.num < 1:
@@ -81,7 +85,6 @@ class Job:
     prefix: str = ""
     candidate: int = 0  # which of the --candidates drawn for this map (0 .. candidates-1)
     init: Scene | None = None  # the layout the map starts from (--init)
-    rules: LaneGraph | None = None  # the rule layout of its frame, which the guarantee lends lanes from
     layout: np.ndarray | None = None  # the layout raster the control branch reads (when it reads one)
 
 
@@ -99,12 +102,10 @@ def plan(gen: MapGenerator, inputs: list[ControlInput], settings: SampleSettings
     if any(item.sd is not None for item in inputs) and not gen.has_control:
         raise CmtoolError(f"{gen.path}: a DiT checkpoint has no control branch; give a ControlMap checkpoint "
                           "or no SD input")
-    starts = rules = controls = [None] * len(inputs)
+    starts = controls = [None] * len(inputs)
     if settings.init != NO_INIT:
         gen.encode([])  # an RVAE without an encoder fails here, before any layout is made
         starts = layout_scenes(inputs, settings.init)
-    if settings.guarantee and all(item.sd_map is not None for item in inputs):
-        rules = [s.to_lanegraph(neighbours=False) for s in layout_scenes(inputs, "rules", roads_only=True)]
     if gen.layout != NO_LAYOUT:  # a picture whose roads could not be traced has no map: its channels stay empty
         mapped = [k for k, item in enumerate(inputs) if item.sd_map is not None and item.pose is not None]
         if settings.init == gen.layout:
@@ -115,12 +116,12 @@ def plan(gen: MapGenerator, inputs: list[ControlInput], settings: SampleSettings
         for k, scene in zip(mapped, scenes):
             controls[k] = layout_raster(scene, inputs[k].sd.shape[0])
     jobs = []
-    for item, start, layout, control in zip(inputs, starts, rules, controls):
+    for item, start, control in zip(inputs, starts, controls):
         label = gen.known_label(item.city) if settings.city.lower() == AUTO else gen.label(settings.city)
         for k in range(settings.num):
             for c in range(settings.candidates):
                 jobs.append(Job(item.name if settings.num == 1 else f"{item.name}_s{k}", item, label, k, init=start,
-                                rules=layout, layout=control, candidate=c))
+                                layout=control, candidate=c))
     if len(jobs) > 1:
         for i, job in enumerate(jobs):
             job.prefix = f"sample_{i}/"
@@ -259,11 +260,15 @@ def _step_logger(gen: MapGenerator, rec, batch: list[Job], settings: SampleSetti
 
 
 def _log_maps(rec, batch: list[Job], graphs: list[LaneGraph], decoded: list[LaneGraph]) -> None:
-    """Log each job's map and, where the checks changed it, the map as decoded beneath it."""
+    """Log each job's map and, where the guarantee changed it, the map as decoded beneath it, the lanes it left out
+    marked."""
     for job, graph, raw in zip(batch, graphs, decoded):
         log_lanes(rec, job.prefix, graph.lanes, graph.green_lights, graph.red_lights, graph.successors, static=True)
-        if graph.meta.get("guarantee") is not None and not _same_lanes(graph, raw):
-            log_decoded(rec, job.prefix, raw.lanes)
+        if "raw" in graph.meta and not _same_lanes(graph, raw):
+            src = job.source
+            dropped = unexplained(raw, frame_roads(src.sd_map, src.pose, raw.frame_m)) if "composed" in graph.meta \
+                else []
+            log_decoded(rec, job.prefix, raw.lanes, dropped)
 
 
 def _same_lanes(a: LaneGraph, b: LaneGraph) -> bool:

@@ -37,12 +37,17 @@ def summary_table(maps: list[SampledMap]) -> str:
         rows.append(f"{len(maps)} maps: mean validity {np.mean([m.graph.meta['validity'] for m in maps]):.3f}, "
                     f"lane length on one-way SD roads running the legal way {dash(legal)}, SD road with a lane "
                     f"within 3 m {dash(float(np.mean(covered)) if covered else None)}")
-    fixed = [m.graph.meta["guarantee"] for m in maps if "guarantee" in m.graph.meta]
-    if fixed:
-        raw = [m.graph.meta["raw"] for m in maps if "raw" in m.graph.meta]
+    raw = [m.graph.meta["raw"] for m in maps if "raw" in m.graph.meta]
+    if raw:
+        composed = [m.graph.meta["composed"] for m in maps if "composed" in m.graph.meta]
+        turned = sum(m.graph.meta["guarantee"]["turned"] for m in maps if "guarantee" in m.graph.meta)
+        made = [c["movements"].get("model", 0) for c in composed]
+        moves = [sum(c["movements"].values()) for c in composed]
+        done = ([f"{len(composed)} composed from the SD map ({sum(c['dropped'] for c in composed)} of the model's lanes "
+                 f"left out where it has no road; {sum(made)} of {sum(moves)} junction movements the model's)"]
+                if composed else []) + ([f"{turned} lanes turned round"] if turned else [])
         mean = lambda k: dash(float(np.mean([r[k] for r in raw if k in r])) if any(k in r for r in raw) else None)  # noqa: E731
-        rows.append(f"the guarantee turned {sum(f['turned'] for f in fixed)} lanes round and added "
-                    f"{sum(f['added'] for f in fixed)} from the rules; the model's own maps: validity "
+        rows.append(f"the guarantee: {'; '.join(done) or 'nothing changed'}; the model's own maps: validity "
                     f"{mean('validity')}, one-way ok {mean('legal_oneway')}, SD covered {mean('sd_coverage')}")
     seconds = sum(m.seconds for m in maps)
     rows.append(f"time to generate and check: {seconds:.1f} s"

@@ -29,6 +29,7 @@ _EGO_TO_SCREEN = [[0.0, -1.0, 0.0], [-1.0, 0.0, 0.0], [0.0, 0.0, 1.0]]
 APP_IDS = {kind: f"cmtool_{kind}" for kind in ("data", "train", "sample", "eval", "ablate", "area")}
 LANE_RADIUS_M, LIGHT_RADIUS_M = 0.2, 0.3  # thin enough to see the junction through
 DECODED = [150, 150, 150]  # the decoded lanes under the final map
+DROPPED = [230, 60, 60]  # the decoded lanes the final map leaves out: no SD road explains them
 GRPC_PORT, WEB_PORT = 9876, 9090  # where --serve serves a recording and Rerun's web viewer
 
 
@@ -189,11 +190,13 @@ def log_lanes(rec: rr.RecordingStream, prefix: str, lines, green=(), red=(), edg
                                                               colors=colour, draw_order=20.0), static=static)
 
 
-def log_decoded(rec: rr.RecordingStream, prefix: str, lines) -> None:
-    """Log a map's lanes as the model decoded them, grey and thin, under ``<prefix>decoded``: beside the final map
-    (``<prefix>hd``) it shows what the guarantee moved (laid on the SD roads, turned, lent)."""
+def log_decoded(rec: rr.RecordingStream, prefix: str, lines, dropped=()) -> None:
+    """Log a map's lanes as the model decoded them, thin, under ``<prefix>decoded``: grey, and red those of
+    ``dropped`` (indices): beside the final map (``<prefix>hd``) it shows what the guarantee made of the model's map
+    (lanes laid on the SD roads, lanes no SD road explains left out)."""
+    colors = [DROPPED if k in set(dropped) else DECODED for k in range(len(lines))]
     rec.log(f"{prefix}decoded/lanes", rr.LineStrips2D([np.asarray(l) for l in lines], radii=LANE_RADIUS_M / 2,
-                                                      colors=DECODED, draw_order=-5.0), static=True)
+                                                      colors=colors, draw_order=-5.0), static=True)
 
 
 def log_sd(rec: rr.RecordingStream, prefix: str, sd: np.ndarray, frame_m: float = 64.0, static: bool = False) -> None:
