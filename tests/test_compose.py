@@ -89,7 +89,8 @@ def test_connectors_are_smooth_and_join_both_their_lanes_ends(side):
     for k in connectors:
         into, out_ = lanes[before[k]], lanes[after[k]]
         assert np.allclose(into[-1], lanes[k][0], atol=2e-3) and np.allclose(lanes[k][-1], out_[0], atol=2e-3)
-        for a, b in ((into[-1] - into[-2], lanes[k][1] - lanes[k][0]), (lanes[k][-1] - lanes[k][-2], out_[1] - out_[0])):
+        joins = ((into[-1] - into[-2], lanes[k][1] - lanes[k][0]), (lanes[k][-1] - lanes[k][-2], out_[1] - out_[0]))
+        for a, b in joins:
             assert float(unit(a) @ unit(b)) > np.cos(np.radians(12.0))  # tangent to both, at 20 points a lane
     assert min_radii([lanes[k] for k in connectors])[0].min() >= 4.0
     assert check(out).score == 1.0

@@ -1129,9 +1129,15 @@ def test_a_stopped_pooled_sample_run_leaves_nothing_and_runs_again_to_the_same_f
     code = proc.wait(timeout=60)
     err = proc.stderr.read()
     assert code == 143 and "Traceback" not in err, err
-    alive = [pid for pid in workers if Path(f"/proc/{pid}").exists()
-             and Path(f"/proc/{pid}/stat").read_text().rsplit(")", 1)[1].split()[0] != "Z"]
-    assert not alive and not (out.exists() and any(out.iterdir())), (alive, list(out.iterdir()))
+
+    def alive():  # a worker the stop found still starting ends a moment after the process that started it
+        return [pid for pid in workers if Path(f"/proc/{pid}").exists()
+                and Path(f"/proc/{pid}/stat").read_text().rsplit(")", 1)[1].split()[0] != "Z"]
+
+    deadline = time.monotonic() + 30
+    while alive() and time.monotonic() < deadline:
+        time.sleep(0.05)
+    assert not alive() and not (out.exists() and any(out.iterdir())), (alive(), out.exists() and list(out.iterdir()))
     assert cli(*args, out)[0] == 0
     assert cli(*args[:-5], "--workers", 1, "--no-log", "--quiet", "--out", tmp_path / "unbroken")[0] == 0
     made = {p.name: p.read_bytes() for p in sorted(out.iterdir())}

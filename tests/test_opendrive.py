@@ -165,6 +165,16 @@ def test_carla_keeps_every_exported_lane_in_its_topology(name):
         assert carla_missing(to_opendrive(graph, *ORIGIN, HEADING)) == set(), f"{name} #{n}"
 
 
+@pytest.mark.parametrize("half", [32.0, 30.0, 20.0, 31.9])
+def test_carla_keeps_the_lanes_of_a_straight_road_that_leads_nowhere(half):
+    """A road of one straight geometry whose length a 32-bit float holds exactly (64 m: a composed map's road across
+    the frame) or rounds up: its lanes, joined to nothing, stay in CARLA's topology."""
+    x = np.linspace(-half, half, 20)
+    graph = LaneGraph([np.stack([x[::-1], np.full(20, 1.65)], axis=1), np.stack([x, np.full(20, -1.65)], axis=1)],
+                      widths=[3.3, 3.3], left_neighbors=[], oncoming=[(0, 1)])
+    assert carla_missing(to_opendrive(graph, *ORIGIN, HEADING)) == set()
+
+
 def test_carla_keeps_every_lane_and_route_of_whole_maps_and_of_generated_ones(tmp_path, capsys):
     from cmtool.formats.mapfile import read_lane_graphs
     from tests.conftest import in_process

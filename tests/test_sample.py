@@ -166,7 +166,7 @@ def test_every_map_s_scores_are_in_the_recording_and_the_table_says_what_they_ar
 
 def test_the_recording_shows_the_decoded_lanes_under_the_final_ones(sampled, sampling_ckpt, tmp_path):
     """With the guarantee (the picture's roads traced, the map composed from them) the map's view holds the lanes as
-    decoded (``decoded/``, those the map left out in red) beside the final ones (``hd/``); a --raw run has only the
+    decoded (``decoded/``, those the map left out white) beside the final ones (``hd/``); a --raw run has only the
     model's."""
     r = run_cli_once("sample", "--ckpt", sampling_ckpt["controlmap"], "--sd", SD_PNG, "--steps", 2, "--out", tmp_path,
                      "--quiet")

@@ -37,8 +37,11 @@ def test_sample_in_two_processes_makes_the_same_maps(sampling_ckpt, tmp_path, ca
         assert (tmp_path / "one" / name).read_bytes() == (tmp_path / "two" / name).read_bytes(), name
     assert (tmp_path / "one.png").read_bytes() == (tmp_path / "two.png").read_bytes()
     assert two.stdout.count("mean validity") == 1  # the summary is printed once, by the main process
-    # the maps differ from batch to batch (each batch its own noise), not only from process to process
-    maps = [json.loads((tmp_path / "one" / f"sd_bos_s{k}.json").read_text())["lanes"] for k in range(5)]
+    # the model's maps differ from batch to batch (each batch its own noise), not only from process to process (the
+    # maps composed from one SD map may not)
+    code, _, err = in_process(capsys, *args, "--raw", "--no-log", "--out", tmp_path / "raw")
+    assert code == 0, err
+    maps = [json.loads((tmp_path / "raw" / f"sd_bos_s{k}.json").read_text())["lanes"] for k in range(5)]
     assert maps[0] != maps[2] != maps[4]
     refused = torchrun(*args, "--out", tmp_path / "logged")
     assert refused.returncode != 0 and "record no denoising steps: add --no-log" in refused.stderr

@@ -135,7 +135,7 @@ def _table(gen, head: str, data, n: int, counts: list[int], names: list[str], cf
     try:
         scene_sd_maps(data, "test")
         final = partial(as_sampled, data=data, split="test", scenes=scenes)
-        what = "the maps as cmtool sample writes them (laid on the SD roads, the guarantee)"
+        what = "the maps as cmtool sample writes them (composed from the SD map, the guarantee)"
     except MissingSDMaps as e:
         final, what = None, f"the model's maps ({e})"
     click.echo(f"{head}; {len(scenes)} test scenes of {data}, cfg {cfg}, batch {batch}; scores of {what}; seconds "

@@ -7,9 +7,9 @@ import time
 import click
 
 from cmtool.core.errors import CmtoolError
-from cmtool.cli.common import (FEATURE_PRECISION_OPTION, LANE_COUNTS_OPTION, PRECISION_OPTION, SEED, SMOOTH_OPTION, WORKERS_OPTION,
-                               DatasetDir, Finite, InPath, OutPath, _device, _generator, attach_init, init_options,
-                               sampler_options)
+from cmtool.cli.common import (FEATURE_PRECISION_OPTION, LANE_COUNTS_OPTION, PRECISION_OPTION, SEED, SMOOTH_OPTION,
+                               WORKERS_OPTION, DatasetDir, Finite, InPath, OutPath, _device, _generator, attach_init,
+                               init_options, sampler_options)
 
 
 @click.command()

@@ -8,9 +8,9 @@ from pathlib import Path
 
 import click
 
-from cmtool.cli.common import (CITY_CFG_HELP, LANE_COUNTS_OPTION, PRECISION_OPTION, SEED, SMOOTH_OPTION, Finite, InPath, OutPath, _device,
-                               _generator, attach_init, check_map_inputs, init_options, map_input_options, map_inputs,
-                               sampler_options)
+from cmtool.cli.common import (CITY_CFG_HELP, LANE_COUNTS_OPTION, PRECISION_OPTION, SEED, SMOOTH_OPTION, Finite, InPath,
+                               OutPath, _device, _generator, attach_init, check_map_inputs, init_options,
+                               map_input_options, map_inputs, sampler_options)
 from cmtool.core.errors import CmtoolError
 
 SAMPLE_HELP = """Generate lane-level HD maps from SD maps with ControlMap, recording every denoising step.

@@ -102,7 +102,8 @@ def rule_layout(sd: SDMap, side: str | None = None, counts: Counts | None = None
     elsewhere (:mod:`cmtool.sample.compose`): ``counts`` gives a road's lanes (along, against its travel direction)
     [default: :func:`lane_counts`]; ``movements`` picks a junction's movements from the legal ones, given the
     centrelines of the lanes arriving from each arm and leaving into each (near side first) and the legal (arm in,
-    arm out) pairs with the lanes each joins (their places in the two arms) [default: every legal one]; ``turn_radius_m``: the tightest turn (module doc) [default: none]."""
+    arm out) pairs with the lanes each joins (their places in the two arms) [default: every legal one];
+    ``turn_radius_m``: the tightest turn (module doc) [default: none, as the baseline]."""
     counts = counts or lane_counts
     side = side or drives_on(sd.city)
     hd = HDMap(city=sd.city or "", drives_on=side, source=f"rules:{sd.source}" if sd.source else "rules",
@@ -372,7 +373,6 @@ def _bezier(into: np.ndarray, out: np.ndarray, to_corner: bool = False) -> np.nd
     t = np.linspace(0.0, 1.0, CONNECTOR_POINTS)[:, None]
     curve = (1 - t) ** 3 * p0 + 3 * (1 - t) ** 2 * t * p1 + 3 * (1 - t) * t ** 2 * p2 + t ** 3 * p3
     return resample(resample_step(curve, 0.5), CONNECTOR_POINTS) if len(curve) > 2 else curve
-
 
 
 def _drop_tight(hd: HDMap, radius: float) -> None:

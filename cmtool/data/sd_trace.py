@@ -2,10 +2,10 @@
 drawing, or a picture in the SD raster's colours (:mod:`cmtool.data.sd_raster`), north up, ``px_m`` metres a pixel.
 
 The road pixels are thinned to lines one pixel wide (Zhang and Suen's thinning); pixels where the lines meet or end
-are nodes (touching ones one node, at their mean); the lines between nodes become roads, in metres east and north
-of the picture's centre. Spurs of the thinning (a line from a node to an end shorter than ``SPUR_WIDTHS`` road
-widths) are dropped, and nodes closer than a road width are one; a road end that the thinning left short of the
-picture's edge (within a road width of it, heading out) goes on to the edge. In the SD raster's colours a road takes its lane
+are nodes (touching ones one node, at their mean); the lines between nodes become roads, in metres east and north of
+the picture's centre. Spurs of the thinning (a line from a node to an end shorter than ``SPUR_WIDTHS`` road widths)
+are dropped, and nodes closer than a road width are one; a road end that the thinning left short of the picture's
+edge (within a road width of it, heading out) goes on to the edge. In the SD raster's colours a road takes its lane
 count (G) and, where most of its pixels say one-way (B), its direction: the picture's up is north, as a raster's up
 is ahead.
 """

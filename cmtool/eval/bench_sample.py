@@ -94,10 +94,10 @@ def bench_sample(gen: MapGenerator, sd: np.ndarray, settings: SampleSettings, ba
 def end_to_end(gen: MapGenerator, inputs, settings: SampleSettings, workers: list[int], repeats: int = 2,
                report=print) -> list[dict]:
     """Maps per second of whole runs as ``cmtool sample`` makes them, the model loaded once: ``inputs()`` read
-    (the map, each frame's SD raster and ground truth), the jobs planned (the rule layouts the guarantee lends from),
-    the maps generated, checked and their files written to a temporary folder; without a recording for each count
-    of ``workers``, and with one (``sample.rrd``: every step of every map). The settings take turns, ``repeats``
-    rounds after a warm-up run; one row per setting with the min and median seconds."""
+    (the map, each frame's SD raster and ground truth), the jobs planned, the maps generated, checked and their
+    files written to a temporary folder; without a recording for each count of ``workers``, and with one
+    (``sample.rrd``: every step of every map). The settings take turns, ``repeats`` rounds after a warm-up run; one
+    row per setting with the min and median seconds."""
     setups = {f"--no-log, --workers {n}": (n, False) for n in workers}
     setups["recording on (sample.rrd)"] = (workers[0], True)
 

@@ -120,7 +120,8 @@ def run_eval(gen: MapGenerator, settings: EvalSettings, out: Path, extractor: Fe
         baselines = {m: [_as_map(s, m, k) for k, s in enumerate(
                          starts if m == settings.init else scene_layouts(settings.data, settings.split, scenes, m))]
                      for m in LAYOUTS if m != "netconvert" or netconvert_path() is not None}
-        final = as_sampled(generated["controlmap"], settings.data, settings.split, scenes, settings.lane_counts, workers)
+        final = as_sampled(generated["controlmap"], settings.data, settings.split, scenes, settings.lane_counts,
+                           workers)
         counts = lane_count_agreement(scenes, generated["controlmap"], scene_sd_maps(settings.data, settings.split))
         generated = {"unguided": generated["unguided"], **baselines, "controlmap": generated["controlmap"],
                      "guaranteed": final}
@@ -194,17 +195,23 @@ def gallery(scenes, reference, generated: dict[str, list], panel: int = 200) -> 
 
 
 def frame_groups(scenes, reference, generated: dict[str, list]) -> dict:
-    """Lanes per map (the ground truth's too) and lane F1 at 1 m in junction frames and in the others (the frame
-    kinds of :mod:`cmtool.data.frames`), per method."""
+    """Lanes per map (the ground truth's too) and lane precision, recall and F1 at 1 m in junction frames and in the
+    others (the frame kinds of :mod:`cmtool.data.frames`), per method."""
     junction = np.array([s.kind.startswith("junction") for s in scenes], bool)
     out = {"scenes": {"junction": int(junction.sum()), "other": int((~junction).sum())},
-           "lanes_per_map": {"truth": float(np.mean([len(g.lanes) for g in reference]))}, "lane_f1": {}}
+           "lanes_per_map": {"truth": float(np.mean([len(g.lanes) for g in reference]))},
+           **{f"lane_{key}": {} for key in FRAME_SCORES}}
     for m, maps in generated.items():
-        f1 = np.array([lane_scores(g.lanes, r.lanes)["f1"] for g, r in zip(maps, reference)])
+        scores = [lane_scores(g.lanes, r.lanes) for g, r in zip(maps, reference)]
         out["lanes_per_map"][m] = float(np.mean([len(g.lanes) for g in maps]))
-        out["lane_f1"][m] = {k: float(f1[sel].mean()) if sel.any() else None
-                             for k, sel in (("junction", junction), ("other", ~junction))}
+        for key in FRAME_SCORES:
+            values = np.array([s[key] for s in scores])
+            out[f"lane_{key}"][m] = {k: float(values[sel].mean()) if sel.any() else None
+                                     for k, sel in (("junction", junction), ("other", ~junction))}
     return out
+
+
+FRAME_SCORES = ("f1", "precision", "recall")  # lane scores at 1 m, by frame kind
 
 
 def _as_map(scene: Scene, method: str, k: int) -> LaneGraph:
@@ -318,8 +325,9 @@ def summary_markdown(report: dict) -> str:
             "- unguided: the frozen DiT without SD control or city label (the paper's SLEDGE rows)",
             "- rules: the rule-based lane layout of the same SD map (lane counts from the tags or the road class, "
             "one-way roads one way, junction connectors); netconvert: SUMO's, when it is installed",
-            "- + guarantee: ControlMap's maps as `cmtool sample` writes them: lanes along the SD roads laid on them, "
-            "lanes against one-way roads turned round, rule lanes lent where a road has none",
+            "- + guarantee: ControlMap's maps as `cmtool sample` writes them: composed from the SD map (every SD road "
+            f"carries its lanes and nothing else does, junctions joined from them; lane counts of untagged roads from "
+            f"the {'model' if s.get('lane_counts') == 'model' else 'road class'}, movements from the model)",
             f"- features: {backbone}; recall metrics in batches of 64, top 3, p = P(chance >= observed)",
             (f"- validity score of the ground truth itself: {report['ground_truth_validity']:.3f}; its lane pairs "
              f"routable with lane changes: {report.get('ground_truth_routable', float('nan')):.3f}"), "", ""]
@@ -332,8 +340,10 @@ def summary_markdown(report: dict) -> str:
                 "| | " + " | ".join(SHORT[m] for m in names) + " | ground truth |", "|---|" + "---|" * (len(names) + 1),
                 "| lanes per map | " + " | ".join(cell(frames["lanes_per_map"][m]) for m in names)
                 + f" | {frames['lanes_per_map']['truth']:.3f} |"]
-        tail += [f"| lane F1 @1 m, {k} frames ({frames['scenes'][k]}) ↑ | "
-                 + " | ".join(cell(frames["lane_f1"][m][k]) for m in names) + " | 1 |" for k in ("junction", "other")]
+        tail += [f"| lane {label} @1 m, {k} frames ({frames['scenes'][k]}) ↑ | "
+                 + " | ".join(cell(frames[f"lane_{key}"][m][k]) for m in names) + " | 1 |"
+                 for key, label in zip(FRAME_SCORES, ("F1", "precision", "recall")) if f"lane_{key}" in frames
+                 for k in ("junction", "other")]
     counts = report.get("lane_counts")
     if counts:
         tail += ["", "", f"### Lanes per road direction ({counts['model']['road_directions']} SD road directions with "

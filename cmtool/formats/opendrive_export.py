@@ -470,11 +470,12 @@ def _lane_xml(group, road: _Road, lane_id: int, widths) -> None:
 
 def _road_length(last_s: float, last_length: float) -> float:
     """The road length to write: where its last geometry ends as the file states it, shortened by whole
-    micrometres until it is no longer once read as a 32-bit float (as CARLA reads it: a road length a hair
-    longer than its geometry makes the lookup at the lane's end fail, and the lane drops out of its topology)."""
+    micrometres until it is shorter once read as a 32-bit float (as CARLA reads it: a road length a hair longer than
+    its geometry, or a length a 32-bit float holds exactly, such as 64, makes the lookup at the end of a lane that
+    leads nowhere fail, and the lane drops out of its topology)."""
     end = float(_text(last_s)) + float(_text(last_length))
     length = float(_text(end))
-    while float(np.float32(length)) > min(end, length):
+    while float(np.float32(length)) >= min(end, length):
         length = float(_text(length - 1e-6))
     return length
 

@@ -83,8 +83,8 @@ def compose(graph: LaneGraph, roads: list[Road], side: str, counts: str = DEFAUL
                                     frame_m=graph.frame_m).to_lanegraph()
     meta = dict(graph.meta) | {"composed": {"lanes_from": dict(source), "movements": dict(chose),
                                             "dropped": len(unexplained(graph, roads))}}
-    return replace(laid, green_lights=_lit(graph.green_lights, laid.lanes), red_lights=_lit(graph.red_lights, laid.lanes),
-                   city=graph.city, meta=meta)
+    lights = {key: _lit(getattr(graph, key), laid.lanes) for key in ("green_lights", "red_lights")}
+    return replace(laid, **lights, city=graph.city, meta=meta)
 
 
 def _count(road: Road, p: int, drawn: dict) -> tuple[tuple[int, int], list[str]]:

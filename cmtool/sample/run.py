@@ -261,7 +261,7 @@ def _step_logger(gen: MapGenerator, rec, batch: list[Job], settings: SampleSetti
 
 def _log_maps(rec, batch: list[Job], graphs: list[LaneGraph], decoded: list[LaneGraph]) -> None:
     """Log each job's map and, where the guarantee changed it, the map as decoded beneath it, the lanes it left out
-    marked."""
+    marked (:func:`~cmtool.viz.recording.log_decoded`)."""
     for job, graph, raw in zip(batch, graphs, decoded):
         log_lanes(rec, job.prefix, graph.lanes, graph.green_lights, graph.red_lights, graph.successors, static=True)
         if "raw" in graph.meta and not _same_lanes(graph, raw):

@@ -43,9 +43,10 @@ def summary_table(maps: list[SampledMap]) -> str:
         turned = sum(m.graph.meta["guarantee"]["turned"] for m in maps if "guarantee" in m.graph.meta)
         made = [c["movements"].get("model", 0) for c in composed]
         moves = [sum(c["movements"].values()) for c in composed]
-        done = ([f"{len(composed)} composed from the SD map ({sum(c['dropped'] for c in composed)} of the model's lanes "
-                 f"left out where it has no road; {sum(made)} of {sum(moves)} junction movements the model's)"]
-                if composed else []) + ([f"{turned} lanes turned round"] if turned else [])
+        dropped = sum(c["dropped"] for c in composed)
+        done = ([f"{len(composed)} composed from the SD map ({dropped} of the model's lanes left out where it has no "
+                 f"road; {sum(made)} of {sum(moves)} junction movements the model's)"] if composed else []) \
+            + ([f"{turned} lanes turned round"] if turned else [])
         mean = lambda k: dash(float(np.mean([r[k] for r in raw if k in r])) if any(k in r for r in raw) else None)  # noqa: E731
         rows.append(f"the guarantee: {'; '.join(done) or 'nothing changed'}; the model's own maps: validity "
                     f"{mean('validity')}, one-way ok {mean('legal_oneway')}, SD covered {mean('sd_coverage')}")

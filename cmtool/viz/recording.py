@@ -29,7 +29,7 @@ _EGO_TO_SCREEN = [[0.0, -1.0, 0.0], [-1.0, 0.0, 0.0], [0.0, 0.0, 1.0]]
 APP_IDS = {kind: f"cmtool_{kind}" for kind in ("data", "train", "sample", "eval", "ablate", "area")}
 LANE_RADIUS_M, LIGHT_RADIUS_M = 0.2, 0.3  # thin enough to see the junction through
 DECODED = [150, 150, 150]  # the decoded lanes under the final map
-DROPPED = [230, 60, 60]  # the decoded lanes the final map leaves out: no SD road explains them
+DROPPED = [255, 255, 255]  # the decoded lanes the final map leaves out (no SD road explains them): no heading's hue
 GRPC_PORT, WEB_PORT = 9876, 9090  # where --serve serves a recording and Rerun's web viewer
 
 
@@ -191,7 +191,7 @@ def log_lanes(rec: rr.RecordingStream, prefix: str, lines, green=(), red=(), edg
 
 
 def log_decoded(rec: rr.RecordingStream, prefix: str, lines, dropped=()) -> None:
-    """Log a map's lanes as the model decoded them, thin, under ``<prefix>decoded``: grey, and red those of
+    """Log a map's lanes as the model decoded them, thin, under ``<prefix>decoded``: grey, and white those of
     ``dropped`` (indices): beside the final map (``<prefix>hd``) it shows what the guarantee made of the model's map
     (lanes laid on the SD roads, lanes no SD road explains left out)."""
     colors = [DROPPED if k in set(dropped) else DECODED for k in range(len(lines))]

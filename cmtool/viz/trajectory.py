@@ -279,7 +279,7 @@ def sample_view(prefix: str, name: str, blocks: int, truth: bool) -> rrb.Contain
 
     top = [spatial("SD control", "control/sd"),
            spatial("x0 lanes over diffusion steps", "control/sd", "diffusion/x0/**"),
-           spatial("generated (grey: as decoded, red: left out)", "control/sd", "decoded/**", "hd/**")]
+           spatial("generated (grey: as decoded, white: left out)", "control/sd", "decoded/**", "hd/**")]
     if truth:
         top.append(spatial("ground truth", "control/sd", "truth/**"))
     grid = rrb.TensorSliceSelection(width=TensorDimensionSelection(2), height=TensorDimensionSelection(1),
