@@ -1217,6 +1217,24 @@ def test_workers_a_pool_terminates_are_not_the_users_signal():
     assert result.returncode == 0 and result.stdout.strip() == "finished", result.stderr
 
 
+def test_a_terminated_pool_kills_a_worker_that_does_not_end():
+    """A worker that outlives its SIGTERM (as one the termination found starting, waiting for ever on the task
+    queue's lock) is killed a few seconds later: leaving the pool by an error returns, and no worker is left."""
+    import subprocess
+    import sys
+
+    script = ("import os, signal, time\nfrom cmtool.core import workers\n"
+              "def deaf():\n    signal.signal(signal.SIGTERM, signal.SIG_IGN)\n"
+              "try:\n    with workers.pool(2, 'fork', deaf) as p:\n"
+              "        pids = [w.pid for w in p._pool]\n        p.map_async(time.sleep, [60, 60])\n"
+              "        time.sleep(1)\n        raise LookupError\n"
+              "except LookupError:\n    pass\n"
+              "print('left', all(not os.path.exists(f'/proc/{pid}') or open(f'/proc/{pid}/stat').read().split()[2]"
+              " == 'Z' for pid in pids), flush=True)\n")
+    result = subprocess.run([sys.executable, "-c", script], cwd=REPO, capture_output=True, text=True, timeout=120)
+    assert result.returncode == 0 and result.stdout.strip() == "left True", result.stderr
+
+
 # --- Reliability 4 (issue 57): no wrong or lost output with exit 0 -------------------------------------------------
 
 def test_a_resumed_area_run_makes_the_unbroken_runs_map_byte_for_byte(tmp_path, monkeypatch):

@@ -9,9 +9,11 @@ import multiprocessing.pool
 import os
 import signal
 import sys
+import threading
 
 PR_SET_PDEATHSIG = 1  # prctl(2)
 STOP_S = 2.0  # the longest a stopped worker unwinds before it ends at once
+KILL_S = 3 * STOP_S  # a terminated pool's workers still there this long after are killed
 
 
 def cores() -> int:
@@ -46,7 +48,8 @@ def pool(processes: int, start: str | None = None, initializer=None,
 class _Pool(multiprocessing.pool.Pool):
     """A pool whose workers, when its ``with`` block ends normally, finish and leave (no signal: terminating them
     while one was still starting left it waiting for ever on the task queue's lock, which terminate holds); after an
-    error or a stop they are terminated."""
+    error or a stop they are terminated, and any still there ``KILL_S`` later killed (a worker the termination found
+    starting has been seen waiting on that lock for ever, and the pool's termination with it)."""
 
     def __exit__(self, exc_type, exc, tb):
         if exc_type is None:
@@ -54,6 +57,23 @@ class _Pool(multiprocessing.pool.Pool):
             self.join()
         else:
             self.terminate()
+
+    def terminate(self):
+        done = threading.Event()
+        threading.Thread(target=self._kill_stragglers, args=(done,), daemon=True).start()
+        try:
+            super().terminate()
+        finally:
+            done.set()
+
+    def _kill_stragglers(self, done: threading.Event) -> None:
+        while not done.wait(KILL_S):
+            for worker in list(self._pool):
+                if worker.exitcode is None and worker.pid is not None:
+                    try:
+                        os.kill(worker.pid, signal.SIGKILL)
+                    except ProcessLookupError:
+                        pass
 
 
 def _hold_signals(got: list[int]) -> dict:
