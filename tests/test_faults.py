@@ -922,6 +922,14 @@ def test_serve_on_a_busy_port_is_one_line(tmp_path):
         held.close()
 
 
+def _python(script: str):
+    """``python -c script`` in the repository root, its output captured (two minutes at most)."""
+    import subprocess
+    import sys
+
+    return subprocess.run([sys.executable, "-c", script], cwd=REPO, capture_output=True, text=True, timeout=120)
+
+
 def _subprocess(*args, **kwargs):
     import os
     import subprocess
@@ -1042,16 +1050,13 @@ def test_a_stop_inside_a_constructor_ends_quietly(sig):
     """A stop that lands inside a constructor leaves a half-made object whose finalizer fails (a Rerun stream without
     its ``inner``: the suite saw it as SIGTERM reached `train rvae`): the command ends with the stop's exit code,
     and nothing is printed but the one line."""
-    import subprocess
-    import sys
-
     script = ("import os, signal\nfrom cmtool.cli import cli, main\n"
               "class Half:\n"
               f"    def __init__(self):\n        os.kill(os.getpid(), signal.{sig})\n        self.inner = 1\n"
               "    def __del__(self):\n        self.inner\n"
               "@cli.command('work')\ndef work():\n    Half()\n"
               "main(['work'])\n")
-    done = subprocess.run([sys.executable, "-c", script], cwd=REPO, capture_output=True, text=True, timeout=120)
+    done = _python(script)
     assert done.returncode == (143 if sig == "SIGTERM" else 130), done.stderr
     assert done.stderr.strip() == ("Terminated." if sig == "SIGTERM" else "Aborted."), done.stderr
 
@@ -1147,9 +1152,6 @@ def test_a_stopped_pooled_sample_run_leaves_nothing_and_runs_again_to_the_same_f
 def test_a_worker_stopped_inside_a_finalizer_still_stops_quietly():
     """SIGTERM landing in a ``__del__`` (where Python prints the exception and goes on): the worker stops a moment
     later where it can unwind, with no "Exception ignored" traceback (the pool's termination would wait for it)."""
-    import subprocess
-    import sys
-
     script = ("import os, signal, time\n"
               "from cmtool.core import workers\n"
               "workers._worker_signals()\n"
@@ -1162,7 +1164,7 @@ def test_a_worker_stopped_inside_a_finalizer_still_stops_quietly():
               "    print('still running')\n"
               "except SystemExit as e:\n"
               "    print('stopped', e.code)\n")
-    done = subprocess.run([sys.executable, "-c", script], cwd=REPO, capture_output=True, text=True, timeout=120)
+    done = _python(script)
     assert done.stdout.strip() == "stopped 143" and "Traceback" not in done.stderr, done.stderr
 
 
@@ -1170,9 +1172,6 @@ def test_a_worker_whose_finally_replaces_the_stop_still_ends_quietly():
     """SIGTERM landing where a ``finally`` puts another error in its place (numpy's savez when the stop lands in a
     zip member's write: CI saw it), and the half-made object's finalizer failing after: the worker still ends, soon
     and unprinted, so leaving the pool does not wait on it (it took its next task and the command hung)."""
-    import subprocess
-    import sys
-
     from cmtool.core import workers
 
     script = ("import time\n"
@@ -1194,7 +1193,7 @@ def test_a_worker_whose_finally_replaces_the_stop_still_ends_quietly():
               "        raise LookupError\n"
               "except LookupError:\n"
               "    print('left', round(time.monotonic() - began))\n")
-    done = subprocess.run([sys.executable, "-c", script], cwd=REPO, capture_output=True, text=True, timeout=120)
+    done = _python(script)
     assert done.stdout.startswith("left") and "Traceback" not in done.stderr, done.stderr
     assert int(done.stdout.split()[1]) < 1 + workers.STOP_S + 20, done.stdout
 
@@ -1203,9 +1202,6 @@ def test_workers_a_pool_terminates_are_not_the_users_signal():
     """Leaving a pool by an error while its workers are busy terminates them with SIGTERM; the command goes on past
     the watchdog's grace period (issue 58: `train pipeline` and `data build` ended themselves with 143 ten seconds
     later)."""
-    import subprocess
-    import sys
-
     script = ("import time\nfrom cmtool.cli import cli, main, _Watchdog\nfrom cmtool.core import workers\n"
               "_Watchdog.GRACE_S = 1.0\n"
               "@cli.command('work')\ndef work():\n"
@@ -1213,16 +1209,13 @@ def test_workers_a_pool_terminates_are_not_the_users_signal():
               "            p.map_async(time.sleep, [30, 30])\n            time.sleep(1)\n            raise LookupError\n"
               "    except LookupError:\n        time.sleep(4)\n        print('finished', flush=True)\n"
               "main(['work'])\n")
-    result = subprocess.run([sys.executable, "-c", script], cwd=REPO, capture_output=True, text=True, timeout=120)
+    result = _python(script)
     assert result.returncode == 0 and result.stdout.strip() == "finished", result.stderr
 
 
 def test_a_terminated_pool_kills_a_worker_that_does_not_end():
     """A worker that outlives its SIGTERM (as one the termination found starting, waiting for ever on the task
     queue's lock) is killed a few seconds later: leaving the pool by an error returns, and no worker is left."""
-    import subprocess
-    import sys
-
     script = ("import os, signal, time\nfrom cmtool.core import workers\n"
               "def deaf():\n    signal.signal(signal.SIGTERM, signal.SIG_IGN)\n"
               "try:\n    with workers.pool(2, 'fork', deaf) as p:\n"
@@ -1231,7 +1224,7 @@ def test_a_terminated_pool_kills_a_worker_that_does_not_end():
               "except LookupError:\n    pass\n"
               "print('left', all(not os.path.exists(f'/proc/{pid}') or open(f'/proc/{pid}/stat').read().split()[2]"
               " == 'Z' for pid in pids), flush=True)\n")
-    result = subprocess.run([sys.executable, "-c", script], cwd=REPO, capture_output=True, text=True, timeout=120)
+    result = _python(script)
     assert result.returncode == 0 and result.stdout.strip() == "left True", result.stderr
 
 

@@ -203,13 +203,14 @@ def _junctions(edges: list[_Edge], at_node: dict, bends: bool = False) -> dict[i
     return {n: uf.find(n) for n in uf.parent}
 
 
-def _lane_width(road: Road) -> float:
+def lane_width(road: Road) -> float:
+    """The road class's lane width (a residential lane for a class without one)."""
     return LANE_WIDTH_M.get(road.road_class, LANE_WIDTH_M["residential"])
 
 
 def _half_width(road: Road, counts: Counts) -> float:
     along, against = counts(road)
-    width = _lane_width(road)
+    width = lane_width(road)
     return (along + against) * width / 2.0 if against else along * width / 2.0
 
 
@@ -275,7 +276,7 @@ def _edge_lanes(hd: HDMap, i: int, e: _Edge, back: tuple[float, float], side: st
     if centre is None:
         return
     along, against = count
-    width = _lane_width(e.road)
+    width = lane_width(e.road)
     right = 1.0 if side == "right" else -1.0  # lanes of the travel direction lie to this side (as -left offsets)
     groups = []  # (direction +1 along / -1 against, [lateral position to the left of the polyline])
     if against == 0:

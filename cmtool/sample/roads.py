@@ -18,7 +18,7 @@ import numpy as np
 import shapely
 
 from cmtool.core.geometry import to_frame, unit
-from cmtool.data.rules import LANE_WIDTH_M, lane_counts
+from cmtool.data.rules import lane_counts, lane_width
 from cmtool.maps.lanegraph import LaneGraph
 from cmtool.maps.sdmap import Road, SDMap
 from cmtool.metrics.lanes import resampled
@@ -53,14 +53,9 @@ def frame_roads(sd_map: SDMap, pose, frame_m: float = 64.0) -> list[Road]:
     return out
 
 
-def road_width(road: Road) -> float:
-    """The road class's lane width."""
-    return LANE_WIDTH_M.get(road.road_class, LANE_WIDTH_M["residential"])
-
-
 def road_reach(road: Road) -> float:
     """How far from a road's line a lane of it may lie: one lane beyond its count per direction."""
-    return (max(lane_counts(road)) + 1) * road_width(road)
+    return (max(lane_counts(road)) + 1) * lane_width(road)
 
 
 def drawn_lane_counts(graph: LaneGraph, roads: list[Road], side: str) -> dict[tuple[int, int], int]:
@@ -91,7 +86,7 @@ def _runs(samples: list[np.ndarray], roads: list[Road]) -> list[tuple[int, int, 
     seg = b - a
     seg_len = np.maximum(np.linalg.norm(seg, axis=1), 1e-9)
     seg_dir = seg / seg_len[:, None]
-    reach = np.array([(MAX_LANES + 1) * road_width(r) for r in roads])[piece]
+    reach = np.array([(MAX_LANES + 1) * lane_width(r) for r in roads])[piece]
     cos = math.cos(math.radians(ALIGN_DEG))
     runs = []
     for pts in samples:
@@ -138,7 +133,7 @@ def _stretches(key: np.ndarray) -> list[tuple[int, int]]:
 def _outward(road: Road, sign: int, lateral: float, side: str) -> float:
     """A lateral position in lane widths, counted as lanes are laid (0 for the lane nearest the centreline of a two-way
     road, 1 for the next, ...; left to right of travel on a one-way road, where only differences matter)."""
-    w = road_width(road)
+    w = lane_width(road)
     if road.oneway:
         return -sign * lateral / w
     right = 1.0 if side == "right" else -1.0

@@ -194,7 +194,8 @@ def log_decoded(rec: rr.RecordingStream, prefix: str, lines, dropped=()) -> None
     """Log a map's lanes as the model decoded them, thin, under ``<prefix>decoded``: grey, and white those of
     ``dropped`` (indices): beside the final map (``<prefix>hd``) it shows what the guarantee made of the model's map
     (lanes laid on the SD roads, lanes no SD road explains left out)."""
-    colors = [DROPPED if k in set(dropped) else DECODED for k in range(len(lines))]
+    dropped = set(dropped)
+    colors = [DROPPED if k in dropped else DECODED for k in range(len(lines))]
     rec.log(f"{prefix}decoded/lanes", rr.LineStrips2D([np.asarray(l) for l in lines], radii=LANE_RADIUS_M / 2,
                                                       colors=colors, draw_order=-5.0), static=True)
 
