@@ -8,7 +8,7 @@ bottom:
 - ``core``: ground utilities (errors, JSON I/O, what a command may write, memory checks, worker pools,
   geometry, geographic projection, progress, TOML tables, processes under torchrun);
 - ``maps``: the map model (HD maps, SD maps, lane graphs, lane neighbours, road graphs);
-- ``formats``: importers (Argoverse 2, Lanelet2, nuPlan, OpenStreetMap) and exporters (Lanelet2,
+- ``formats``: importers (Argoverse 2, Lanelet2, nuPlan, Apollo, OpenStreetMap) and exporters (Lanelet2,
   OpenDRIVE, GeoJSON);
 - ``data``: procedural cities, SD derivation and jitter, frames, scenes, rasters, the dataset cache;
 - ``metrics``: the metric library, validity and repair (imports no model);

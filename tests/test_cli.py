@@ -10,7 +10,7 @@ from conftest import SHARED_DATA
 
 from cmtool.data.scene import drivable_lanes
 from cmtool.data.sd_derive import derive_sd
-from cmtool.data.sd_raster import sd_raster_from_image
+from cmtool.data.sd_raster import CLASS_VALUES, sd_raster_from_image
 from cmtool.maps.hdmap import HDMap
 from cmtool.maps.roadgraph import road_graph
 
@@ -41,7 +41,9 @@ def test_sd_derives_from_a_synth_map(run_cli, tmp_path):
     assert r.returncode == 0, r.stderr
     image = sd_raster_from_image(tmp_path / "sd.png")
     assert image.shape == (128, 128, 3) and image[..., 0].any()
-    assert set(np.unique(image[..., 0])) == {0, 255} and set(np.unique(image[..., 1])) <= {32 * k for k in range(8)}
+    assert set(np.unique(image[..., 0])) <= {0, *CLASS_VALUES}
+    assert set(np.unique(image[..., 1])) <= {32 * k for k in range(8)}
+    assert "SD raster of encoding 2 (R road class" in r.stdout
 
 
 def test_poses_lie_on_roads_beside_lanes_of_their_heading_and_near_a_junction(run_cli, tmp_path):

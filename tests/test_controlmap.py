@@ -119,3 +119,39 @@ def test_default_config_fits_the_tiny_dit():
 def test_bad_configs_raise(config, field):
     with pytest.raises(CmtoolError, match=field):
         ControlMap(small_dit(), config)
+
+
+def test_weights_of_the_old_sd_encoding_see_no_road_class_and_a_resume_across_encodings_is_refused(tmp_path):
+    """The shipped branch (trained on encoding 1, its config without sd_encoding) reads a primary and a residential
+    road alike, as it was trained; a branch of encoding 2 reads them apart. Resuming an old-encoding run with a
+    recipe of encoding 2 is refused with a message naming both encodings."""
+    import shutil
+
+    import numpy as np
+
+    from cmtool.data.sd_raster import rasterize_sd
+    from cmtool.maps.sdmap import Road, SDMap
+    from cmtool.model import checkpoint as ckpt
+    from cmtool.model.controlmap import control_images, sd_tensor
+    from cmtool.model.release import bundled_checkpoint
+    from cmtool.train.loop import _resume_point
+
+    line = np.array([[0.0, -50.0], [0.0, 50.0]])
+    rasters = np.stack([rasterize_sd(SDMap(roads=[Road("r", line, c)]), 0.0, 0.0, np.pi / 2)
+                        for c in ("primary", "residential")])
+    model, config = ckpt.load_model(bundled_checkpoint())
+    assert config["control"]["sd_encoding"] == 1 and model.config.sd_encoding == 1
+    with torch.no_grad():
+        old = [model.encoder(sd_tensor(c)[None]) for c in control_images(model.config, rasters)]
+    assert torch.equal(old[0], old[1])
+    new = ControlConfig(**{**config["control"], "sd_encoding": 2})
+    torch.manual_seed(0)
+    with torch.no_grad():
+        branch = ControlMap(DiT(DiTConfig(**config["model"])), new)
+        seen = [branch.encoder(sd_tensor(c)[None]) for c in control_images(new, rasters)]
+    assert not torch.equal(seen[0], seen[1])
+    run = tmp_path / "run"
+    shutil.copytree(bundled_checkpoint(), ckpt.step_dir(run, 4000))
+    wanted = {"kind": "controlmap", "model": config["model"], "control": {**config["control"], "sd_encoding": 2}}
+    with pytest.raises(CmtoolError, match=r"encoding 1 \(R road presence.*encoding 2 \(R road class.*branch_from"):
+        _resume_point(run, True, "controlmap", wanted)

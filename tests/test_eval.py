@@ -46,6 +46,28 @@ def test_eval_writes_reports_and_resumes(sampling_ckpt, tiny_data, tmp_path, cap
         in summary and "| lane length on one-way SD roads running the legal way ↑ |" in summary
     assert "| lane F1 @1 m ↑ |" in stdout
     assert "- lanes: least-squares Bézier curves with 6 control points" in summary
+    # the decisions on the SD roads: junction movements against the truth's, lane length no SD road explains
+    made = report["decisions"]
+    assert list(made) == [*report["methods"], "truth"]
+    truth = made["truth"]
+    assert truth["truth_movements"] > 0 and truth["movement_f1"] == 1.0 and truth["unexplained_share"] < 0.05
+    for m, d in made.items():
+        assert d["true_movements"] <= min(d["movements"], d["truth_movements"]) and d["lane_m"] > 0, m
+        assert d["truth_movements"] == truth["truth_movements"], m
+        assert d["movement_precision"] == (d["true_movements"] / d["movements"] if d["movements"] else 1.0), m
+        assert d["movement_recall"] == d["true_movements"] / d["truth_movements"], m
+        assert 0.0 <= d["unexplained_share"] <= 1.0, m
+    assert made["rules"]["movement_recall"] > 0.5  # the rules make every legal movement
+    assert made["guaranteed"]["unexplained_share"] <= made["controlmap"]["unexplained_share"]
+    assert made["guaranteed"]["unexplained_share"] < 0.05  # every composed lane lies on an SD road
+    head = f"### Decisions on the SD roads ({truth['truth_movements']} junction movements in the ground truth of the 4"
+    for text in (summary, stdout):
+        assert head in text and "| junction movements, F1 ↑ |" in text
+    rows = {line.split(" | ")[0]: line.split(" | ")[1:] for line in summary.splitlines() if line.startswith("| ")}
+    assert rows["| junction movements, precision ↑"][1] == f"{made['rules']['movement_precision']:.3f}"
+    assert rows["| junction movements, recall ↑"][-1] == "1 |"
+    assert rows["| share of the lane length no SD road explains ↓"] == [
+        f"{made[m]['unexplained_share']:.3f}" for m in made][:-1] + [f"{truth['unexplained_share']:.3f} |"]
     first = (out / "cache" / "controlmap.jsonl").read_text().splitlines()
     # more scenes later: the first batch comes from the cache, unchanged
     code, _, err = in_process(capsys, *args, "--n", 8)

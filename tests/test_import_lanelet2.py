@@ -179,3 +179,34 @@ def test_errors(tmp_path):
     )
     with pytest.raises(CmtoolError, match=r"dangling\.osm: lanelet 5: way 9 does not exist"):
         import_hd_map("lanelet2", dangling)
+
+
+LOCAL_MAPS = MAP.parents[1] / "real" / "lanelet2"  # INTERACTION and SinD: local coordinates near lat/lon 0
+LOCAL_FILES = sorted(LOCAL_MAPS.glob("*/*.osm")) if LOCAL_MAPS.is_dir() else []
+
+
+@pytest.mark.skipif(not LOCAL_FILES, reason="shared real Lanelet2 maps not available")
+@pytest.mark.parametrize("path", LOCAL_FILES, ids=lambda p: f"{p.parent.name}/{p.stem}")
+def test_real_maps_local_coordinates_and_untyped_lanelets(path):
+    """Every real Lanelet2 map imports at its true size in metres, also those placed near lat/lon 0, and every road
+    lanelet becomes a lane: SinD's without a subtype (its connectors) and Changchun's ``main_road`` ones too."""
+    root = ET.parse(path).getroot()
+    nodes = {e.get("id"): (float(e.get("lat")), float(e.get("lon"))) for e in root if e.tag == "node"}
+    roads = []
+    for e in root:
+        tags = {t.get("k"): t.get("v") for t in e.iter("tag")}
+        road = tags.get("subtype", "road") in (*ROAD, "main_road")
+        if e.tag == "relation" and tags.get("type") == "lanelet" and road:
+            roads.append(e.get("id") if tags.get("one_way") != "no" else None)
+    hd = import_hd_map("lanelet2", path)
+    assert len(hd.lanes) >= len(roads) >= 10 and {r for r in roads if r} <= set(hd.lanes)
+    assert hd.reference_errors() == []
+    assert sum(len(lane.successors) for lane in hd.lanes.values()) > len(hd.lanes) / 2
+    to_m = _metres(nodes)
+    xy = np.array([to_m(*ll) for ll in nodes.values()])
+    span = xy.max(axis=0) - xy.min(axis=0)  # independent: the extent of all nodes, in metres
+    assert 50 < span.max() < 2000
+    xmin, ymin, xmax, ymax = hd.bounds()
+    assert xmax - xmin <= span[0] * 1.01 + 1 and ymax - ymin <= span[1] * 1.01 + 1
+    assert max(xmax - xmin, ymax - ymin) > 0.3 * span.max()
+    assert 2.5 < np.median([lane.width for lane in hd.lanes.values()]) < 10.0

@@ -8,10 +8,11 @@ from fixtures.hdmaps import add_road, connect_intersection, crossroads
 from cmtool.core.geometry import from_frame
 from cmtool.data.frames import hd_poses
 from cmtool.data.scene import SceneCropper
-from cmtool.data.sd_derive import SDJitter, derive_sd, road_class, road_network
+from cmtool.data.sd_derive import MAPPED_CLASSES, SDJitter, derive_sd, mapped_classes, road_class, road_network
 from cmtool.data.sd_raster import rasterize_sd
 from cmtool.maps.hdmap import HDMap, Lane
 from cmtool.maps.sdmap import SDMap
+from tests.conftest import SHARED_DATA
 
 AV2 = Path(__file__).resolve().parents[1] / ".." / "shared" / "data" / "av2"
 BEYOND_M = 4.0  # a lane point is covered when at most this far outside an SD road taken as lanes x 3.5 m wide
@@ -77,8 +78,10 @@ def test_narrow_median_road_uses_the_midline():
 def test_divided_road_is_two_one_way_ways():
     hd = HDMap(city="SGP")
     add_road(hd, "M", (0, 0), (200, 0), forward=2, backward=2, median=4.0, width=3.2)
-    sd = derive_sd(hd)
+    sd = derive_sd(hd, classes="lanes")
     assert len(sd.roads) == 2 and all((r.lanes, r.oneway, r.road_class) == (2, 1, "secondary") for r in sd.roads)
+    for seed in range(8):  # classed as mappers tag: both carriageways alike
+        assert len({r.road_class for r in derive_sd(hd, seed=seed).roads}) == 1
     east, west = sorted(sd.roads, key=lambda r: r.travel_polyline()[-1, 0], reverse=True)
     assert east.travel_polyline()[0, 0] < 1 and east.travel_polyline()[-1, 0] > 199  # travels east
     # right-hand traffic: the eastbound carriageway lies south, each line in the middle of its two lanes
@@ -105,8 +108,9 @@ def test_turns_do_not_continue_a_road():
 
 def test_jitter():
     hd = crossroads()
-    base = derive_sd(hd)
-    for other in (derive_sd(hd), derive_sd(hd, SDJitter()), derive_sd(hd, None, seed=5)):
+    base = derive_sd(hd, classes="lanes")
+    for other in (derive_sd(hd, classes="lanes"), derive_sd(hd, SDJitter(), classes="lanes"),
+                  derive_sd(hd, None, seed=5, classes="lanes")):
         assert other.to_json() == base.to_json()
     moved = derive_sd(hd, SDJitter(offset_m=5.0), seed=3)
     assert moved.to_json() == derive_sd(hd, SDJitter(offset_m=5.0), seed=3).to_json()
@@ -121,8 +125,31 @@ def test_jitter():
         h_t = np.arctan2(*(t.polyline[-1] - t.polyline[0])[::-1])
         h_b = np.arctan2(*(b.polyline[-1] - b.polyline[0])[::-1])
         assert 0.0 < abs(np.degrees(h_t - h_b)) <= 10.0
-    dropped = derive_sd(hd, SDJitter(drop_minor=1.0))
+    dropped = derive_sd(hd, SDJitter(drop_minor=1.0), classes="lanes")
     assert [r.road_class for r in dropped.roads] == ["secondary"]  # the residential road is gone
+
+
+def test_derived_classes_follow_the_measured_distribution_of_real_osm():
+    """Roads of two lanes both ways take their class from MAPPED_CLASSES, seeded: over 400 draws each class's share
+    lies within 4 standard errors of the table's; the same seed gives the same classes, another seed others."""
+    hd = HDMap(city="TST")
+    for k in range(20):
+        add_road(hd, f"R{k}", (0, 40 * k), (300, 40 * k), width=3.4)
+    drawn = [r.road_class for seed in range(20) for r in derive_sd(hd, seed=seed).roads]
+    assert len(drawn) == 400
+    for name, share in MAPPED_CLASSES[2, False].items():
+        assert abs(drawn.count(name) / 400 - share) <= 4 * np.sqrt(share * (1 - share) / 400) + 1e-9, name
+    assert set(drawn) <= set(MAPPED_CLASSES[2, False])
+    assert derive_sd(hd, seed=3).to_json() == derive_sd(hd, seed=3).to_json()
+    assert [r.road_class for r in derive_sd(hd, seed=3).roads] != [r.road_class for r in derive_sd(hd, seed=4).roads]
+    assert {r.road_class for r in derive_sd(hd, classes="lanes").roads} == {"residential"}
+
+
+@pytest.mark.skipif(not (SHARED_DATA / "osm" / "finland_test.osm.pbf").is_file(), reason="no shared OSM extract here")
+def test_the_class_table_is_the_one_measured_on_real_osm():
+    from cmtool.formats.osm import read_osm
+
+    assert mapped_classes(read_osm(SHARED_DATA / "osm" / "finland_test.osm.pbf")) == MAPPED_CLASSES
 
 
 def test_road_class_rule():

@@ -4,13 +4,14 @@ import pytest
 
 from cmtool.core.errors import CmtoolError
 from cmtool.data.sd_raster import (
-    SDRasterizer, convert_sd_image, decode_sd, direction_value, rasterize_sd, sd_raster_from_image,
+    ENCODINGS, SDRasterizer, as_encoding, convert_sd_image, decode_sd, direction_value, is_sd_raster, rasterize_sd,
+    sd_raster_from_image,
 )
 from cmtool.maps.sdmap import Road, SDMap
 
 
-def road(points, lanes=None, oneway=0):
-    return Road("r", np.asarray(points, dtype=float), lanes=lanes, oneway=oneway)
+def road(points, lanes=None, oneway=0, road_class="residential", link=False):
+    return Road("r", np.asarray(points, dtype=float), road_class, lanes, oneway, link)
 
 
 def test_road_straight_ahead():
@@ -21,7 +22,7 @@ def test_road_straight_ahead():
     cols = np.flatnonzero(r[..., 0].any(axis=0))
     assert set(cols) >= {63, 64} and cols.min() >= 61 and cols.max() <= 66  # centre columns
     assert r[:, 63, 0].all() and r[:, 64, 0].all()  # over the whole height
-    assert set(np.unique(r[..., 0])) == {0, 255}
+    assert set(np.unique(r[..., 0])) == {0, 144}  # R: a residential road
     assert set(np.unique(r[r[..., 0] > 0][:, 1])) == {96}  # G = 32 * lanes
     assert not r[..., 2].any()  # two-way: no direction
 
@@ -48,6 +49,29 @@ def test_orientation_left_and_ahead():
     rows = np.flatnonzero(ahead[..., 0].any(axis=1))
     assert rows.max() < 64 and abs(rows.mean() - 23.5) < 1.0  # x = +20 -> top half
     assert ahead[..., 0].any(axis=0).all()
+
+
+def test_the_road_class_is_in_r_and_weights_of_encoding_1_see_road_presence():
+    """A primary and a residential road without lane tags give different rasters (R by class, links 8 less); weights
+    of encoding 1 see both as the plain road presence they were trained on, and a drawn road reads as unknown."""
+    line = [[0, -50], [0, 50]]
+    primary, residential = (rasterize_sd(SDMap(roads=[road(line, road_class=c)]), 0.0, 0.0, np.pi / 2)
+                            for c in ("primary", "residential"))
+    assert not np.array_equal(primary, residential)
+    assert set(np.unique(primary[..., 0])) == {0, 208} and set(np.unique(residential[..., 0])) == {0, 144}
+    ramp = rasterize_sd(SDMap(roads=[road(line, road_class="motorway", link=True, oneway=1)]), 0.0, 0.0, np.pi / 2)
+    assert set(np.unique(ramp[..., 0])) == {0, 232}
+    dec = decode_sd(ramp)
+    assert set(dec["road_class"][dec["road"]]) == {"motorway"} and dec["link"][dec["road"]].all()
+    assert set(dec["road_class"][~dec["road"]]) == {""}
+    old = as_encoding(np.stack([primary, residential]), 1)
+    assert np.array_equal(old[0], old[1]) and set(np.unique(old[..., 0])) == {0, 255}
+    assert np.array_equal(as_encoding(primary, 2), primary) and set(ENCODINGS) == {1, 2}
+    assert is_sd_raster(primary)  # a class alone makes an SD raster (no tags: G and B 0); R alone is a drawing
+    drawn = sd_raster_from_image(np.where(residential[..., 0] > 0, 255, 0).astype(np.uint8))
+    assert set(np.unique(drawn[..., 0])) == {0, 255} and set(decode_sd(drawn)["road_class"].ravel()) == {""}
+    with pytest.raises(CmtoolError, match="encoding 3"):
+        as_encoding(primary, 3)
 
 
 def test_direction_encoding_values():

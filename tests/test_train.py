@@ -651,3 +651,39 @@ def test_training_rasters_drawn_once_equal_the_per_scene_drawing(tiny_data, mirr
         drawn = rasterize_scene(*(t[k].numpy() for k in ("lines", "line_mask", "green", "green_mask", "red",
                                                           "red_mask")), px_m=scenes.px_m, frame_m=scenes.frame_m)
         assert drawn.any() and np.array_equal(items[i]["raster"].numpy(), drawn)
+
+
+@pytest.mark.skipif(not (REPO.parent / "shared" / "data" / "real").is_dir(), reason="no shared real maps here")
+def test_real_frames_reach_the_batches_of_the_shipped_branch_trained_further(tmp_path):
+    """A dataset with real maps (an Apollo and a Lanelet2 map) in its train split trains the shipped control branch
+    further, as recipes/tiny-cpu/controlnet-real.toml does: the shipped RVAE encodes the new data into the data
+    folder, the branch of SD encoding 1 starts one of encoding 2, and real scenes are in every batch."""
+    from cmtool.data.cache import build_dataset, load_dataset
+    from cmtool.train.data import StepBatches
+    from cmtool.train.recipe import load_recipe
+
+    shared = REPO.parent / "shared" / "data"
+    text = (REPO / "recipes" / "data_tiny.toml").read_text().replace('train_cities = ["LAV", "PIT", "SGP"]',
+                                                                     'train_cities = ["LAV"]')
+    text += "".join(f'\n[[data.real_maps]]\nformat = "{fmt}"\npath = "{path}"\nscenes_per_map = 8\n'
+                    for fmt, path in (("apollo", shared / "real" / "apollo" / "borregas_ave_base_map.bin"),
+                                      ("lanelet2", shared / "lanelet2" / "mapping_example.osm")))
+    (tmp_path / "data.toml").write_text(text)
+    data = tmp_path / "data"
+    build_dataset(load_recipe(tmp_path / "data.toml"), data, workers=1, progress=False)
+    sources = load_dataset(data, "train").arrays["source"]
+    real = np.array([not str(s).startswith("procedural") for s in sources])
+    assert len(sources) == 24 and real.sum() == 16
+    for batch in StepBatches(range(len(sources)), 8, 0, 1, 0, 0, 6):
+        assert real[batch].any()
+    recipe = tmp_path / "controlnet-real.toml"  # the recipe at a batch the 24 scenes hold
+    recipe.write_text((REPO / "recipes" / "tiny-cpu" / "controlnet-real.toml").read_text().replace(
+        "batch_size = 64", "batch_size = 8"))
+    result = cli("train", "controlnet", "--recipe", recipe, "--data", data, "--out", tmp_path / "run", "--steps", 2,
+                 "--quiet", "--no-log")
+    assert result.returncode == 0, result.stderr
+    config = ckpt.load_config(tmp_path / "run")
+    assert config["control"]["sd_encoding"] == 2 and config["branch_from"].endswith("weights/controlmap")
+    (cache,) = (data / "latents").iterdir()
+    with np.load(cache / "train.npz") as z:
+        assert np.array_equal(z["pose"], load_dataset(data, "train").arrays["pose"])

@@ -119,8 +119,9 @@ def _table(gen, head: str, data, n: int, counts: list[int], names: list[str], cf
     from functools import partial
 
     from cmtool.data.cache import MissingSDMaps, load_dataset, scene_sd_maps
+    from cmtool.data.layouts import scene_layouts
     from cmtool.eval.bench_sample import sampler_table
-    from cmtool.eval.evaluation import as_sampled
+    from cmtool.eval.evaluation import as_sampled, baseline_methods
     from cmtool.metrics.features import FeatureExtractor
 
     if not gen.has_control:
@@ -133,14 +134,16 @@ def _table(gen, head: str, data, n: int, counts: list[int], names: list[str], cf
         raise click.UsageError(f"--features: GT Recall needs at least 64 scenes (batches of 64), got {len(scenes)}")
     extractor = FeatureExtractor("resnet50-seeded", None, _device(device)) if features else None
     try:
-        scene_sd_maps(data, "test")
+        sd_maps = scene_sd_maps(data, "test")[:len(scenes)]
         final = partial(as_sampled, data=data, split="test", scenes=scenes)
         what = "the maps as cmtool sample writes them (composed from the SD map, the guarantee)"
+        baselines = {m: [s.to_lanegraph() for s in scene_layouts(data, "test", scenes, m)] for m in baseline_methods()}
     except MissingSDMaps as e:
-        final, what = None, f"the model's maps ({e})"
+        final, what, sd_maps, baselines = None, f"the model's maps ({e})", None, None
     click.echo(f"{head}; {len(scenes)} test scenes of {data}, cfg {cfg}, batch {batch}; scores of {what}; seconds "
                "per map: denoising, decoding and lane graphs")
-    sampler_table(gen, scenes, cfg, names, counts, batch, extractor=extractor, report=click.echo, final=final)
+    sampler_table(gen, scenes, cfg, names, counts, batch, extractor=extractor, report=click.echo, final=final,
+                  sd_maps=sd_maps, baselines=baselines)
 
 
 def _step_list(text: str) -> list[int]:

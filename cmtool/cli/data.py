@@ -7,6 +7,7 @@ import click
 
 from cmtool.cli.common import SEED, Finite, InPath, OutPath, _origin
 from cmtool.core.errors import CmtoolError
+from cmtool.formats.importers import FORMATS as HD_FORMATS
 
 CITY_CHOICES = ("LAV", "PIT", "SGP", "BOS")
 
@@ -44,12 +45,12 @@ def _city(value: str) -> str:
     return value.upper()
 
 
-IMPORT_FORMATS = ("av2", "lanelet2", "nuplan", "osm")
+IMPORT_FORMATS = (*HD_FORMATS, "osm")
 
 
 @data.command("import")
 @click.option("--format", "fmt", required=True, type=click.Choice(IMPORT_FORMATS),
-              help="av2, lanelet2, nuplan: HD maps; osm: an OpenStreetMap .osm/.osm.pbf file to an SD map.")
+              help=f"{', '.join(HD_FORMATS)}: HD maps; osm: an OpenStreetMap .osm/.osm.pbf file to an SD map.")
 @click.argument("file", type=InPath())
 @click.option("--out", required=True, type=OutPath(dir_okay=False), help="Map JSON to write.")
 @click.option("--city", default=None, help="City code to record (default: from the file or format).")
@@ -122,7 +123,7 @@ def raster(sd_map, x, y, yaw, png):
     import numpy as np
 
     from cmtool.data.frames import read_sd_source
-    from cmtool.data.sd_raster import FRAME_M, rasterize_sd
+    from cmtool.data.sd_raster import ENCODING, ENCODINGS, FRAME_M, decode_sd, rasterize_sd
     from cmtool.viz.show import write_png
 
     sd_obj = read_sd_source(sd_map)
@@ -136,7 +137,12 @@ def raster(sd_map, x, y, yaw, png):
     cx, cy = (pts.min(0) + pts.max(0)) / 2.0
     image = rasterize_sd(sd_obj, cx if x is None else x, cy if y is None else y, np.radians(yaw))
     write_png(png, image)
-    click.echo(f"{png}: SD raster, {int((image[..., 0] > 0).sum())} road pixels")
+    dec = decode_sd(image)
+    classes, counts = np.unique(dec["road_class"][dec["road"]] + np.where(dec["link"][dec["road"]], "_link", ""),
+                                return_counts=True)
+    shown = ", ".join(f"{c or 'unknown class'} {n}" for c, n in sorted(zip(classes, counts), key=lambda t: -t[1]))
+    click.echo(f"{png}: SD raster of encoding {ENCODING} ({ENCODINGS[ENCODING]}), {int(dec['road'].sum())} road "
+               f"pixels{': ' + shown if shown else ''}")
 
 
 @data.command()

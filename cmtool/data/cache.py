@@ -47,6 +47,7 @@ from cmtool.core.workers import pool
 from cmtool.data.frames import label_order
 from cmtool.data.recipe import DataRecipe
 from cmtool.data.scene import Pose, Scene, SceneCropper
+from cmtool.data.sd_raster import ENCODING
 from cmtool.maps.sdmap import SDMap
 
 FORMAT = "cmtool.dataset"
@@ -191,7 +192,7 @@ def build_dataset(recipe, out_dir, workers: int | None = None, progress: bool = 
     units = plan_units(recipe)
     head = {
         "format": FORMAT, "version": 1, "recipe": _plain(asdict(data)),
-        "px_m": data.px_m, "frame_m": data.frame_m, "sd_size": SD_SIZE,
+        "px_m": data.px_m, "frame_m": data.frame_m, "sd_size": SD_SIZE, "sd_encoding": ENCODING,
         "units": [_plain(asdict(u)) | {"shards": u.shard_files(data.shard_size)} for u in units],
     }
     manifest_path = out_dir / "manifest.json"

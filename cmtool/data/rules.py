@@ -109,10 +109,7 @@ def rule_layout(sd: SDMap, side: str | None = None, counts: Counts | None = None
     hd = HDMap(city=sd.city or "", drives_on=side, source=f"rules:{sd.source}" if sd.source else "rules",
                meta={"rules": "cmtool.data.rules"})
     edges = _edges(sd)
-    at_node = defaultdict(list)  # node -> [(edge index, which end: 0 start / 1 end)]
-    for i, e in enumerate(edges):
-        for end, node in enumerate(e.nodes):
-            at_node[node].append((i, end))
+    at_node = _at_nodes(edges)
     junction = _junctions(edges, at_node, turn_radius_m is not None)
     setback = _setbacks(edges, at_node, junction, counts, turn_radius_m)
     for i, e in enumerate(edges):
@@ -157,6 +154,23 @@ def _edges(sd: SDMap) -> list[_Edge]:
             nodes = tuple(ids.setdefault(tuple(k[v]), len(ids)) for v in (a, b))
             edges.append(_Edge(road, piece, nodes))
     return edges
+
+
+def _at_nodes(edges: list[_Edge]) -> dict[int, list[tuple[int, int]]]:
+    """Node -> [(edge index, which end: 0 start / 1 end)]."""
+    at_node = defaultdict(list)
+    for i, e in enumerate(edges):
+        for end, node in enumerate(e.nodes):
+            at_node[node].append((i, end))
+    return at_node
+
+
+def road_junctions(sd: SDMap) -> tuple[list[_Edge], dict[int, int]]:
+    """The roads of ``sd`` split where they meet, as :func:`rule_layout` splits them (each edge's ``road``, its
+    ``line`` in the travel direction and its (start, end) ``nodes``), and its junctions (junction node -> junction id;
+    bends are no junctions, as in the baseline): what :mod:`cmtool.metrics.decisions` counts movements through."""
+    edges = _edges(sd)
+    return edges, _junctions(edges, _at_nodes(edges))
 
 
 def _snap_ends(roads: list[Road], lines: list[np.ndarray]) -> None:

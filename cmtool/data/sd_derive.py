@@ -28,9 +28,12 @@ the total lane count and whether the road is one-way. We rebuild that from any :
    a chain that stops at an intersection ends on that crossing (or on the nearest road running
    through, or at the intersection's centre when none does).
 
-Road class follows the lane count (a documented, deliberately simple rule): total lanes >= 6 ->
-``primary``, 4-5 -> ``secondary``, 3 -> ``tertiary``, else ``residential``, or ``service`` when its
-lanes are narrower than ``SERVICE_WIDTH_M``.
+Road class, as mappers tag it (``classes="mapped"``, the default): ``service`` when the road's lanes are narrower
+than ``SERVICE_WIDTH_M``, else drawn from :data:`MAPPED_CLASSES`, the classes that real OpenStreetMap ways with the
+road's lane count and one-way status carry (measured by :func:`mapped_classes`; docs/data.md), seeded by the map's
+seed and the road. Where the measurement holds too few such ways, and with ``classes="lanes"`` (for tests), the class
+follows the lane count by a fixed rule: total lanes >= 6 -> ``primary``, 4-5 -> ``secondary``, 3 -> ``tertiary``,
+else ``residential`` (or ``service``, narrow).
 """
 
 from __future__ import annotations
@@ -70,6 +73,7 @@ class RoadPiece:
     lane_ids: list[str]
     ends: list[str | None] = field(default_factory=lambda: [None, None])  # intersection at start/end
     road_lanes: int = 0  # lanes of the whole road (both carriageways of a divided road); 0: ``lanes``
+    pair: int | None = None  # a divided road's carriageways share this number (and so their class)
 
 
 @dataclass
@@ -81,16 +85,51 @@ class RoadNetwork:
     chains: list[list[tuple[int, bool]]]  # per road: (piece index, traversed forward)
 
 
-def derive_sd(hd: HDMap, jitter: SDJitter | None = None, seed: int = 0) -> SDMap:
-    """The SD map of ``hd`` as OpenStreetMap would show it, optionally jittered (deterministic)."""
-    sd = sd_from_network(road_network(hd), hd)
+CLASS_RULES = ("mapped", "lanes")  # how a derived road's class is chosen (module doc)
+# P(class | lanes, one-way) of real OSM ways, non-link ways of drivable classes with at least MIN_WAYS ways a bin:
+# mapped_classes(read_osm("../shared/data/osm/finland_test.osm.pbf")) (tests/test_sd_derive.py measures it again)
+MAPPED_CLASSES = {
+    (1, True): {"secondary": 0.5, "tertiary": 0.5},
+    (2, False): {"residential": 0.731, "secondary": 0.018, "service": 0.205, "tertiary": 0.041,
+                 "unclassified": 0.006},
+    (2, True): {"secondary": 0.667, "tertiary": 0.333},
+}
+MIN_WAYS = 3
+IMPLIED_LANES = 2  # a two-way way without a lanes tag has two lanes (OSM's default); untagged one-way ways are left out
+
+
+def mapped_classes(sd: SDMap) -> dict[tuple[int, bool], dict[str, float]]:
+    """The share of each class among the roads of ``sd`` (real OSM) with a lane count and one-way status: (lanes,
+    one-way) -> class -> share, by number of ways, without links (a derived road is never one), for bins of at least
+    ``MIN_WAYS`` ways; a two-way road without a lane tag counts as ``IMPLIED_LANES`` lanes."""
+    counts: dict[tuple[int, bool], Counter] = defaultdict(Counter)
+    for road in sd.roads:
+        lanes = road.lanes if road.lanes is not None or road.oneway else IMPLIED_LANES
+        if lanes is not None and not road.link:
+            counts[lanes, bool(road.oneway)][road.road_class] += 1
+    return {key: {c: round(n / sum(seen.values()), 3) for c, n in sorted(seen.items())}
+            for key, seen in sorted(counts.items()) if sum(seen.values()) >= MIN_WAYS}
+
+
+def derive_sd(hd: HDMap, jitter: SDJitter | None = None, seed: int = 0, classes: str = "mapped") -> SDMap:
+    """The SD map of ``hd`` as OpenStreetMap would show it (road classes as ``classes`` says: module doc), optionally
+    jittered (deterministic)."""
+    sd = sd_from_network(road_network(hd), hd, seed, classes)
     if jitter is not None:
         sd = apply_jitter(sd, jitter, seed)
     return sd
 
 
-def road_class(lanes: int, lane_width: float) -> str:
-    """Road class from the total lane count and the mean lane width (rule in the module doc)."""
+def road_class(lanes: int, lane_width: float, oneway: bool = False, way_lanes: int | None = None,
+               rng: np.random.Generator | None = None) -> str:
+    """A road's class from its lane count (``lanes`` in all, ``way_lanes`` on its way: one carriageway of a divided
+    road; default ``lanes``), one-way status and mean lane width: drawn with ``rng`` as mappers tag, else by the fixed
+    rule (module doc)."""
+    mapped = MAPPED_CLASSES.get((way_lanes or lanes, oneway)) if rng is not None else None
+    if lane_width < SERVICE_WIDTH_M and lanes < 3:
+        return "service"
+    if mapped:
+        return str(rng.choice(list(mapped), p=np.array(list(mapped.values())) / sum(mapped.values())))
     if lanes >= 6:
         return "primary"
     if lanes >= 4:
@@ -100,9 +139,11 @@ def road_class(lanes: int, lane_width: float) -> str:
     return "service" if lane_width < SERVICE_WIDTH_M else "residential"
 
 
-def sd_from_network(net: RoadNetwork, hd: HDMap) -> SDMap:
+def sd_from_network(net: RoadNetwork, hd: HDMap, seed: int = 0, classes: str = "mapped") -> SDMap:
     """One SD road per chain of pieces (polylines simplified to within 0.1 m), meeting at shared
-    junction nodes (:func:`_share_nodes`)."""
+    junction nodes (:func:`_share_nodes`), classed as ``classes`` says (module doc)."""
+    if classes not in CLASS_RULES:
+        raise ValueError(f"classes: expected one of {CLASS_RULES}, got {classes!r}")
     lines, ends, through = [], [], defaultdict(list)
     for k, chain in enumerate(net.chains):
         parts, piece_ends = [], []
@@ -127,8 +168,10 @@ def sd_from_network(net: RoadNetwork, hd: HDMap) -> SDMap:
         pieces = [net.pieces[i] for i, _ in chain]
         lanes = pieces[0].lanes
         width = float(np.mean([p.width for p in pieces]))
-        roads.append(Road(f"r{k}", line, road_class(pieces[0].road_lanes or lanes, width), min(lanes, 16),
-                          int(pieces[0].oneway)))
+        draw = [k] if pieces[0].pair is None else [len(net.chains), pieces[0].pair]  # one class for both carriageways
+        rng = np.random.default_rng([seed, *draw]) if classes == "mapped" else None
+        cls = road_class(pieces[0].road_lanes or lanes, width, pieces[0].oneway, lanes, rng)
+        roads.append(Road(f"r{k}", line, cls, min(lanes, 16), int(pieces[0].oneway)))
     return SDMap(city=hd.city, roads=roads, source=f"derived:{hd.source}" if hd.source else "derived")
 
 
@@ -461,7 +504,8 @@ def _pair(cws: list[_Carriageway], split_divided: bool = True) -> list[RoadPiece
         else:
             partner = paired.get(k, absorbed.get(k))
             road_lanes = c.lanes + (cws[partner].lanes if partner is not None else 0)
-            pieces.append(RoadPiece(c.line, c.lanes, True, c.width, list(c.lane_ids), road_lanes=road_lanes))
+            pieces.append(RoadPiece(c.line, c.lanes, True, c.width, list(c.lane_ids), road_lanes=road_lanes,
+                                    pair=None if partner is None else min(k, partner)))
         piece_of[k] = len(pieces) - 1
     for k, o in absorbed.items():
         if o not in divided:

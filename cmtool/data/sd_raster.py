@@ -5,15 +5,23 @@ the left edge (y = +32); pixel (i, j) is centred at x = 32 - (i + 0.5) * px, y =
 with px = frame_m / size (0.5 m). Roads are drawn as polylines 4 px wide, without anti-aliasing, so
 every value is exact. Channels:
 
-- R (0), road presence: 255 on road pixels, 0 elsewhere.
+- R (0), road class: on road pixels ``CLASS_TOP - CLASS_STEP * k`` for the k-th class of the OSM
+  hierarchy (:data:`~cmtool.maps.sdmap.ROAD_CLASSES`: motorway 240, trunk 224, primary 208, secondary
+  192, tertiary 176, unclassified 160, residential 144, service 128), ``LINK_OFFSET`` (8) less for a
+  ramp or slip road (``*_link``), and 255 where the class is unknown (a drawn road); 0 off the road.
 - G (1), lane count: ``32 * min(lanes, 7)`` on road pixels where the total lane count is known,
   0 where it is unknown.
 - B (2), one-way travel direction: ``1 + round(254 * (theta + pi) / (2 pi))`` on one-way road
   pixels, where theta in [-pi, pi) is the travel heading in the ego frame (0 = straight ahead,
   pi/2 = to the left); 0 on two-way roads and where the direction is unknown.
 
+This is encoding 2 (:data:`ENCODING`). Encoding 1, which weights trained before road classes read, has road
+presence in R (255 on every road pixel) and is otherwise the same: :func:`as_encoding` turns a raster of
+encoding 2 into one of encoding 1 (the classes dropped), and one of encoding 1 reads as encoding 2 with every
+class unknown.
+
 Two-way roads are drawn first and one-way roads over them, so a one-way direction survives at
-junctions. A plain black/white road drawing (light roads on dark or dark roads on light) converts to
+junctions; within each, minor classes first. A plain black/white road drawing (light roads on dark or dark roads on light) converts to
 a raster with R only (:func:`sd_raster_from_image`).
 """
 
@@ -30,12 +38,16 @@ import numpy as np
 from cmtool.core.errors import CmtoolError
 from cmtool.core.memory import check_fits
 from cmtool.core.geometry import CV_SHIFT, ego_to_pixel, to_frame
-from cmtool.maps.sdmap import SDMap
+from cmtool.maps.sdmap import ROAD_CLASSES, Road, SDMap
 
 SIZE = 128
 FRAME_M = 64.0
 THICKNESS_PX = 4
-ROAD_VALUE = 255
+ROAD_VALUE = 255  # R of a road whose class is unknown (encoding 1: of every road)
+CLASS_TOP, CLASS_STEP, LINK_OFFSET = 240, 16, 8  # R = CLASS_TOP - CLASS_STEP * class index (- LINK_OFFSET: a link)
+ENCODING = 2  # the control image's encoding (module doc); weights record the one they read
+ENCODINGS = {1: "R road presence, G lane count, B one-way direction",
+             2: "R road class, G lane count, B one-way direction"}
 LANE_STEP = 32  # G = LANE_STEP * min(lanes, MAX_LANES)
 MAX_LANES = 7
 IMAGE_SUFFIXES = (".png", ".jpg", ".jpeg", ".bmp", ".tif", ".tiff", ".npy")  # SD pictures read from files
@@ -44,6 +56,35 @@ IMAGE_SUFFIXES = (".png", ".jpg", ".jpeg", ".bmp", ".tif", ".tiff", ".npy")  # S
 def lane_value(lanes: int | None) -> int:
     """G-channel value of a road with ``lanes`` total lanes (None = unknown)."""
     return 0 if lanes is None else LANE_STEP * min(int(lanes), MAX_LANES)
+
+
+def class_value(road_class: str | None, link: bool = False) -> int:
+    """R-channel value of a road of ``road_class`` (None = unknown), a ramp or slip road when ``link``."""
+    if road_class is None:
+        return ROAD_VALUE
+    return CLASS_TOP - CLASS_STEP * ROAD_CLASSES.index(road_class) - (LINK_OFFSET if link else 0)
+
+
+CLASS_VALUES = {class_value(c, link): (c, link) for c in ROAD_CLASSES for link in (False, True)}  # R -> class
+_CLASS_NAMES = np.array([CLASS_VALUES.get(v, ("", False))[0] for v in range(256)], dtype=object)
+_LINKS = np.array([CLASS_VALUES.get(v, ("", False))[1] for v in range(256)])
+
+
+def road_value(road: Road) -> int:
+    """R-channel value of ``road``."""
+    return class_value(road.road_class, road.link)
+
+
+def as_encoding(sd: np.ndarray, encoding: int) -> np.ndarray:
+    """SD rasters (..., H, W, 3) of encoding 2 as weights of ``encoding`` read them (module doc)."""
+    if encoding == ENCODING:
+        return sd
+    if encoding != 1:
+        raise CmtoolError(f"unknown SD raster encoding {encoding} (this cmtool knows "
+                          + "; ".join(f"{k}: {v}" for k, v in ENCODINGS.items()) + ")")
+    out = np.array(sd, copy=True)
+    out[..., 0] = np.where(out[..., 0] > 0, ROAD_VALUE, 0)
+    return out
 
 
 def direction_value(theta) -> np.ndarray:
@@ -75,9 +116,11 @@ class SDRasterizer:
     """Draws SD rasters of one SD map at many poses (:func:`rasterize_sd`; the roads are gathered once)."""
 
     def __init__(self, sd: SDMap):
-        roads = sorted(sd.roads, key=lambda r: bool(r.oneway))  # two-way roads first, one-way roads over them
+        # two-way roads first, one-way roads over them; minor classes first within each
+        roads = sorted(sd.roads, key=lambda r: (bool(r.oneway), -ROAD_CLASSES.index(r.road_class)))
         self.lines = [road.travel_polyline() for road in roads]
         self.oneway = [bool(road.oneway) for road in roads]
+        self.classes = [road_value(road) for road in roads]
         self.lanes = [lane_value(road.lanes) for road in roads]
         self.lo = np.array([line.min(axis=0) for line in self.lines]).reshape(-1, 2)
         self.hi = np.array([line.max(axis=0) for line in self.lines]).reshape(-1, 2)
@@ -95,28 +138,31 @@ class SDRasterizer:
         ego = to_frame(np.concatenate([self.lines[k] for k in near]), x, y, yaw)
         strokes = []  # (colour, pixel polyline) in drawing order
         for k, line, pts in zip(near, np.split(ego, cuts), np.split(ego_to_pixel(ego, px, frame_m), cuts)):
-            g = self.lanes[k]
+            r, g = self.classes[k], self.lanes[k]
             if not self.oneway[k]:
-                strokes.append(((ROAD_VALUE, g, 0), pts))
+                strokes.append(((r, g, 0), pts))
                 continue
             d = np.diff(line, axis=0)
             values = direction_value(np.arctan2(d[:, 1], d[:, 0])).tolist()
             inside = (np.minimum(line[:-1], line[1:]) <= half + 1.0).all(axis=1)
             inside &= (np.maximum(line[:-1], line[1:]) >= -half - 1.0).all(axis=1)
-            strokes += [((ROAD_VALUE, g, values[s]), pts[s:s + 2]) for s in np.flatnonzero(inside)]
+            strokes += [((r, g, values[s]), pts[s:s + 2]) for s in np.flatnonzero(inside)]
         for colour, group in groupby(strokes, key=itemgetter(0)):  # one call per run of one colour
             cv2.polylines(img, [pts for _, pts in group], False, colour, THICKNESS_PX, cv2.LINE_8, CV_SHIFT)
         return img
 
 
 def is_sd_raster(img: np.ndarray) -> bool:
-    """Whether an RGB uint8 picture follows the SD raster convention above (at any size): R is 0 or
-    255, G and B are 0 off the road, some G or B is set, and roads are the minority of pixels."""
+    """Whether an RGB uint8 picture follows the SD raster convention above (at any size): R is 0 or a class
+    value (255 included), G and B are 0 off the road, some G or B is set or some class known, and roads are the
+    minority of pixels."""
     if img.ndim != 3 or img.shape[2] != 3 or img.dtype != np.uint8:
         return False
     r, gb = img[..., 0], img[..., 1:]
-    road = r == ROAD_VALUE
-    return bool(np.all(road | (r == 0)) and not gb[~road].any() and gb[road].any() and road.mean() < 0.5)
+    road = r > 0
+    known = np.isin(r, list(CLASS_VALUES))
+    return bool(np.all(known | (r == 0) | (r == ROAD_VALUE)) and not gb[~road].any()
+                and (gb[road].any() or known.any()) and road.mean() < 0.5)
 
 
 def sd_raster_from_image(image) -> np.ndarray:
@@ -275,10 +321,12 @@ def _as_uint8(img: np.ndarray) -> np.ndarray:
 
 
 def decode_sd(raster: np.ndarray) -> dict[str, np.ndarray]:
-    """Split a raster into ``road`` (bool), ``lanes`` (int, 0 = unknown) and ``heading`` (radians,
-    NaN where not one-way), for tests and pictures."""
+    """Split a raster into ``road`` (bool), ``road_class`` (str, "" = off the road or unknown), ``link`` (bool),
+    ``lanes`` (int, 0 = unknown) and ``heading`` (radians, NaN where not one-way), for tests and pictures."""
     raster = np.asarray(raster)
     road = raster[..., 0] > 0
+    road_class = _CLASS_NAMES[raster[..., 0]]
+    link = _LINKS[raster[..., 0]]
     lanes = np.where(road, np.round(raster[..., 1] / LANE_STEP), 0).astype(int)
     heading = np.where(road & (raster[..., 2] > 0), decode_direction(raster[..., 2]), np.nan)
-    return {"road": road, "lanes": lanes, "heading": heading}
+    return {"road": road, "road_class": road_class, "link": link, "lanes": lanes, "heading": heading}

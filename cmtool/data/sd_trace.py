@@ -6,8 +6,8 @@ are nodes (touching ones one node, at their mean); the lines between nodes becom
 the picture's centre. Spurs of the thinning (a line from a node to an end shorter than ``SPUR_WIDTHS`` road widths)
 are dropped, and nodes closer than a road width are one; a road end that the thinning left short of the picture's
 edge (within a road width of it, heading out) goes on to the edge. In the SD raster's colours a road takes its lane
-count (G) and, where most of its pixels say one-way (B), its direction: the picture's up is north, as a raster's up
-is ahead.
+count (G), its class where most of its pixels give one (R) and, where most of its pixels say one-way (B), its
+direction: the picture's up is north, as a raster's up is ahead.
 """
 
 from __future__ import annotations
@@ -17,10 +17,11 @@ import numpy as np
 import shapely
 
 from cmtool.core.errors import CmtoolError
-from cmtool.data.sd_raster import LANE_STEP, ROAD_VALUE, decode_direction, drawing_roads, picture
+from cmtool.data.sd_raster import CLASS_VALUES, LANE_STEP, decode_direction, drawing_roads, picture
 from cmtool.maps.sdmap import Road, SDMap
 
 SPUR_WIDTHS = 2.0  # a dead-end line shorter than this many road widths is a spur of the thinning
+UNKNOWN_CLASS = ("residential", False)  # (class, link) of a road whose picture does not give one
 SIMPLIFY_PX = 0.7  # traced lines are simplified to within this many pixels
 MAX_TRACE_PIXELS = 5_000 * 5_000  # larger pictures are refused (a noisy one this size takes about a minute)
 _RING = [(-1, 0), (-1, 1), (0, 1), (1, 1), (1, 0), (1, -1), (0, -1), (-1, -1)]  # P2 .. P9, clockwise from up
@@ -40,7 +41,7 @@ def trace_picture(img: np.ndarray, coloured: bool, px_m: float, city: str | None
     if img.shape[0] * img.shape[1] > MAX_TRACE_PIXELS:
         raise CmtoolError(f"{path}: a picture of {img.shape[1]} x {img.shape[0]} pixels; roads are traced in pictures "
                           f"of up to {MAX_TRACE_PIXELS:,} pixels (5000 x 5000)")
-    mask = (img[..., 0] == ROAD_VALUE).astype(np.uint8) if coloured else drawing_roads(img)
+    mask = (img[..., 0] > 0).astype(np.uint8) if coloured else drawing_roads(img)
     if mask is None or not mask.any():
         raise CmtoolError(f"{path}: no roads in the picture (draw roads light on dark or dark on light)")
     width = 2.0 * float(cv2.distanceTransform(mask, cv2.DIST_L2, 3).max())  # the widest road, pixels
@@ -54,8 +55,8 @@ def trace_picture(img: np.ndarray, coloured: bool, px_m: float, city: str | None
                       width * px_m)
     roads = []
     for k in np.flatnonzero(shapely.length(shapes) >= 1.0):  # shorter: a link of two touching nodes
-        lanes, oneway = _attributes(img, lines[k]) if coloured else (None, 0)
-        roads.append(Road(f"d{k}", metres[k], lanes=lanes, oneway=oneway))
+        lanes, oneway, (road_class, link) = _attributes(img, lines[k]) if coloured else (None, 0, UNKNOWN_CLASS)
+        roads.append(Road(f"d{k}", metres[k], road_class, lanes, oneway, link))
     if not roads:
         raise CmtoolError(f"{path}: no road lines could be traced in the picture")
     return SDMap(city=city, roads=roads, source=f"drawing:{path}", meta={"px_m": px_m})
@@ -204,16 +205,18 @@ def _lengths(lines: list[np.ndarray]) -> np.ndarray:
     return np.add.reduceat(step, starts)
 
 
-def _attributes(img: np.ndarray, line: np.ndarray) -> tuple[int | None, int]:
-    """A traced road's lane count (None: unknown) and one-way direction along the line (1, -1 or 0) from the SD
-    raster colours of its pixels."""
+def _attributes(img: np.ndarray, line: np.ndarray) -> tuple[int | None, int, tuple[str, bool]]:
+    """A traced road's lane count (None: unknown), one-way direction along the line (1, -1 or 0) and (class, link)
+    (residential where the raster does not say) from the SD raster colours of its pixels."""
     rows, cols = np.round(line).astype(int).T
     rows, cols = rows.clip(0, img.shape[0] - 1), cols.clip(0, img.shape[1] - 1)
-    g, b = img[rows, cols, 1].astype(int), img[rows, cols, 2].astype(int)
+    r, g, b = img[rows, cols].astype(int).T
     lanes = int(np.round(np.median(g[g > 0]) / LANE_STEP)) if (g > 0).mean() > 0.5 else None
+    known = [v for v in r if v in CLASS_VALUES]
+    road_class = CLASS_VALUES[max(set(known), key=known.count)] if len(known) > 0.5 * len(r) else UNKNOWN_CLASS
     if (b > 0).mean() <= 0.5:
-        return lanes, 0
+        return lanes, 0, road_class
     theta = decode_direction(b[b > 0])  # 0: up (north), pi / 2: left (west)
     travel = np.array([-np.sin(theta).mean(), np.cos(theta).mean()])  # east, north
     along = np.array([line[-1, 1] - line[0, 1], line[0, 0] - line[-1, 0]])  # the line's direction, east and north
-    return lanes, 1 if travel @ along >= 0 else -1
+    return lanes, 1 if travel @ along >= 0 else -1, road_class

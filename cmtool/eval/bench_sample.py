@@ -25,10 +25,13 @@ from pathlib import Path
 import numpy as np
 
 from cmtool.diffusion.settings import SAMPLERS, TABLE_STEPS, SamplerSettings
+from cmtool.eval.evaluation import lane_count_agreement
+from cmtool.metrics.decisions import decision_scores, truth_frames
 from cmtool.metrics.features import FeatureExtractor
 from cmtool.metrics.suite import evaluate, shared_features
 from cmtool.sample.generator import MapGenerator
 from cmtool.sample.inputs import ControlInput
+from cmtool.sample.roads import frame_roads
 from cmtool.sample.run import Job, SampleSettings, generate_maps, log_run_header, plan, run_sample
 from cmtool.viz.recording import close_recording, open_recording
 
@@ -131,21 +134,32 @@ E2E_HEAD = ("| setting | maps | min s | median s | maps per second (median) | sp
 
 
 def sampler_table(gen: MapGenerator, scenes, cfg: float = 1.0, samplers=SAMPLERS, steps=TABLE_STEPS, batch: int = 64,
-                  seed: int = 0, extractor: FeatureExtractor | None = None, report=print, final=None) -> list[dict]:
+                  seed: int = 0, extractor: FeatureExtractor | None = None, report=print, final=None,
+                  sd_maps=None, baselines: dict | None = None) -> list[dict]:
     """One row per sampler and step count: seconds per map of generating the maps of ``scenes`` (denoising,
     decoding and lane graphs, ``batch`` maps at a time, in turn with nothing else) and their scores against the
     scenes' ground truth (validity, lane F1 and precision at 1 m, Chamfer distance, legal one-way share, SD road
     covered, and with ``extractor`` GT Recall and the improved precision and recall of the maps' features against
     the ground truth's). ``final``: scores the maps it makes of the model's (the maps as ``cmtool sample`` writes
-    them), not timed. ``report`` gets each row as a line of the table as soon as it is done."""
+    them), not timed. ``sd_maps``: the scenes' SD maps (:func:`cmtool.data.cache.scene_sd_maps`): the decisions on
+    the SD roads too (:func:`decisions_row`), and of the maps in ``baselines`` (method -> the scenes' maps: the rules'
+    and netconvert's layouts), a line each before the table. ``report`` gets each row as a line of the table as soon
+    as it is done."""
     labels = [gen.known_label(s.city) for s in scenes]
     sds = np.stack([s.sd for s in scenes])
     reference = [s.to_lanegraph() for s in scenes]
     shared = {}
     if extractor is not None:  # the ground truth's and the controls' features serve every row
         shared = shared_features(reference, sds, extractor)
+    roads = frames = None
+    if sd_maps is not None:
+        roads = [frame_roads(m, s.pose.as_array(), s.frame_m) for s, m in zip(scenes, sd_maps)]
+        frames = truth_frames(reference, roads)
+        for method, maps in (baselines or {}).items():
+            d = decisions_row(maps, scenes, sd_maps, frames, roads)
+            report(f"{method} (the SD map's layout): " + ", ".join(f"{DECISION_NAMES[k]} {d[k]:.3f}" for k in DECISIONS))
     gen.generate_all(sds[:1], labels[:1], SamplerSettings(cfg=cfg, steps=1, sampler=samplers[0], batch=1))  # warm-up
-    head = TABLE_HEAD + (FEATURE_HEAD if extractor is not None else "")
+    head = TABLE_HEAD + (FEATURE_HEAD if extractor is not None else "") + (DECISION_HEAD if roads is not None else "")
     report(head + "\n" + "|---" * (head.count("|") - 1) + "|")
     rows = []
     for sampler in samplers:
@@ -164,6 +178,8 @@ def sampler_table(gen: MapGenerator, scenes, cfg: float = 1.0, samplers=SAMPLERS
                 fidelity = scores["precision_recall"]
                 row |= {"gt_recall": scores["gt_recall"]["recall"], "precision": fidelity["precision"],
                         "recall": fidelity["recall"]}
+            if roads is not None:
+                row |= decisions_row(maps, scenes, sd_maps, frames, roads)
             rows.append(row)
             report(table_row(row))
     return rows
@@ -173,6 +189,21 @@ QUALITY = ("validity", "lane_f1", "lane_precision", "chamfer_m", "legal_oneway",
 TABLE_HEAD = ("| sampler | steps | s per map | maps per second | validity | lane F1 @1 m | lane precision @1 m | "
               "Chamfer m | legal one-way | SD covered |")
 FEATURE_HEAD = " GT Recall | precision | recall |"
+DECISIONS = ("lane_count_equal", "movement_precision", "movement_recall", "movement_f1", "unexplained_share")
+DECISION_NAMES = {"lane_count_equal": "lanes per road direction as the truth's",
+                  "movement_precision": "movement precision", "movement_recall": "movement recall",
+                  "movement_f1": "movement F1", "unexplained_share": "lane length no SD road explains"}
+DECISION_HEAD = "".join(f" {DECISION_NAMES[k]} |" for k in DECISIONS)
+
+
+def decisions_row(maps, scenes, sd_maps, frames, roads) -> dict:
+    """The decisions of ``maps`` on the scenes' SD roads: the share of SD road directions with ground-truth lanes
+    where they draw as many lanes as the truth (:func:`cmtool.eval.evaluation.lane_count_agreement`), junction
+    movement precision, recall and F1 and the unexplained share of the lane length
+    (:func:`cmtool.metrics.decisions.decision_scores` against ``frames``, :func:`truth_frames`)."""
+    counts = lane_count_agreement(scenes, maps, sd_maps).get("model")
+    return {"lane_count_equal": counts["equal"] if counts else float("nan"),
+            **{k: v for k, v in decision_scores(maps, frames, roads).items() if k in DECISIONS}}
 
 
 def table_row(row: dict) -> str:
@@ -181,4 +212,6 @@ def table_row(row: dict) -> str:
              *(f"{row[k]:.3f}" for k in QUALITY)]
     if "gt_recall" in row:
         cells += [f"{row[k]:.3f}" for k in ("gt_recall", "precision", "recall")]
+    if "movement_f1" in row:
+        cells += [f"{row[k]:.3f}" for k in DECISIONS]
     return "| " + " | ".join(cells) + " |"

@@ -13,7 +13,8 @@ scene, so processes under ``torchrun`` can share the batches). Generated maps go
 ``<out>/cache/{unguided,controlmap}.jsonl``, one batch at a time, so an interrupted run continues
 where it stopped (the cache remembers its settings and refuses to mix runs). Then ``metrics.json``, ``summary.md``
 (tables shaped like the paper's Tables 1 and 2 plus our geometric metrics, lanes per map and lane F1 in junction
-frames and the others), ``gallery.png`` (a few junction frames and others, every method side by side) and ``eval.rrd``
+frames and the others, lanes per SD road direction, junction movements and the lane length no SD road explains:
+:mod:`cmtool.metrics.decisions`), ``gallery.png`` (a few junction frames and others, every method side by side) and ``eval.rrd``
 (on the ``sample`` timeline: SD | unguided | rules | netconvert | ControlMap | ground truth of the first
 ``rrd_samples`` scenes with their scores, and per-scene scores of all scenes).
 """
@@ -42,6 +43,7 @@ from cmtool.diffusion.settings import SamplerSettings
 from cmtool.formats.sumo import netconvert_path
 from cmtool.maps.hdmap import drives_on
 from cmtool.maps.lanegraph import LaneGraph, write_jsonl
+from cmtool.metrics.decisions import decisions
 from cmtool.metrics.features import FeatureExtractor
 from cmtool.metrics.lanes import lane_scores
 from cmtool.metrics.suite import evaluate, shared_features, summary_table
@@ -116,13 +118,16 @@ def run_eval(gen: MapGenerator, settings: EvalSettings, out: Path, extractor: Fe
     generated = _generate(gen, scenes, settings, out / "cache", progress, info, starts, layouts)
     if not info.main:
         return None
+    roads = None
     try:
         baselines = {m: [_as_map(s, m, k) for k, s in enumerate(
                          starts if m == settings.init else scene_layouts(settings.data, settings.split, scenes, m))]
-                     for m in LAYOUTS if m != "netconvert" or netconvert_path() is not None}
+                     for m in baseline_methods()}
         final = as_sampled(generated["controlmap"], settings.data, settings.split, scenes, settings.lane_counts,
                            workers)
-        counts = lane_count_agreement(scenes, generated["controlmap"], scene_sd_maps(settings.data, settings.split))
+        sd_maps = scene_sd_maps(settings.data, settings.split)
+        counts = lane_count_agreement(scenes, generated["controlmap"], sd_maps)
+        roads = [frame_roads(sd_map, s.pose.as_array(), s.frame_m) for s, sd_map in zip(scenes, sd_maps)]
         generated = {"unguided": generated["unguided"], **baselines, "controlmap": generated["controlmap"],
                      "guaranteed": final}
     except MissingSDMaps as e:
@@ -139,13 +144,20 @@ def run_eval(gen: MapGenerator, settings: EvalSettings, out: Path, extractor: Fe
     report = {"settings": asdict(settings), "methods": results, "frames": frame_groups(scenes, reference, generated),
               "ground_truth_validity": float(np.mean([r.score for r in truth])),
               "ground_truth_routable": float(np.mean([r.routable_with_changes for r in truth])),
-              **({"lane_counts": counts} if counts else {})}
+              **({"lane_counts": counts} if counts else {}),
+              **({"decisions": decisions(generated, reference, roads)} if roads is not None else {})}
     write_json(out / "metrics.json", report)
     write_text_atomic(out / "summary.md", summary_markdown(report))
     if record:
         _write_recording(out / "eval.rrd", scenes, reference, generated, results, rrd_samples)
     write_png(out / "gallery.png", gallery(scenes, reference, generated))
     return report
+
+
+def baseline_methods() -> list[str]:
+    """The layouts of the SD map eval compares (:data:`cmtool.data.layouts.LAYOUTS`; netconvert where SUMO is
+    installed)."""
+    return [m for m in LAYOUTS if m != "netconvert" or netconvert_path() is not None]
 
 
 def lane_count_agreement(scenes, maps: list[LaneGraph], sd_maps) -> dict:
@@ -352,7 +364,27 @@ def summary_markdown(report: dict) -> str:
         tail += [f"| {label} | {counts['model'][k]:.3f} | {counts['rules'][k]:.3f} |" for k, label in
                  (("equal", "equal to the ground truth's ↑"), ("mean_difference", "mean difference (lanes)"),
                   ("mean_abs_difference", "mean absolute difference ↓"))]
+    tail += decision_rows(report.get("decisions"), s["n"])
     return "\n".join(head) + summary_table({SHORT[k]: v for k, v in methods.items()}) + "\n".join(tail) + "\n"
+
+
+def decision_rows(made: dict | None, frames: int) -> list[str]:
+    """The "Decisions on the SD roads" table of ``summary.md`` (:func:`cmtool.metrics.decisions.decisions` of every
+    method and of the ground truth over ``frames`` scenes), or nothing without it."""
+    if not made:
+        return []
+    names = [m for m in made if m != "truth"]
+    truth = made["truth"]
+    out = ["", "", (f"### Decisions on the SD roads ({truth['truth_movements']} junction movements in the ground truth "
+                    f"of the {frames} frames, pooled)"), "",
+           "| | " + " | ".join(SHORT[m] for m in names) + " | ground truth |", "|---|" + "---|" * (len(names) + 1)]
+    out += [f"| junction movements, {label} ↑ | " + " | ".join(f"{made[m][f'movement_{key}']:.3f}" for m in names)
+            + " | 1 |" for key, label in (("precision", "precision"), ("recall", "recall"), ("f1", "F1"))]
+    out.append("| junction movements per frame | " + " | ".join(f"{made[m]['movements'] / frames:.2f}" for m in names)
+               + f" | {truth['movements'] / frames:.2f} |")
+    out.append("| share of the lane length no SD road explains ↓ | "
+               + " | ".join(f"{made[m]['unexplained_share']:.3f}" for m in names + ["truth"]) + " |")
+    return out
 
 
 def _smoothing(control_points: int) -> str:

@@ -262,6 +262,8 @@ def load_config(path, encoder: bool = True) -> dict:
     for key in ("model", "control") if config["kind"] == "controlmap" else ("model",):
         if key not in config:
             raise CmtoolError(f"{path}: {key}: missing")
+    if config["kind"] == "controlmap" and isinstance(config["control"], dict):
+        config["control"].setdefault("sd_encoding", 1)  # written before the road class came into the SD raster
     with torch.device("meta"), _uninitialised():  # the config's types, ranges and size, before anything is allocated
         params = sum(p.numel() for p in build_model(config, str(path), encoder).parameters())
     if params > MAX_PARAMS:

@@ -6,6 +6,7 @@ from __future__ import annotations
 from dataclasses import dataclass, replace
 
 from cmtool.core.errors import CmtoolError
+from cmtool.data.sd_raster import ENCODING, ENCODINGS
 
 
 def check_sizes(config, section: str, limits: dict[str, int]) -> None:
@@ -132,7 +133,11 @@ class ControlConfig:
     widths: tuple[int, ...] = (32, 64, 128, 192)
     groups: int = 32
     layout: str = "none"  # "rules": the control image carries the rule layout's lanes too (cmtool.data.layouts)
+    sd_encoding: int = ENCODING  # the SD raster encoding the branch reads (cmtool.data.sd_raster; 1: no road class)
 
     def __post_init__(self) -> None:
         self.widths = tuple(self.widths)
         check_sizes(self, "control", CONTROL_LIMITS)
+        if self.sd_encoding not in ENCODINGS:
+            raise CmtoolError(f"control.sd_encoding: {self.sd_encoding} is not an SD raster encoding of this cmtool "
+                              f"({', '.join(f'{k}: {v}' for k, v in ENCODINGS.items())})")

@@ -19,6 +19,7 @@ from torch import Tensor, nn
 
 from cmtool.core.errors import CmtoolError
 from cmtool.data.layouts import LAYOUT_CHANNELS, LAYOUTS, control_raster
+from cmtool.data.sd_raster import as_encoding
 from cmtool.model.config import ControlConfig
 from cmtool.model.dit import DiT, sincos_pos_embed_2d
 
@@ -33,9 +34,11 @@ def sd_tensor(sd: np.ndarray) -> Tensor:
 
 def control_images(config: ControlConfig, sd: np.ndarray, layouts: list | None = None) -> np.ndarray:
     """The control images (B, H, W, in_channels) uint8 that a branch of ``config`` reads, from SD rasters ``sd``
-    (B, H, W, 3) and, when it reads a layout, each scene's layout raster (None, or None entries: no layout)."""
+    (B, H, W, 3) of today's encoding, in the branch's own encoding, and, when it reads a layout, each scene's layout
+    raster (None, or None entries: no layout)."""
+    sd = as_encoding(np.asarray(sd), config.sd_encoding)
     if config.layout == NO_LAYOUT:
-        return np.asarray(sd)
+        return sd
     layouts = layouts if layouts is not None else [None] * len(sd)
     return np.stack([control_raster(s, lay) for s, lay in zip(sd, layouts)])
 

@@ -19,7 +19,8 @@ open:
   so that they do not cross.
 
 What the model drew where the SD map has no road is not written; ``meta.composed`` counts it (``dropped``: the
-model's lanes lying mostly farther than a road's reach from every SD road) beside where each road direction's lane
+model's lanes lying mostly farther than a road's reach from every SD road:
+:func:`cmtool.metrics.decisions.unexplained`) beside where each road direction's lane
 count came from and which movements the model chose. The traffic lights the model drew stay where one of the map's
 lanes runs under them.
 """
@@ -38,8 +39,9 @@ from cmtool.data.scene import Pose, SceneCropper
 from cmtool.diffusion.settings import SamplingError
 from cmtool.maps.lanegraph import LaneGraph
 from cmtool.maps.sdmap import Road, SDMap
+from cmtool.metrics.decisions import unexplained
 from cmtool.metrics.lanes import distance_to_polylines, resampled
-from cmtool.sample.roads import drawn_lane_counts, road_reach
+from cmtool.sample.roads import drawn_lane_counts
 
 CHAIN = 3  # lanes joined by successor links that count as one path through a junction
 GATE_BACK_M, GATE_ON_M = 10.0, 4.0  # a path passes an arm's lane ends within this far before / after them
@@ -161,19 +163,6 @@ def _gate(tracks, arm: list[np.ndarray], at_end: bool) -> dict[int, int]:
         if len(inside):
             out[t] = int(inside[0] if at_end else inside[-1])
     return out
-
-
-def unexplained(graph: LaneGraph, roads: list[Road]) -> list[int]:
-    """The model's lanes that lie mostly farther than a road's reach (:func:`road_reach`) from every SD road."""
-    if not graph.lanes or not roads:
-        return list(range(len(graph.lanes)))
-    samples = resampled([np.asarray(l, np.float64) for l in graph.lanes], 1.0)
-    near = np.zeros(sum(len(s) for s in samples), bool)
-    points = np.concatenate(samples)
-    for road in roads:
-        near |= distance_to_polylines(points, [road.polyline]) <= road_reach(road)
-    owner = np.repeat(np.arange(len(samples)), [len(s) for s in samples])
-    return np.flatnonzero(np.bincount(owner, ~near) / np.bincount(owner) > 0.5).tolist()
 
 
 def _lit(lights: list[np.ndarray], lanes: list[np.ndarray]) -> list[np.ndarray]:

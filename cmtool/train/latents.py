@@ -91,6 +91,20 @@ def read_latents(out_dir: Path, split: str) -> LatentSet:
                           "--resume`") from None
 
 
+def data_latents(rvae_loader, rvae_checkpoint: Path, data_dir, device, progress: bool = True) -> tuple[LatentSet, Path]:
+    """The train split of ``data_dir`` encoded once by the RVAE of ``rvae_checkpoint`` (``rvae_loader()`` returns it,
+    with its encoder) into ``data_dir/latents/<weights digest>/``, and that folder: the latents of data other than the
+    RVAE was trained on, e.g. for training the shipped chain further on new data."""
+    from cmtool.model.checkpoint import resolve, weights_digest
+
+    out_dir = Path(data_dir) / "latents" / weights_digest(resolve(rvae_checkpoint))
+    path = out_dir / "train.npz"
+    if not path.is_file():
+        out_dir.mkdir(parents=True, exist_ok=True)
+        _write(encode_split(rvae_loader(), data_dir, "train", device, progress=progress), path)
+    return read_latents(out_dir, "train"), out_dir
+
+
 def mirrored_latents(rvae_loader, data_dir, out_dir: Path, device, progress: bool = True) -> LatentSet:
     """The train split mirrored left-right, encoded once into ``out_dir/train_mirrored.npz`` (by the RVAE
     ``rvae_loader()`` returns, which must hold its encoder) and read from there afterwards."""

@@ -28,6 +28,7 @@ from cmtool.core.errors import CmtoolError
 from cmtool.core.jsonio import read_json
 from cmtool.core.memory import check_fits
 from cmtool.core.progress import Progress
+from cmtool.data.sd_raster import ENCODINGS
 from cmtool.model import checkpoint as ckpt
 from cmtool.train.data import StepBatches
 from cmtool.train.recipe import Recipe, TrainRecipe
@@ -193,6 +194,11 @@ def _resume_point(run_dir: Path, resume: bool, kind: str, model_config: dict) ->
     last = found[-1]
     config = ckpt.load_config(last)
     wanted = ckpt.as_stored(model_config)
+    had, want = (c.get("control", {}).get("sd_encoding") for c in (config, wanted))
+    if kind == "controlmap" and had != want:
+        raise CmtoolError(f"{last}: its control branch reads SD rasters of encoding {had} ({ENCODINGS[had]}); this "
+                          f"recipe's reads encoding {want} ({ENCODINGS[want]}). --resume cannot change it: start a new "
+                          f"run with train.branch_from = \"{last}\"")
     if config["kind"] != kind or config.get("model") != wanted.get("model") \
             or config.get("control") != wanted.get("control"):
         raise CmtoolError(f"{last}: this run was trained with another model; --resume needs the same recipe")

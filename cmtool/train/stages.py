@@ -14,6 +14,7 @@ import torch.nn.functional as F
 from cmtool.core.errors import CmtoolError
 from cmtool.data.cache import load_dataset, load_manifest
 from cmtool.data.layouts import scene_layout_rasters
+from cmtool.data.sd_raster import ENCODINGS
 from cmtool.diffusion.samplers import sample
 from cmtool.diffusion.schedule import NoiseSchedule
 from cmtool.maps.hdmap import drives_on
@@ -23,7 +24,7 @@ from cmtool.model.dit import DiT, DiTConfig
 from cmtool.model.rvae import ENCODER_PREFIXES, RVAE, decoded_elements, same_encoder
 from cmtool.model.rvae_loss import denoise_input, rvae_loss
 from cmtool.train.data import CachedPosteriors, Latents, SceneRasters, scene_raster, shift_sideways
-from cmtool.train.latents import latent_dir, mirrored_latents, read_latents, write_latents
+from cmtool.train.latents import data_latents, latent_dir, mirrored_latents, read_latents, write_latents
 from cmtool.train.loop import Stage
 from cmtool.train.reconstruction import reconstruction_scores
 from cmtool.viz.recording import log_lanes, log_sd
@@ -422,9 +423,19 @@ class ControlNetStage(_DiffusionStage):
             raise CmtoolError(f"{recipe.path}: the [diffusion] schedule differs from the DiT checkpoint's "
                               f"({dit_config['schedule']}); the control branch must train on the DiT's schedule")
         self.data_dir = _path(recipe.train.data, "data", recipe.path)
-        px_m = load_manifest(self.data_dir)["frame_m"] / recipe.control.image_px
+        manifest = load_manifest(self.data_dir)
+        px_m = manifest["frame_m"] / recipe.control.image_px
+        drawn = manifest.get("sd_encoding", 1)  # datasets built before the road class came into the SD raster: 1
+        if drawn < recipe.control.sd_encoding:
+            raise CmtoolError(f"{self.data_dir}: its SD rasters are of encoding {drawn} ({ENCODINGS[drawn]}); this "
+                              f"branch reads encoding {recipe.control.sd_encoding} "
+                              f"({ENCODINGS[recipe.control.sd_encoding]}): build the data again with `cmtool data "
+                              "build` into a new folder")
         self.shift_px = round(recipe.train.sd_shift_m / px_m)
-        self.latents = read_latents(self.latent_dir, "train")
+        if Path(self.rvae_config.get("data", "")).resolve() != self.data_dir.resolve():  # not the RVAE's own data
+            self.latents, self.latent_dir = data_latents(self.rvae, self.rvae_run, self.data_dir, self.device)
+        else:
+            self.latents = read_latents(self.latent_dir, "train")
         self.branch_from = ckpt.resolve(recipe.train.branch_from).resolve() if recipe.train.branch_from else None
         self.layout = recipe.control.layout
         if self.layout != NO_LAYOUT and recipe.train.mirror > 0:
@@ -449,7 +460,8 @@ class ControlNetStage(_DiffusionStage):
         path = self.branch_from
         config = ckpt.load_config(path)
         control = dataclasses.asdict(self.recipe.control)
-        source = {"in_channels": SD_CHANNELS, "layout": NO_LAYOUT, **(config.get("control") or {})}
+        source = {"in_channels": SD_CHANNELS, "layout": NO_LAYOUT, **(config.get("control") or {}),
+                  "sd_encoding": control["sd_encoding"]}  # a branch of the old encoding starts one of the new
         if source["layout"] == NO_LAYOUT:
             control |= {"in_channels": SD_CHANNELS, "layout": NO_LAYOUT}
         wanted = ckpt.as_stored({"control": control, "model": self.dit_config["model"]})
@@ -477,9 +489,8 @@ class ControlNetStage(_DiffusionStage):
     def control_images(self, scenes, split: str, sd: np.ndarray) -> np.ndarray:
         """The control images of the first scenes of a split, whose SD rasters are ``sd``: with the layout channels
         when the branch reads them."""
-        if self.layout == NO_LAYOUT:
-            return sd
-        return control_images(self.recipe.control, sd, scene_layout_rasters(self.data_dir, split, scenes, self.layout))
+        layouts = None if self.layout == NO_LAYOUT else scene_layout_rasters(self.data_dir, split, scenes, self.layout)
+        return control_images(self.recipe.control, sd, layouts)
 
     def loss(self, model, batch):
         control = batch["sd"]

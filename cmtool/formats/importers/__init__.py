@@ -1,4 +1,5 @@
-"""Importers for real HD maps: Argoverse 2 log maps, Lanelet2 OSM maps and nuPlan GeoPackage maps.
+"""Importers for real HD maps: Argoverse 2 log maps, Lanelet2 OSM maps, nuPlan GeoPackage maps and Apollo HD maps
+(binary or text protobuf).
 
 Each importer turns one file into an :class:`~cmtool.maps.hdmap.HDMap` in metres whose references
 are consistent (``hd.reference_errors() == []``). User errors (missing file, malformed content, a
@@ -12,7 +13,7 @@ import os
 from cmtool.core.errors import CmtoolError
 from cmtool.maps.hdmap import HDMap
 
-FORMATS = ("av2", "lanelet2", "nuplan")
+FORMATS = ("av2", "lanelet2", "nuplan", "apollo")
 
 
 def import_hd_map(fmt: str, path: str | os.PathLike, city: str | None = None) -> HDMap:
@@ -26,6 +27,8 @@ def import_hd_map(fmt: str, path: str | os.PathLike, city: str | None = None) ->
         from cmtool.formats.importers.lanelet2 import import_lanelet2 as importer
     elif fmt == "nuplan":
         from cmtool.formats.importers.nuplan import import_nuplan as importer
+    elif fmt == "apollo":
+        from cmtool.formats.importers.apollo import import_apollo as importer
     else:
         raise CmtoolError(f"unknown format {fmt!r} (choose from {', '.join(FORMATS)})")
     return importer(path, city=city)

@@ -1,7 +1,8 @@
 """Lanelet2 maps in OSM XML (lat/lon), e.g. the Karlsruhe ``mapping_example.osm``.
 
 * Lanes: relations with ``type=lanelet`` and a road subtype (``road``, ``highway``, ``play_street``,
-  ``emergency_lane`` -> vehicle; ``bus_lane`` -> bus). A lanelet tagged ``one_way=no`` is drivable
+  ``emergency_lane``, SinD's ``main_road``, or no subtype as in SinD's connectors -> vehicle; ``bus_lane`` -> bus).
+  A lanelet tagged ``one_way=no`` is drivable
   both ways and gives a second lane ``<id>-rev`` with its bounds swapped and reversed.
   ``crosswalk`` lanelets become crosswalk polygons; other subtypes are not lanes.
 * Bounds: the ``left``/``right`` member ways may run against the lanelet. The right bound is
@@ -19,7 +20,8 @@
 * Traffic lights: each ``regulatory_element`` of subtype ``traffic_light`` with a ``ref_line`` gives
   a stop line (state ``unknown``) controlling the lanes whose lanelet references it.
 * Coordinates: transverse Mercator (:class:`~cmtool.core.geo.LocalProjection`) centred on the mean
-  latitude/longitude of all nodes in the file, recorded as ``meta.lat0`` / ``meta.lon0``.
+  latitude/longitude of all nodes in the file, recorded as ``meta.lat0`` / ``meta.lon0``. Maps in local coordinates
+  placed near lat/lon 0 (the INTERACTION and SinD maps) project the same way, to metres of their true size.
 """
 
 from __future__ import annotations
@@ -42,6 +44,7 @@ ROAD_SUBTYPES = {
     "highway": "vehicle",
     "play_street": "vehicle",
     "emergency_lane": "vehicle",
+    "main_road": "vehicle",  # SinD's Changchun map tags its approach and exit lanelets so
     "bus_lane": "bus",
 }
 
