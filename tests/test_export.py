@@ -528,9 +528,16 @@ def test_failed_export_verify_leaves_an_earlier_file(tmp_path, capsys, monkeypat
     monkeypatch.setitem(sys.modules, wheel, None)  # `import carla` fails as without the wheel
     code, _, err = in_process(capsys, *args)
     assert code == 1 and err.count("\n") == 1 and err.startswith("Error: --verify ") and "Traceback" not in err
-    assert f"needs the {wheel} wheel: pip install 'cmtool[verify]'" in err
+    assert f"needs the {wheel} wheel: pip install -e '.[verify]' in a source checkout" in err
     assert out.read_bytes() == b"an earlier export\n"
-    monkeypatch.setitem(sys.modules, wheel, types.ModuleType(wheel))  # a reader that routes otherwise
+    monkeypatch.setitem(sys.modules, wheel, types.ModuleType(wheel))  # a package of that name without the reader
+    if fmt == "lanelet2":
+        monkeypatch.setitem(sys.modules, "lanelet2.io", None)  # `from lanelet2.io import ...` fails
+    code, _, err = in_process(capsys, *args)
+    assert code == 1 and err.count("\n") == 1 and "Traceback" not in err, err
+    assert f"the installed {wheel} is not" in err and "reinstall it" in err
+    assert out.read_bytes() == b"an earlier export\n"
+    # a reader that routes otherwise
     monkeypatch.setattr(consumers, "verify", lambda *a: consumers.Verdict("Reader 1", 4, [(0, 1)], [], []))
     code, _, err = in_process(capsys, *args)
     assert code == 1 and err.count("\n") == 1 and "routes otherwise than the lane graph" in err, err

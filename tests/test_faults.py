@@ -291,6 +291,10 @@ INPUT_CASES = [
     case("sd-png-text", "sample", "--sd", "{afile}", "--steps", "2", "--no-log", "--out", "{out}/m"),
     case("metrics-control-missing", "metrics", "--generated", "{lgl}", "--reference", "{gtl}", "--control",
          "{missing}"),
+    case("bench-train-run-missing", "bench", "train", "--recipe", str(REPO / "recipes/tiny-cpu/pipeline.toml"), "--run",
+         "{missing}", fragment="does not exist"),
+    case("bench-train-run-stage", "bench", "train", "--recipe", str(REPO / "recipes/tiny-cpu/rvae.toml"), "--run",
+         "{out}", fragment="goes with a pipeline recipe"),
     # numbers out of range in files
     *[case(f"{cmd}-{bad}", *args.replace("BAD", "{" + bad + "}").split())
       for bad in ("bigint", "huge", "nanmap")
@@ -1154,7 +1158,7 @@ def test_a_worker_stopped_inside_a_finalizer_still_stops_quietly():
     later where it can unwind, with no "Exception ignored" traceback (the pool's termination would wait for it)."""
     script = ("import os, signal, time\n"
               "from cmtool.core import workers\n"
-              "workers._worker_signals()\n"
+              "workers._worker_signals(None)\n"
               "class Finalized:\n"
               "    def __del__(self):\n"
               "        os.kill(os.getpid(), signal.SIGTERM)\n"
@@ -1228,6 +1232,92 @@ def test_a_terminated_pool_kills_a_worker_that_does_not_end():
     assert result.returncode == 0 and result.stdout.strip() == "left True", result.stderr
 
 
+
+@pytest.mark.parametrize("wait, cause", [
+    ("p.apply_async(signal.raise_signal, (signal.SIGKILL,)).get()",
+     "a worker process was killed (SIGKILL, out of memory?)"),
+    ("p.map(os._exit, [3])", "a worker process ended unexpectedly (exit status 3)"),
+    ("list(p.imap(signal.raise_signal, [signal.SIGKILL]))", "a worker process was killed (SIGKILL, out of memory?)"),
+    ("p.map(abs, [-1])", "a worker process could not start: no space left on device")],
+    ids=["killed", "exited", "killed-in-imap", "full-disk-at-start"])
+def test_a_worker_that_dies_ends_the_pool_at_once_naming_the_cause(wait, cause):
+    """A worker that dies while another works on (killed, exited, or its start failed writing to a full disk): the
+    wait for its task ends within seconds with one error naming the cause, and nothing printed (multiprocessing
+    started a worker in its place, or another that failed again, and the wait went on for ever)."""
+    start = "pathlib.Path('/dev/full').write_text" if "abs" in wait else "None"
+    script = ("import os, pathlib, signal, time\nfrom cmtool.core import workers\n"
+              "began = time.monotonic()\ntry:\n"
+              f"    with workers.pool(2, 'spawn', {start}, ('x',)) as p:\n"
+              f"        p.apply_async(time.sleep, (60,))\n        {wait}\n"
+              "except Exception as e:\n    print(type(e).__name__, round(time.monotonic() - began), e, sep='|')\n")
+    done = _python(script)
+    kind, seconds, message = done.stdout.strip().split("|")
+    assert (kind, message) == ("CmtoolError", cause) and done.stderr == "", done.stderr
+    assert int(seconds) < 15
+
+
+@pytest.mark.parametrize("held", ["", "        p._outqueue._wlock.acquire()\n"], ids=["waiting", "sending"])
+def test_a_pool_whose_waiting_workers_were_killed_still_ends(held):
+    """Workers killed while they waited for a task (one of them holding the task queue's lock, for ever), or as one
+    sent its result (holding the results' lock: held here by the test): leaving the pool by an error returns within
+    seconds (its termination waited for either lock for ever; the second hung a loaded suite run)."""
+    script = ("import os, signal, time\nfrom cmtool.core import workers\nbegan = time.monotonic()\ntry:\n"
+              "    with workers.pool(2, 'spawn') as p:\n        p.map(abs, [-1, -2])\n" + held +
+              "        for w in list(p._pool):\n            os.kill(w.pid, signal.SIGKILL)\n"
+              "        time.sleep(0.5)\n        raise LookupError\n"
+              "except LookupError:\n    print('left', round(time.monotonic() - began), flush=True)\n")
+    done = _python(script)
+    assert done.stdout.startswith("left") and int(done.stdout.split()[1]) < 15, done.stderr
+
+
+def test_ctrl_c_while_the_workers_start_prints_nothing_from_them():
+    """Ctrl-C reaching the workers while they start (here: as they import torch for their initializer): none prints a
+    KeyboardInterrupt traceback or dies; the pool's tasks are done."""
+    script = ("import os, signal, time\nfrom cmtool.core import dist, workers\n"
+              "with workers.pool(2, 'spawn', dist.barrier) as p:\n    time.sleep(0.5)\n"
+              "    for w in list(p._pool):\n        os.kill(w.pid, signal.SIGINT)\n"
+              "    print(p.map(abs, [-1, -2, -3]), flush=True)\n")
+    done = _python(script)
+    assert done.stdout.strip() == "[1, 2, 3]" and done.stderr == "", done.stderr
+
+
+def test_a_killed_pooled_sample_run_leaves_nothing_after_the_next_run(sampling_ckpt, tmp_path):
+    """`sample --workers 2` killed (SIGKILL) while its files are staged: its temporary files in OUT and its jobs file
+    in the temporary folder are removed by the next run of the command, which leaves neither of its own."""
+    import json
+    import os
+    import signal
+    import subprocess
+    import sys
+    import time
+
+    from cmtool.maps.hdmap import HDMap
+
+    hd = tmp_path / "sgp.json"
+    assert cli("data", "synth", "--city", "SGP", "--seed", 2, "--extent", 300, "--out", hd)[0] == 0
+    poses = tmp_path / "poses.jsonl"
+    poses.write_text("".join(json.dumps({"x": l.centerline[0][0], "y": l.centerline[0][1], "yaw": 0.0}) + "\n"
+                             for l in list(HDMap.load(hd).lanes.values())[:60]))
+    out, temporary = tmp_path / "out", tmp_path / "tmp"
+    temporary.mkdir()
+    command = [sys.executable, "-m", "cmtool", "sample", "--ckpt", sampling_ckpt["controlmap"], "--from-hd", hd,
+               "--pose", poses, "--steps", 2, "--batch", 2, "--workers", 2, "--no-log", "--quiet", "--out", out]
+    env = os.environ | {"OMP_NUM_THREADS": "1", "TMPDIR": str(temporary)}
+    proc = subprocess.Popen(list(map(str, command)), cwd=REPO, env=env, stdout=subprocess.DEVNULL,
+                            stderr=subprocess.PIPE, text=True)
+    deadline = time.monotonic() + 120
+    while len(list(out.glob(".cmtool-*.tmp"))) < 3 or not list(temporary.glob("cmtool-run-*/jobs.pickle")):
+        assert proc.poll() is None and time.monotonic() < deadline, proc.stderr.read()
+        time.sleep(0.02)
+    proc.send_signal(signal.SIGKILL)
+    proc.wait(timeout=60)
+    assert list(out.glob(".cmtool-*.tmp")) and list(temporary.iterdir())
+    done = subprocess.run(list(map(str, command)), cwd=REPO, env=env, capture_output=True, text=True, timeout=300,
+                          check=False)
+    assert done.returncode == 0, done.stderr
+    assert not list(out.glob(".*")) and not list(temporary.iterdir()), (list(out.glob(".*")), list(temporary.iterdir()))
+    assert len(list(out.iterdir())) == 180
+
 # --- Reliability 4 (issue 57): no wrong or lost output with exit 0 -------------------------------------------------
 
 def test_a_resumed_area_run_makes_the_unbroken_runs_map_byte_for_byte(tmp_path, monkeypatch):
@@ -1255,11 +1345,16 @@ def test_a_resumed_area_run_makes_the_unbroken_runs_map_byte_for_byte(tmp_path, 
 
 @pytest.mark.parametrize("env", [{"RANK": "1"}, {"RANK": "abc"}, {"WORLD_SIZE": "2"},
                                  {"RANK": "2", "WORLD_SIZE": "2", "LOCAL_RANK": "0", "MASTER_ADDR": "127.0.0.1",
+                                  "MASTER_PORT": "29500"},
+                                 {"RANK": "0", "WORLD_SIZE": "2", "LOCAL_RANK": "0", "MASTER_ADDR": "127.0.0.1",
+                                  "MASTER_PORT": "junk"},
+                                 {"RANK": "0", "WORLD_SIZE": "2", "LOCAL_RANK": "0", "MASTER_ADDR": "",
                                   "MASTER_PORT": "29500"}],
-                         ids=["rank-alone", "rank-abc", "world-alone", "rank-2-of-2"])
+                         ids=["rank-alone", "rank-abc", "world-alone", "rank-2-of-2", "port-junk", "address-empty"])
 def test_a_torchrun_environment_that_does_not_fit_is_one_line(tmp_path, monkeypatch, env):
-    """Variables of torchrun without torchrun (or numbers that do not fit together): refused, nothing written (`RANK=1`
-    alone made `sample` exit 0 as a process whose maps the main one writes)."""
+    """Variables of torchrun without torchrun (or numbers that do not fit together, or a port or address torch cannot
+    read): refused, nothing written (`RANK=1` alone made `sample` exit 0 as a process whose maps the main one writes;
+    `MASTER_PORT=junk` gave a ValueError traceback from torch's rendezvous)."""
     for key, value in env.items():
         monkeypatch.setenv(key, value)
     check(*cli("sample", *SD_ARGS, "--out", tmp_path / "s"), "RANK")
@@ -1336,3 +1431,29 @@ def test_a_legal_long_output_name_is_written(tmp_path):
     assert code == 0, err
     assert json.loads(out.read_text())["type"] == "FeatureCollection"
     assert sorted(p.name for p in tmp_path.iterdir()) == sorted(["g.json", out.name])
+
+
+@pytest.mark.parametrize("north", [0.0, 0.000004])
+def test_an_osm_road_of_one_spot_is_refused_not_laid(tmp_path, north):
+    """Issue 66: an OpenStreetMap file whose only road has zero length, or is 0.44 m long, gives one line naming the
+    length, not a map made from nothing."""
+    (tmp_path / "spot.osm").write_text(
+        '<?xml version="1.0" encoding="UTF-8"?>\n<osm version="0.6">\n<node id="1" lat="48.0" lon="11.0"/>\n'
+        f'<node id="2" lat="{48.0 + north}" lon="11.0"/>\n<way id="10"><nd ref="1"/><nd ref="2"/>'
+        '<tag k="highway" v="residential"/></way>\n</osm>\n')
+    code, err = cli("sample", "--osm", tmp_path / "spot.osm", "--center", "48.0,11.0", "--steps", 2, "--no-log",
+                    "--out", tmp_path / "out")
+    assert code == 1 and err.count("\n") == 1 and "no road to lay lanes on" in err, err
+    assert not (tmp_path / "out").exists() or not any((tmp_path / "out").iterdir())
+
+
+def test_an_area_of_nearly_the_whole_globe_around_a_small_map_holds_it():
+    """Issue 66: --area -89,-179,89,179 around a small map holds its every road (the longitudes span the way round
+    that holds the map), where it was read as the 2 degrees across 180 and refused."""
+    from cmtool.formats.osm import read_osm
+    from cmtool.sample.area import area_box
+
+    sd = read_osm(TOWN)
+    every = np.concatenate([r.polyline for r in sd.roads])
+    x0, y0, x1, y1 = area_box(sd, "-89,-179,89,179")
+    assert x0 <= every[:, 0].min() and y0 <= every[:, 1].min() and x1 >= every[:, 0].max() and y1 >= every[:, 1].max()

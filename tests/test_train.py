@@ -164,8 +164,10 @@ def test_finished_controlnet_run_extends_with_resume_and_more_steps(runs, tmp_pa
     recipe = runs["controlnet_recipe"]
     same = cli("train", "controlnet", "--recipe", recipe, "--out", run, "--resume", "--quiet")
     assert same.returncode == 0 and "already complete at step 4" in same.stderr
-    longer = cli("train", "controlnet", "--recipe", recipe, "--out", run, "--resume", "--steps", "6", "--quiet")
+    longer = cli("train", "controlnet", "--recipe", recipe, "--out", run, "--resume", "--steps", "6")
     assert longer.returncode == 0, longer.stderr
+    assert "resumed from step 4 of 6 (step_00000004)" in longer.stderr  # and counts on from there
+    assert "train controlmap  6/6 steps (100%)" in longer.stderr and "1/2 steps" not in longer.stderr
     config = ckpt.load_config(run)
     assert config["step"] == 6 and config["complete"] and config["training"]["samples"] == 6 * 4
 
@@ -545,7 +547,8 @@ def test_user_errors_are_one_line(runs, tmp_path):
                                                            rvae=str(root / "rvae"), dit=str(root / "rvae")),
           "--out", tmp_path / "y"], "needs a DiT"),
         (["train", "dit", "--recipe", write_recipe(tmp_path / "d.toml", "dit", 2, rvae=str(tmp_path / "none")),
-          "--out", tmp_path / "z"], "no such checkpoint"),
+          "--out", tmp_path / "z"], "train the rvae stage into it first: `cmtool train rvae"),
+        (["pack", "--ckpt", tmp_path / "none", "--out", tmp_path / "p"], "train a ControlMap first"),
         (["info", tmp_path], "not a checkpoint"),
         (["train", "rvae", "--recipe", write_recipe(tmp_path / "m.toml", "rvae", 2, data=str(runs["data"]), mirror=0.5),
           "--out", tmp_path / "m"], "dit- and controlnet-stage option"),

@@ -47,8 +47,7 @@ def bench_sample_cmd(ckpt, sd_path, steps, sampler, cfg, batch, repeats, data, n
     """Time sampling: per-step logging against --no-log at batch 1, and batch 1 against a large batch; with --data,
     the quality-speed table of the samplers instead (the same noise per scene for every row); with --from-hd, whole
     runs end to end."""
-    import torch
-
+    from cmtool.core.workers import MODEL_THREADS
     from cmtool.eval.bench_sample import LOG_LIMIT, bench_sample, default_sd
     from cmtool.sample.inputs import image_inputs
     from cmtool.sample.run import SampleSettings
@@ -67,8 +66,8 @@ def bench_sample_cmd(ckpt, sd_path, steps, sampler, cfg, batch, repeats, data, n
     gen = _generator(ckpt, device, precision=precision)
     dev = gen.device
     params = sum(p.numel() for p in gen.model.parameters())
-    head = f"{gen.path}: {gen.config['kind']}, {params / 1e6:.1f}M parameters; {dev} ({torch.get_num_threads()} " \
-           f"threads, {precision})"
+    head = f"{gen.path}: {gen.config['kind']}, {params / 1e6:.1f}M parameters; {dev} ({MODEL_THREADS} torch " \
+           f"thread{'s' if MODEL_THREADS > 1 else ''} in the model's passes, {precision})"
     if from_hd is not None:
         _end_to_end(gen, head, settings, from_hd, pose, batch or 16, repeats, max_workers)
         return
@@ -208,7 +207,7 @@ def bench_metrics_cmd(eval_dir, method, tile, repeats, no_features, device, feat
                                                                "whose inputs exist).")
 @click.option("--data", "data_dir", type=DatasetDir(), help="Dataset folder [default: the recipe's; a pipeline's: "
                                                             "RUN/data].")
-@click.option("--run", "run_dir", type=InPath(file_okay=False),
+@click.option("--run", "run_dir", type=InPath(file_okay=False, exists=True),
               help="A pipeline run folder (`cmtool train pipeline --out`): its finished stages feed the later ones.")
 @click.option("--steps", default=10, show_default=True, type=click.IntRange(1, 100_000), help="Timed batches per rate.")
 @click.option("--workers", type=click.IntRange(min=0), help="DataLoader workers [default: each recipe's].")
@@ -235,6 +234,9 @@ def bench_train_cmd(recipe, data_dir, run_dir, steps, workers, precision, device
                 click.echo(f"{name}: not timed (give --run, a pipeline run folder with the stages it reads)", err=True)
                 del recipes[name]
     else:
+        if run_dir is not None:
+            raise click.UsageError(f"--run goes with a pipeline recipe; {recipe} is a stage recipe (its inputs are "
+                                   "the folders it names)")
         if data_dir is not None:
             rec.train.data = str(data_dir)
         recipes = {rec.train.stage or "rvae": rec}

@@ -44,9 +44,13 @@ def info(path, as_json):
 def pack(ckpt, rvae, encoder, out):
     """Pack a trained ControlMap (and its RVAE's decoder, with --encoder an encoder too) as float16 weights to ship
     with cmtool."""
+    from cmtool.core.errors import CmtoolError
     from cmtool.model.release import BUNDLED, MANIFEST
     from cmtool.model.release import pack as pack_release
 
+    if not ckpt.exists():
+        raise CmtoolError(f"--ckpt {ckpt}: no such run or checkpoint; train a ControlMap first (`cmtool train "
+                          f"controlnet --recipe RECIPE --out {ckpt}`, or the whole chain: `cmtool train pipeline`)")
     out = out or BUNDLED
     manifest = pack_release(ckpt, out, rvae=rvae, encoder=encoder)
     for name, f in manifest["files"].items():

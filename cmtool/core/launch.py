@@ -13,7 +13,8 @@ TORCHRUN = ("RANK", "WORLD_SIZE", "LOCAL_RANK", "MASTER_ADDR", "MASTER_PORT")
 
 def launch() -> tuple[int, int, int]:
     """(rank, world size, local rank) of this process, (0, 1, 0) on its own; an environment with only some of
-    torchrun's variables, or with numbers that do not fit together, is refused."""
+    torchrun's variables, with numbers that do not fit together, or without an address and port torch can read, is
+    refused."""
     given = {k: os.environ[k] for k in TORCHRUN if k in os.environ}
     if not given.keys() & set(TORCHRUN[:3]):
         return 0, 1, 0
@@ -28,4 +29,8 @@ def launch() -> tuple[int, int, int]:
         raise CmtoolError(f"{shown}: RANK, WORLD_SIZE and LOCAL_RANK must be whole numbers") from None
     if not 0 <= local <= rank < world:
         raise CmtoolError(f"{shown}: expected 0 <= LOCAL_RANK <= RANK < WORLD_SIZE")
+    if not given["MASTER_ADDR"].strip():
+        raise CmtoolError(f"{shown}: MASTER_ADDR is empty; give the address of the first process's machine")
+    if not given["MASTER_PORT"].strip().isdigit() or not 0 < int(given["MASTER_PORT"]) < 65536:
+        raise CmtoolError(f"{shown}: MASTER_PORT must be a port number, 1 to 65535")
     return rank, world, local

@@ -1,9 +1,10 @@
 """What a command may write: never over one of its own inputs, never in place of a device, FIFO, socket or
 link, and never into an output folder that another run is writing.
 
-The CLI names each command's inputs (:func:`note_input`) and output folders (:func:`claim_folder`) as it parses
-its options; every writer of :mod:`cmtool.core.jsonio` asks :func:`target` where a write may go. :func:`release`
-ends a command: it forgets the inputs, unlocks the folders and removes those it made and left empty.
+The CLI names each command's inputs (:func:`note_input`) and output folders (:func:`claim_folder`, which removes
+the temporary files a killed run left there) as it parses its options; every writer of :mod:`cmtool.core.jsonio`
+asks :func:`target` where a write may go. :func:`release` ends a command: it forgets the inputs, unlocks the folders
+and removes those it made and left empty.
 """
 
 from __future__ import annotations
@@ -61,8 +62,9 @@ def target(path: str | os.PathLike) -> Path:
 
 def claim_folder(path: str | os.PathLike) -> None:
     """Make the output folder ``path`` (with its parents) and lock it for this run, so that a second run on the same
-    folder fails at once with one line instead of mixing its files with this run's. Under torchrun only the first
-    process claims (the others write into the folder it holds)."""
+    folder fails at once with one line instead of mixing its files with this run's; the temporary files a killed run
+    left in it are removed. Under torchrun only the first process claims (the others write into the folder it holds).
+    """
     path = Path(path)
     if launch()[0] != 0:
         return
@@ -87,6 +89,19 @@ def claim_folder(path: str | os.PathLike) -> None:
                               f"give another output folder") from None
         raise
     _locks[key] = fd
+    _remove_leftovers(path)
+
+
+def _remove_leftovers(folder: Path) -> None:
+    """Remove the temporary files (``.cmtool-*.tmp``, :func:`cmtool.core.jsonio.temporary`) that a killed run left
+    in ``folder``, here or in a hidden subfolder (an area's tile cache): the folder is claimed, so no run is writing
+    them."""
+    for tmp in [*folder.glob(".cmtool-*.tmp"), *folder.glob(".*/.cmtool-*.tmp")]:
+        try:
+            if tmp.is_file() and not tmp.is_symlink():
+                tmp.unlink()
+        except OSError:
+            pass
 
 
 def release() -> None:

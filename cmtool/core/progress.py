@@ -28,18 +28,19 @@ def format_seconds(s: float) -> str:
 class Progress:
     """Counts done items and reports rate and remaining time.
 
-    ``total`` may be None when unknown (no percentage, no ETA). Output goes to ``stream``
+    ``total`` may be None when unknown (no percentage, no ETA); ``first``: items done before this count began (a
+    resumed run: the count goes on from there, the rate and ETA from this run's own). Output goes to ``stream``
     (stderr by default); ``enabled=False`` silences it while still counting.
     """
 
     def __init__(self, total: int | None, label: str = "", unit: str = "items", stream=None,
-                 enabled: bool = True, refresh_s: float = 0.2, log_every_s: float = 10.0):
-        self.total, self.label, self.unit = total, label, unit
+                 enabled: bool = True, refresh_s: float = 0.2, log_every_s: float = 10.0, first: int = 0):
+        self.total, self.label, self.unit, self.first = total, label, unit, first
         self.stream = stream if stream is not None else sys.stderr
         self.enabled = enabled
         self.tty = bool(getattr(self.stream, "isatty", lambda: False)())
         self.interval = refresh_s if self.tty else log_every_s
-        self.done = 0
+        self.done = first
         self.info: dict = {}
         self.start = time.perf_counter()
         self._last_draw = -float("inf")
@@ -51,7 +52,7 @@ class Progress:
 
     @property
     def rate(self) -> float:
-        return self.done / max(self.elapsed, 1e-9)
+        return (self.done - self.first) / max(self.elapsed, 1e-9)
 
     def line(self) -> str:
         """The current status line (without line ending)."""
@@ -66,7 +67,7 @@ class Progress:
         else:
             parts.append(f"{rate:.1f} {self.unit}/s")
         parts.append(f"elapsed {format_seconds(self.elapsed)}")
-        if self.total and 0 < self.done < self.total:
+        if self.total and self.first < self.done < self.total:
             parts.append(f"ETA {format_seconds((self.total - self.done) / self.rate)}")
         parts += [f"{k}={v:.4g}" if isinstance(v, float) else f"{k}={v}" for k, v in self.info.items()]
         return "  ".join(parts)

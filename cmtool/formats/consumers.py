@@ -40,14 +40,17 @@ class Verdict:
                 f"join {self.unjoined[:3]}, {len(self.dropped):,} lanes left out {self.dropped[:3]}")
 
 
+INSTALL = "pip install -e '.[verify]' in a source checkout"  # the readers of --verify (pyproject.toml's extra)
+
+
 def reader(fmt: str):
     """The module that reads ``fmt`` exports (a CmtoolError naming what to install when it is missing)."""
     wheel = READERS[fmt][0]
     try:
         return importlib.import_module(wheel)
     except ImportError as e:
-        raise CmtoolError(f"--verify for {fmt} needs the {wheel} wheel: pip install 'cmtool[verify]' (carla exists "
-                          f"for Linux x86_64, Python 3.10 to 3.12): {e}") from None
+        raise CmtoolError(f"--verify for {fmt} needs the {wheel} wheel: {INSTALL} (carla exists for Linux x86_64, "
+                          f"Python 3.10 to 3.12): {e}") from None
 
 
 def verify(fmt: str, graph, path: str | os.PathLike, lat0: float, lon0: float) -> Verdict:
@@ -61,6 +64,9 @@ def verify(fmt: str, graph, path: str | os.PathLike, lat0: float, lon0: float) -
             edges, seen = _lanelet2(module, path, lat0, lon0)
     except (RuntimeError, ValueError) as e:
         raise CmtoolError(f"{path}: {name} cannot read it: {e}") from None
+    except (ImportError, AttributeError) as e:  # a package of that name without what its reader has
+        raise CmtoolError(f"--verify for {fmt}: the installed {wheel} is not {name}'s reader as cmtool knows it "
+                          f"({type(e).__name__}: {e}); reinstall it: {INSTALL}") from None
     n = len(graph.lanes)
     joins = sorted({(int(i), int(j)) for i, j in graph.successors})
     between = [(a, b) for a, b in edges if a != b]  # a reader's join of a lane's parts is no join of the lane graph's

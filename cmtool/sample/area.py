@@ -75,8 +75,8 @@ class AreaMap:
 
 def area_box(sd_map: SDMap, spec: str, latlon: bool = True) -> tuple[float, float, float, float]:
     """The area of ``--area SPEC`` in the SD map's metres: "all" (the extent of its roads and ``EDGE_M`` around), or
-    two opposite corners, "LAT0,LON0,LAT1,LON1" (``latlon``: :func:`_latlon_box`) or "X0,Y0,X1,Y1" (metres). An area
-    that no road crosses is refused."""
+    two opposite corners, "LAT0,LON0,LAT1,LON1" (``latlon``: :func:`_latlon_box`, the short way round the globe
+    unless only the long way holds a road) or "X0,Y0,X1,Y1" (metres). An area that no road crosses is refused."""
     every = np.concatenate([r.polyline for r in sd_map.roads])
     extent = (*(every.min(axis=0) - EDGE_M), *(every.max(axis=0) + EDGE_M))
     if spec == "all":
@@ -91,23 +91,30 @@ def area_box(sd_map: SDMap, spec: str, latlon: bool = True) -> tuple[float, floa
     if latlon:
         if not (-90 <= min(a, c) and max(a, c) <= 90 and -180 <= min(b, d) and max(b, d) <= 180):
             raise CmtoolError(f"--area {spec!r}: latitudes must be in [-90, 90] and longitudes in [-180, 180]")
-        a, b, c, d = _latlon_box(LocalProjection(sd_map.meta["lat0"], sd_map.meta["lon0"]), (a, b, c, d), extent)
-    box = (float(min(a, c)), float(min(b, d)), float(max(a, c)), float(max(b, d)))
-    if not shapely.intersects(shapely.box(*box), [shapely.LineString(r.polyline) for r in sd_map.roads]).any():
-        raise CmtoolError(f"--area {spec!r}: no road of the map lies in the area")
-    if box[2] - box[0] < 1.0 or box[3] - box[1] < 1.0:
-        raise CmtoolError(f"--area {spec!r}: the corners must lie at least a metre apart each way")
-    return box
+        proj = LocalProjection(sd_map.meta["lat0"], sd_map.meta["lon0"])
+        boxes = [_latlon_box(proj, (a, b, c, d), extent, short) for short in (True, False)]  # the way round with roads
+    else:
+        boxes = [(a, b, c, d)]
+    lines = [shapely.LineString(r.polyline) for r in sd_map.roads]
+    for a, b, c, d in boxes:
+        box = (float(min(a, c)), float(min(b, d)), float(max(a, c)), float(max(b, d)))
+        if not shapely.intersects(shapely.box(*box), lines).any():
+            continue
+        if box[2] - box[0] < 1.0 or box[3] - box[1] < 1.0:
+            raise CmtoolError(f"--area {spec!r}: the corners must lie at least a metre apart each way")
+        return box
+    raise CmtoolError(f"--area {spec!r}: no road of the map lies in the area")
 
 
-def _latlon_box(proj: LocalProjection, corners, extent) -> tuple[float, float, float, float]:
+def _latlon_box(proj: LocalProjection, corners, extent, short: bool = True) -> tuple[float, float, float, float]:
     """Two opposite corners (lat, lon, lat, lon) as metres (x, y, x, y) of ``proj``: the longitudes span the short way
-    round (across 180 where they lie more than 180 apart; -180 to 180 all the way), and the box is cut to the map's
+    round (across 180 where they lie more than 180 apart, unless not ``short``; -180 to 180 all the way), and the box
+    is cut to the map's
     ``extent`` (metres) before it is projected, so that a box far larger than the map does not fold back through the
     projection, and after (a box beside the map comes out of no width)."""
     lat0, lon0, lat1, lon1 = corners
     west, east = min(lon0, lon1), max(lon0, lon1)
-    if 180 < east - west < 360:
+    if 180 < east - west < 360 and short:
         west, east = east, west + 360
     turn = 360.0 * round((0.5 * (west + east) - proj.lon0) / 360.0)  # the box's turn of the globe nearest the map
     x0, y0, x1, y1 = extent

@@ -19,6 +19,7 @@ import torch
 from cmtool.core.errors import CmtoolError
 from cmtool.core.geometry import bezier_fit_matrix
 from cmtool.core.tables import from_table
+from cmtool.core.workers import model_threads
 from cmtool.data.hd_raster import rasterize_scene
 from cmtool.diffusion.noise import batch_noise
 from cmtool.diffusion.samplers import sample
@@ -132,14 +133,16 @@ class MapGenerator:
         ``metas``: each map's meta entries; ``callback``: called with every step's
         :class:`~cmtool.diffusion.samplers.StepInfo`; ``found``: False leaves the lanes' neighbours to be found
         later (:func:`~cmtool.maps.neighbours.with_neighbours`). The noise depends on ``settings.seed`` and ``first``
-        alone."""
+        alone, and the model runs on a fixed number of threads (:func:`~cmtool.core.workers.model_threads`): a seed
+        gives one map whatever the cores, torch's threads or the worker processes."""
         noise, steps = self.batch_noise(len(labels), settings.seed, first)
-        z = self.sample(sd, labels, cfg=settings.cfg, city_cfg=city_cfg, steps=settings.steps,
-                        sampler=settings.sampler, eta=eta, noise=noise, generator=steps, init=init,
-                        strength=strength, layouts=layouts, callback=callback)
+        with model_threads():
+            z = self.sample(sd, labels, cfg=settings.cfg, city_cfg=city_cfg, steps=settings.steps,
+                            sampler=settings.sampler, eta=eta, noise=noise, generator=steps, init=init,
+                            strength=strength, layouts=layouts, callback=callback)
+            elements = self.decode(z)
         metas = metas or [{} for _ in labels]
-        return [self.lane_graph(el, self.city_name(y), meta, found)
-                for el, y, meta in zip(self.decode(z), labels, metas)]
+        return [self.lane_graph(el, self.city_name(y), meta, found) for el, y, meta in zip(elements, labels, metas)]
 
     def generate_all(self, sds: np.ndarray | None, labels, settings: SamplerSettings, metas: list[dict] | None = None,
                      city_cfg: float = 1.0, init: torch.Tensor | None = None, strength: float = 1.0,
@@ -204,7 +207,8 @@ class MapGenerator:
         px = self.rvae.config.frame_m / self.rvae.config.raster_px
         rasters = np.stack([rasterize_scene(s.lines, s.line_mask, s.green, s.green_mask, s.red, s.red_mask, px_m=px,
                                             frame_m=self.rvae.config.frame_m) for s in scenes])
-        mean, _ = encoder.encode(torch.from_numpy(rasters).to(self.device))
+        with model_threads():  # as generate's
+            mean, _ = encoder.encode(torch.from_numpy(rasters).to(self.device))
         return mean.float() * self.scale
 
     @torch.no_grad()

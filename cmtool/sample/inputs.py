@@ -12,6 +12,7 @@ from dataclasses import dataclass
 from pathlib import Path
 
 import numpy as np
+import shapely
 
 from cmtool.core.errors import CmtoolError
 from cmtool.core.jsonio import json_lines
@@ -19,6 +20,8 @@ from cmtool.data.sd_raster import FRAME_M, IMAGE_SUFFIXES, SDRasterizer, read_sd
 from cmtool.data.sd_trace import trace_picture
 from cmtool.maps.lanegraph import LaneGraph
 from cmtool.maps.sdmap import SDMap
+
+MIN_ROAD_M = 1.0  # a frame whose SD roads are shorter in all has nothing to lay lanes on (an OSM way of one spot)
 
 
 @dataclass
@@ -76,6 +79,7 @@ def osm_inputs(path, centers: list[tuple[float, float, float]]) -> list[ControlI
     sd_map = osm_sd_map(path)
     proj = LocalProjection(sd_map.meta["lat0"], sd_map.meta["lon0"])
     rasterize = SDRasterizer(sd_map)
+    roads = shapely.STRtree([shapely.LineString(r.polyline) for r in sd_map.roads])
     inputs = []
     for k, (lat, lon, heading) in enumerate(centers):
         if not (-90.0 <= lat <= 90.0 and -180.0 <= lon <= 180.0):
@@ -86,6 +90,9 @@ def osm_inputs(path, centers: list[tuple[float, float, float]]) -> list[ControlI
         if not sd[..., 0].any():
             raise CmtoolError(f"{path}: no roads within the {FRAME_M:.0f} m frame around {lat:.6f},{lon:.6f} "
                               f"(nearest road {_nearest_road(sd_map, x, y):.0f} m away){_swap_hint(sd_map, lat, lon)}")
+        if (length := _length_in_frame(roads, x, y)) < MIN_ROAD_M:
+            raise CmtoolError(f"{path}: the roads within the {FRAME_M:.0f} m frame around {lat:.6f},{lon:.6f} are "
+                              f"{length:.2f} m long in all: no road to lay lanes on (at least {MIN_ROAD_M:g} m)")
         name = f"{Path(path).name.split('.')[0]}_{k}" if len(centers) > 1 else Path(path).name.split(".")[0]
         inputs.append(ControlInput(name, sd, f"osm:{Path(path).name}@{lat:.6f},{lon:.6f},heading {heading:g}",
                                    geo=_geo(lat, lon, heading), sd_map=sd_map,
@@ -180,6 +187,13 @@ def _number(value, where: str) -> float:
     if not math.isfinite(number):
         raise CmtoolError(f"{where}: expected a finite number, got {value!r}")
     return number
+
+
+def _length_in_frame(roads: shapely.STRtree, x: float, y: float) -> float:
+    """The length of the SD ``roads`` inside the frame's circle around ``(x, y)`` (metres)."""
+    circle = shapely.Point(x, y).buffer(FRAME_M / math.sqrt(2.0))
+    near = roads.geometries[roads.query(circle)]
+    return float(shapely.length(shapely.intersection(near, circle)).sum())
 
 
 def _nearest_road(sd_map, x: float, y: float) -> float:

@@ -4,12 +4,15 @@
 writes (it stages the bytes the workers send back, in the jobs' order), so the files are the same byte for byte
 whatever the number of workers, and a stopped run leaves no temporary file of a worker's behind. The workers are
 started afresh ("spawn": a process forked from one with torch's, Rerun's or a test runner's threads can wait for
-ever on a lock one of them held) and each reads the run's jobs from one file."""
+ever on a lock one of them held) and each reads the run's jobs from one file, in a temporary folder that the run
+removes (or, when it was killed, the next run with workers)."""
 
 from __future__ import annotations
 
 import contextlib
+import os
 import pickle
+import shutil
 import tempfile
 import time
 from collections import deque
@@ -28,8 +31,9 @@ if TYPE_CHECKING:
 
 
 def default_workers() -> int:
-    """One per core where there are more than two; else 1, the thread: on two cores torch's two threads and the
-    checks' thread keep both busy, and processes measured no faster (docs/speed.md)."""
+    """One per core where there are more than two; else 1, the thread: on two cores the model's thread
+    (:func:`~cmtool.core.workers.model_threads`) and the checks' thread keep both busy, and processes measured no
+    faster (docs/speed.md)."""
     return W.cores() if W.cores() > 2 else 1
 
 
@@ -45,10 +49,9 @@ def pipelined(jobs: list[Job], settings: SampleSettings, denoise, files: MapFile
     since = time.perf_counter()
     with contextlib.ExitStack() as stack:
         if workers > 1:  # the jobs reach the workers through a file each reads: they start at once, side by side
-            folder = Path(stack.enter_context(tempfile.TemporaryDirectory(prefix="cmtool-run-")))
+            folder = _jobs_folder(stack)
             (folder / "jobs.pickle").write_bytes(pickle.dumps((jobs, settings, files), pickle.HIGHEST_PROTOCOL))
             executor = stack.enter_context(W.pool(workers, "spawn", _start, (str(folder / "jobs.pickle"),)))
-            stack.enter_context(_denoising_threads())
             submit = lambda start, graphs: executor.apply_async(_in_worker, (start, graphs))  # noqa: E731
             result, ready = (lambda h: h.get()), (lambda h: h.ready())
         else:
@@ -75,19 +78,27 @@ def pipelined(jobs: list[Job], settings: SampleSettings, denoise, files: MapFile
             collect()
 
 
-@contextlib.contextmanager
-def _denoising_threads():
-    """torch's threads in the denoising process at most half the cores while the workers run beside it: with all
-    of them, its threads and the workers' processes waited on each other (2 cores, ``--workers 2``: 33-36 s for
-    256 maps with two threads, 24-30 s with one; the maps the same byte for byte, docs/speed.md)."""
-    import torch  # here, not at the top: the workers import this module and need no torch
+RUN_PREFIX = "cmtool-run-"  # the jobs' folders in the temporary folder: cmtool-run-PID-RANDOM
 
-    before = torch.get_num_threads()
-    torch.set_num_threads(max(1, min(before, W.cores() // 2)))
+
+def _jobs_folder(stack: contextlib.ExitStack) -> Path:
+    """A new temporary folder for the run's jobs file, named after this process and removed when ``stack`` ends;
+    first the folders of runs whose process is gone (killed) are removed."""
+    for old in Path(tempfile.gettempdir()).glob(f"{RUN_PREFIX}*-*"):
+        pid = old.name[len(RUN_PREFIX):].split("-")[0]
+        if pid.isdigit() and not _alive(int(pid)):
+            shutil.rmtree(old, ignore_errors=True)
+    return Path(stack.enter_context(tempfile.TemporaryDirectory(prefix=f"{RUN_PREFIX}{os.getpid()}-")))
+
+
+def _alive(pid: int) -> bool:
     try:
-        yield
-    finally:
-        torch.set_num_threads(before)
+        os.kill(pid, 0)
+    except ProcessLookupError:
+        return False
+    except PermissionError:  # another user's
+        pass
+    return True
 
 
 _RUN: dict = {}  # in a worker process: the run's jobs, settings and files (:func:`_start`)

@@ -272,7 +272,10 @@ def train(stage: Stage, run_dir: Path, resume: bool = False, progress: bool = Tr
         D.barrier()
         return target
 
-    bar = Progress(t.steps - start, label=f"train {stage.name or stage.kind}", unit="steps", enabled=progress and info.main)
+    if start and progress and info.main:
+        print(f"{run_dir}: resumed from step {start} of {t.steps} ({point[0].name})", file=sys.stderr)
+    bar = Progress(t.steps, label=f"train {stage.name or stage.kind}", unit="steps", enabled=progress and info.main,
+                   first=start)
     t0, step = time.perf_counter() - record["time_s"], start
     model.train()
     for step, batch in enumerate(loader, start=start):

@@ -34,9 +34,15 @@ RECON_EVAL = 512  # held-out scenes scored after RVAE training
 
 
 def _path(value: str, key: str, where) -> Path:
+    """The folder the recipe's ``train.KEY`` names; a run or checkpoint that is not there yet names the stage that
+    makes it."""
     if not value:
         raise CmtoolError(f"{where}: train.{key} is not set (the recipe must name it)")
-    return Path(value)
+    path = Path(value)
+    if key in ("rvae", "dit") and not path.exists():
+        raise CmtoolError(f"{path}: no such run (train.{key} of {where}); train the {key} stage into it first: "
+                          f"`cmtool train {key} --recipe RECIPE --out {path}`")
+    return path
 
 
 def _brief(config: dict) -> str:
