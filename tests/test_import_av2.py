@@ -124,5 +124,5 @@ def test_errors(tmp_path):
     osm.write_text("<osm version='0.6'></osm>")
     with pytest.raises(CmtoolError, match=r"map\.osm: malformed JSON"):
         import_hd_map("av2", osm)
-    with pytest.raises(CmtoolError, match=r"^unknown format 'x' \(choose from av2, lanelet2, nuplan\)$"):
+    with pytest.raises(CmtoolError, match=r"^unknown format 'x' \(choose from av2, lanelet2, nuplan, apollo\)$"):
         import_hd_map("x", osm)

@@ -103,5 +103,5 @@ def test_errors(tmp_path, gpkg):
     con.close()
     with pytest.raises(CmtoolError, match=r"map\.gpkg: not a nuPlan map \(no 'lane_connectors' layer\)"):
         import_hd_map("nuplan", gpkg)
-    with pytest.raises(CmtoolError, match=r"^unknown format 'gpkg' \(choose from av2, lanelet2, nuplan\)$"):
+    with pytest.raises(CmtoolError, match=r"^unknown format 'gpkg' \(choose from av2, lanelet2, nuplan, apollo\)$"):
         import_hd_map("gpkg", gpkg)
