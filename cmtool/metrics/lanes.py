@@ -90,8 +90,8 @@ def _nearest_segments(points: np.ndarray, starts: np.ndarray, ends: np.ndarray, 
     """The distance from each point to the nearest segment (``starts[k]``-``ends[k]``), exact (GEOS's own formula,
     :func:`_segment_distances`): every segment is cut into pieces of at most ``piece`` metres (:func:`_pieces`),
     whose middles a KD-tree holds. A segment within d of a point has a piece whose middle lies within d + half a
-    piece, so once the nearest k middles reach beyond (the best segment among theirs) + half a piece, no other
-    segment can be nearer; points where they do not are searched again with 8 times as many, then by a ball search,
+    piece, so once the nearest k middles reach beyond (the best segment among theirs) + half a piece, or a point
+    lies on a segment, no other segment can be nearer; points where they do not are searched again with 8 times as many, then by a ball search,
     or, where over ``CROWDED_POINTS`` are left (lanes piled on each other), over pieces 8 times shorter of the
     segments near them (down to pieces of ``FINEST_M``)."""
     tree, owner, reach = _pieces(len(points), starts, ends, piece)
@@ -112,7 +112,7 @@ def _nearest_segments(points: np.ndarray, starts: np.ndarray, ends: np.ndarray, 
             dist[r, c] = _segment_distances(p[r], starts[seg[r, c]], ends[seg[r, c]])
             best = dist.min(axis=1)
             out[rows] = best
-            done = (near.shape[1] == len(owner)) | (near[:, -1] >= best + reach)
+            done = (near.shape[1] == len(owner)) | (near[:, -1] >= best + reach) | (best == 0.0)  # none is nearer
             left.append(rows[~done])
         todo, k = np.concatenate(left), 8 * k
     if len(todo) > CROWDED_POINTS and reach > FINEST_M:  # lanes piled: the segments that may be nearer, finer cut
