@@ -155,9 +155,9 @@ def test_lane_counts_from_the_tag_the_class_or_the_model():
     two = [line([-32.0, -1.5], [32.0, -1.5]), line([-32.0, -4.7], [32.0, -4.7])]  # two lanes eastbound
     untagged = [Road("r", np.array([[-60.0, 0.0], [60.0, 0.0]]))]
     assert drawn_lane_counts(LaneGraph(two), untagged, "right") == {(0, 1): 2}
-    by_class = compose(LaneGraph(two), untagged, "right")
-    by_model = compose(LaneGraph(two), untagged, "right", counts="model")
-    tagged = compose(LaneGraph(two), [Road("r", untagged[0].polyline, lanes=4)], "right", counts="model")
+    by_class = compose(LaneGraph(two), untagged, "right", counts="class")
+    by_model = compose(LaneGraph(two), untagged, "right")  # the default: the model's counts
+    tagged = compose(LaneGraph(two), [Road("r", untagged[0].polyline, lanes=4)], "right")
     east = lambda g: sum(np.asarray(l)[-1, 0] > np.asarray(l)[0, 0] for l in g.lanes)  # noqa: E731
     west = lambda g: len(g.lanes) - east(g)  # noqa: E731
     assert (east(by_class), west(by_class)) == (1, 1) and by_class.meta["composed"]["lanes_from"] == {"class": 2}

@@ -111,12 +111,13 @@ def test_the_guarantee_of_eval_maps_is_the_same_in_worker_processes(tiny_data):
     from cmtool.core.workers import each
     from cmtool.data.cache import load_dataset, scene_sd_maps
     from cmtool.eval.evaluation import as_sampled
+    from cmtool.sample import DEFAULT_COUNTS
     from cmtool.sample.checks import guaranteed
 
     data = load_dataset(tiny_data, "test")
     scenes = [data.scene(i) for i in range(min(6, len(data)))]
     maps = [s.to_lanegraph() for s in scenes]
-    items = [(m, s, sd_map, "class") for m, s, sd_map in zip(maps, scenes, scene_sd_maps(tiny_data, "test"))]
+    items = [(m, s, sd_map, DEFAULT_COUNTS) for m, s, sd_map in zip(maps, scenes, scene_sd_maps(tiny_data, "test"))]
     here, pooled = as_sampled(maps, tiny_data, "test", scenes), each(guaranteed, items, 3)
     assert len(here) == len(scenes) and [g.to_json() for g in here] == [g.to_json() for g in pooled]
 

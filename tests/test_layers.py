@@ -1,5 +1,5 @@
-"""The package's import order (cmtool/__init__.py): each layer imports only from the layers below it, lazy
-imports inside functions included."""
+"""The package's import order (cmtool/__init__.py): each layer imports only from the layers below it, and within
+a package no modules import each other in a circle; lazy imports inside functions included."""
 
 import ast
 from pathlib import Path
@@ -16,8 +16,15 @@ def layer_of(module: str) -> int:
     return cmtool.LAYERS.index(part)
 
 
+def is_module(module: str) -> bool:
+    """Whether the dotted name ``cmtool.X...`` is a module or package of the tree under ``ROOT``."""
+    path = ROOT.parent.joinpath(*module.split("."))
+    return path.with_suffix(".py").is_file() or (path / "__init__.py").is_file()
+
+
 def imports(path: Path) -> list[tuple[int, str]]:
-    """(line, module) of every ``cmtool`` import in a source file, at any depth."""
+    """(line, module) of every ``cmtool`` import in a source file, at any depth; ``from P import m`` names the module
+    ``P.m`` where that is a module of the tree, else ``P``."""
     package = ".".join(path.relative_to(ROOT.parent).with_suffix("").parts[:-1])
     found = []
     for node in ast.walk(ast.parse(path.read_text(encoding="utf-8"))):
@@ -30,8 +37,37 @@ def imports(path: Path) -> list[tuple[int, str]]:
             if base == "cmtool":  # from cmtool import x: x is a subpackage or module
                 found += [(node.lineno, f"cmtool.{a.name}") for a in node.names if a.name != "__version__"]
             elif base.startswith("cmtool."):
-                found.append((node.lineno, base))
+                named = [f"{base}.{a.name}" if is_module(f"{base}.{a.name}") else base for a in node.names]
+                found += [(node.lineno, module) for module in dict.fromkeys(named)]
     return found
+
+
+def module_of(path: Path) -> str:
+    """The dotted name of a source file under ``ROOT`` (a package's ``__init__.py``: the package)."""
+    parts = path.relative_to(ROOT.parent).with_suffix("").parts
+    return ".".join(parts[:-1] if parts[-1] == "__init__" else parts)
+
+
+def circles() -> list[list[str]]:
+    """The import circles inside one package (the modules of one folder under ``ROOT``, its ``__init__.py``
+    included): every strongly connected component of more than one module, each as the imports that tie it
+    ("path:line imports module")."""
+    files = {module_of(path): path for path in sorted(ROOT.rglob("*.py"))}
+    edges = {name: [(line, module) for line, module in imports(path)
+                    if module != name and module in files and files[module].parent == path.parent]
+             for name, path in files.items()}
+    reached = {}
+    for name in files:
+        seen, todo = set(), [name]
+        while todo:
+            for _, module in edges[todo.pop()]:
+                if module not in seen:
+                    seen.add(module)
+                    todo.append(module)
+        reached[name] = seen
+    found = {frozenset(m for m in reached[name] if name in reached[m]) for name in files if name in reached[name]}
+    return sorted([f"{files[a].relative_to(ROOT.parent)}:{line} imports {b}" for a in sorted(circle)
+                   for line, b in edges[a] if b in circle] for circle in found)
 
 
 def test_every_package_has_a_layer():
@@ -52,6 +88,31 @@ def test_imports_follow_the_layers():
             if layer_of(module) > own:
                 wrong.append(f"{path.relative_to(ROOT.parent)}:{line} imports {module}")
     assert not wrong, "imports against cmtool.LAYERS:\n" + "\n".join(wrong)
+
+
+def test_no_package_has_an_import_circle():
+    found = circles()
+    assert not found, "import circles inside a package:\n" + "\n\n".join("\n".join(c) for c in found)
+
+
+def test_the_check_finds_a_circle_of_lazy_and_relative_imports(tmp_path):
+    files = {"__init__.py": "", "sample/__init__.py": "", "sample/a.py": "from cmtool.sample.b import x\n",
+             "sample/b.py": "def f():\n    from . import a\n", "sample/c.py": "from cmtool.sample import b\n",
+             "core/__init__.py": "", "core/d.py": "from cmtool.sample import a\n",
+             "core/e.py": "import cmtool.core.d\n"}
+    for name, text in files.items():
+        (tmp_path / "cmtool" / name).parent.mkdir(parents=True, exist_ok=True)
+        (tmp_path / "cmtool" / name).write_text(text)
+    global ROOT
+    saved, ROOT = ROOT, tmp_path / "cmtool"
+    try:
+        assert circles() == [["cmtool/sample/a.py:1 imports cmtool.sample.b",
+                              "cmtool/sample/b.py:2 imports cmtool.sample.a"]]
+        (tmp_path / "cmtool" / "core" / "d.py").write_text("def f():\n    import cmtool.core.e\n")
+        assert [c[0] for c in circles()] == ["cmtool/core/d.py:2 imports cmtool.core.e",
+                                             "cmtool/sample/a.py:1 imports cmtool.sample.b"]
+    finally:
+        ROOT = saved
 
 
 def test_the_check_sees_lazy_and_relative_imports(tmp_path):

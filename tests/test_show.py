@@ -63,3 +63,37 @@ def test_show_needs_an_output(dataset):
         show_dataset(dataset)
     with pytest.raises(CmtoolError, match="no split 'val'"):
         show_dataset(dataset, png="x.png", split="val")
+
+
+def test_lights_are_short_bars_across_their_lanes_at_their_stop_lines(tmp_path):
+    """A light is drawn, in the pictures and in the viewer, as a short bar across its lane where its light line starts
+    (its stop line), not as a broad band along the whole line that smeared along the roads."""
+    import rerun as rr
+
+    from cmtool.viz.draw import GREEN, LIGHT_BAR_HALF_M, lanes_image, light_bars
+    from cmtool.viz.recording import log_lanes
+
+    lane = np.stack([np.linspace(-20.0, 20.0, 20), np.zeros(20)], axis=1)  # 40 m forward along the ego's x
+    turn = np.stack([np.zeros(20), np.linspace(5.0, 25.0, 20)], axis=1)  # 20 m to the left from (0, 5)
+    bars = light_bars([lane, turn])
+    assert bars.shape == (2, 2, 2)
+    assert np.allclose(bars.mean(axis=1), [lane[0], turn[0]])  # centred where the lines start
+    across = bars[:, 1] - bars[:, 0]
+    assert np.allclose(np.linalg.norm(across, axis=1), 2 * LIGHT_BAR_HALF_M)
+    assert np.allclose([across[0] @ [1.0, 0.0], across[1] @ [0.0, 1.0]], 0.0)  # square to the lines
+
+    size, frame_m = 256, 64.0  # 4 px a metre, forward up, left left: ego (x, y) at row 128 - 4x, column 128 - 4y
+    img = lanes_image([lane], [lane], [], [], frame_m, size, ego=False)
+    rows, cols = np.nonzero(np.abs(img.astype(int) - GREEN).max(axis=2) <= 30)
+    assert len(rows) > 10  # the bar is drawn
+    assert np.hypot(rows - (128 + 4 * 20), cols - 128).max() <= 4 * 2.5, "green away from the stop line"
+
+    rec = rr.RecordingStream("test")
+    rec.save(str(tmp_path / "lights.rrd"))
+    log_lanes(rec, "", [lane, turn], green=[lane, turn], static=True)
+    rec.flush()
+    rec.disconnect()
+    strips = [np.array(s.as_py()) for chunk in RrdReader(tmp_path / "lights.rrd").stream()
+              if chunk.entity_path == "/hd/lights/green"
+              for s in chunk.to_record_batch().column("LineStrips2D:strips")[0]]
+    assert np.allclose(strips, bars)

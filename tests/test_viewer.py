@@ -1,6 +1,7 @@
 """The recordings as the Rerun viewer draws them: each kind has its own application id and layout, and its
 screenshot (Xvfb + a software Vulkan driver; skipped where they are missing) shows every view filled, the
-control-residual heatmaps with structure, and the time panel."""
+control-residual heatmaps with structure, and the time panel; sample.rrd's, as the README's quick start makes it,
+shows its latent's whole 8 x 8 grid, every value of its 2-step plots as a dot, and no legend over what they plot."""
 
 import cv2
 import numpy as np
@@ -12,22 +13,28 @@ from tests.conftest import REPO
 from tests.test_train import write_recipe
 
 SD = REPO / "sample_data" / "sd_bos.png"
+QUICK_START = ("--sd", REPO / "sample_data" / "sd_sgp.png", "--cfg", 0.7, "--city", "SGP")  # README; 2 steps
 
 
 @pytest.fixture(scope="module")
 def recordings(tmp_path_factory, tiny_data):
-    """One recording of each kind: data show, train (a few RVAE steps), sample, eval, ablate cfg and sample --area
-    (the shipped weights)."""
+    """One recording of each kind: data show, train (a few RVAE steps), sample (the README's quick start), eval,
+    ablate cfg and sample --area (the shipped weights)."""
     import contextlib
     import io
 
     root = tmp_path_factory.mktemp("viewer")
 
     def run(*args):
+        import sys
+        from unittest import mock
+
         from cmtool.cli import main
 
         err = io.StringIO()
-        with contextlib.redirect_stderr(err), contextlib.redirect_stdout(io.StringIO()):
+        # the command line as a user types it (the recordings' info quotes it), not pytest's, which differs run to run
+        with contextlib.redirect_stderr(err), contextlib.redirect_stdout(io.StringIO()), \
+                mock.patch.object(sys, "argv", ["cmtool", *map(str, args)]):
             try:
                 main([str(a) for a in args])
             except SystemExit as e:
@@ -36,7 +43,7 @@ def recordings(tmp_path_factory, tiny_data):
     run("data", "show", tiny_data, "--n", 4, "--rrd", root / "data.rrd")
     recipe = write_recipe(root / "rvae.toml", "rvae", 4, data=str(tiny_data), preview_every=2)
     run("train", "rvae", "--recipe", recipe, "--out", root / "rvae", "--quiet")
-    run("sample", "--sd", SD, "--steps", 6, "--out", root / "sample", "--quiet")
+    run("sample", *QUICK_START, "--out", root / "sample", "--quiet")
     run("eval", "--data", tiny_data, "--n", 4, "--steps", 4, "--no-features", "--rrd-samples", 4, "--out",
         root / "eval", "--quiet")
     run("ablate", "cfg", "--data", tiny_data, "--n", 2, "--w", "0,1", "--seeds", 1, "--steps", 2, "--no-features",
@@ -74,9 +81,12 @@ def cell(img, x0, x1, y0, y1):
 # views each layout must fill, as fractions of the window (x0, x1, y0, y1) below the 3% title bar
 VIEWS = {
     "sample": {f"map view {k}": (0.25 * k + 0.01, 0.25 * (k + 1) - 0.01, 0.07, 0.38) for k in range(3)}
-    | {"latent": (0.01, 0.11, 0.45, 0.74), "heatmaps": (0.13, 0.38, 0.43, 0.74),
-       "noise norms": (0.40, 0.56, 0.43, 0.74), "residual norms": (0.58, 0.74, 0.43, 0.74),
-       "info": (0.76, 0.99, 0.07, 0.4), "scores": (0.76, 0.99, 0.5, 0.73)},
+    | {"latent": (0.01, 0.14, 0.46, 0.68), "heatmaps": (0.16, 0.40, 0.43, 0.74),
+       "noise norms": (0.42, 0.57, 0.43, 0.68), "residual norms": (0.59, 0.74, 0.43, 0.68),
+       "info": (0.76, 0.99, 0.07, 0.4), "scores": (0.76, 0.99, 0.5, 0.69)}
+    | {f"{plot} key": (x0, x1, 0.705, 0.75) for plot, x0, x1 in (("noise norms", 0.41, 0.575),
+                                                                  ("residual norms", 0.585, 0.745),
+                                                                  ("scores", 0.755, 0.995))},
     "eval": {f"map view {k}": (0.2 * k + 0.02, 0.2 * (k + 1) - 0.02, 0.1, 0.43) for k in range(4)}
     | {f"score plot {k}": (0.335 * k + 0.02, 0.335 * (k + 1) - 0.02, 0.5, 0.73) for k in range(3)},
     "train": {f"plot {k}": (0.25 * k + 0.02, 0.25 * (k + 1) - 0.02, 0.06, 0.37) for k in range(4)}
@@ -89,10 +99,23 @@ VIEWS = {
 }
 
 
+@pytest.fixture(scope="module")
+def shots(recordings, tmp_path_factory):
+    """``shot(kind)``: the path of a screenshot of that kind's recording, taken once for all the tests."""
+    root, taken = tmp_path_factory.mktemp("shots"), {}
+
+    def shot(kind: str):
+        if kind not in taken:
+            taken[kind] = screenshot(recordings[kind], root / f"{kind}.png")
+        return taken[kind]
+
+    return shot
+
+
 @pytest.mark.skipif(missing() is not None, reason=f"no headless viewer here: {missing()}")
 @pytest.mark.parametrize("kind", list(VIEWS))
-def test_viewer_draws_every_view(recordings, tmp_path, kind):
-    png = screenshot(recordings[kind], tmp_path / f"{kind}.png")
+def test_viewer_draws_every_view(shots, kind):
+    png = shots(kind)
     img = cv2.imread(str(png))
     assert img is not None and img.shape[:2] == (1000, 1600)
     for name, box in VIEWS[kind].items():
@@ -189,8 +212,136 @@ def box_grid(mask: np.ndarray, top: float, bottom: float, left: float, right: fl
     return np.array([[mask[r[i]:r[i + 1], c[j]:c[j + 1]].mean() > 0.02 for j in range(n)] for i in range(n)])
 
 
+def rgb(png) -> np.ndarray:
+    return cv2.cvtColor(cv2.imread(str(png)), cv2.COLOR_BGR2RGB)
+
+
+def of_hue(region: np.ndarray, colours, tol: int = 6) -> np.ndarray:
+    """Which pixels of an RGB region have the hue of one of ``colours`` (within ``tol`` of OpenCV's 180 hue steps),
+    clearly saturated and bright: a series' line or dot, also where it is blended with what it is drawn over."""
+    hsv = cv2.cvtColor(np.ascontiguousarray(region), cv2.COLOR_RGB2HSV).astype(int)
+    hues = cv2.cvtColor(np.array([colours], np.uint8), cv2.COLOR_RGB2HSV)[0, :, 0].astype(int)
+    d = np.abs(hsv[..., :1] - hues)
+    return (np.minimum(d, 180 - d) <= tol).any(axis=2) & (hsv[..., 1] >= 90) & (hsv[..., 2] >= 90)
+
+
+def dots_at(region: np.ndarray, colours) -> list[float]:
+    """Where a plot region shows dots (blobs 5 px across and more, not lines) of the hue of ``colours``: the x of
+    each group of dots one above another, as fractions of the region's width. Light grey counts as part of a dot
+    (the time cursor's line runs through the dots of the step under it)."""
+    hue = of_hue(region, colours)
+    light = (region.min(axis=2) > 150) & (np.ptp(region.astype(int), axis=2) < 24)
+    blobs = cv2.morphologyEx((hue | light).astype(np.uint8), cv2.MORPH_OPEN,
+                             cv2.getStructuringElement(cv2.MORPH_ELLIPSE, (5, 5)))
+    n, labels, _, centres = cv2.connectedComponentsWithStats(blobs)
+    groups = []
+    for x in sorted(centres[k, 0] for k in range(1, n) if (hue & (labels == k)).sum() >= 6):
+        if groups and x - groups[-1][-1] <= 6:
+            groups[-1].append(x)
+        else:
+            groups.append([x])
+    return [float(np.mean(g)) / region.shape[1] for g in groups]
+
+
 @pytest.mark.skipif(missing() is not None, reason=f"no headless viewer here: {missing()}")
-def test_the_area_recording_is_north_up_as_its_picture(recordings, tmp_path):
+def test_the_latent_shows_its_whole_8_by_8_grid(shots):
+    """The latent view shows all 8 columns and 8 rows of a channel's grid as square cells of one colour each (it
+    showed about 6 columns, the others cut off at the view's edge)."""
+    png = shots("sample")
+    region = cell(rgb(png), 0.0, 0.15, 0.445, 0.75)  # the latent view below its channel slider
+    hsv = cv2.cvtColor(np.ascontiguousarray(region), cv2.COLOR_RGB2HSV)
+    drawn = (hsv[..., 1] > 60) & (hsv[..., 2] > 40)  # a colour map's colours, not the grey background or text
+    rows, cols = drawn.sum(axis=1), drawn.sum(axis=0)
+    ys, xs = np.flatnonzero(rows > 0.5 * rows.max()), np.flatnonzero(cols > 0.5 * cols.max())
+    top, bottom, left, right = ys.min(), ys.max() + 1, xs.min(), xs.max() + 1
+    width, height = right - left, bottom - top
+    assert width > 100 and abs(width / height - 1) < 0.06, f"the latent is not a whole square grid: {width} x " \
+        f"{height} px ({png})"
+    side = width / 8
+    centres = np.zeros((8, 8, 3))
+    for i in range(8):
+        for j in range(8):
+            y, x = int(top + (i + 0.5) * height / 8), int(left + (j + 0.5) * side)
+            patch = region[y - int(side / 5):y + int(side / 5) + 1, x - int(side / 5):x + int(side / 5) + 1].astype(int)
+            assert np.ptp(patch.reshape(-1, 3), axis=0).max() <= 12, f"cell ({i}, {j}) is not one colour ({png})"
+            centres[i, j] = patch.reshape(-1, 3).mean(axis=0)
+    steps = np.abs(np.diff(centres, axis=1)).max(axis=2)  # (8, 7): each row's change from column to column
+    assert (steps.max(axis=0) > 6).all(), f"neighbouring columns not distinct: {steps.max(axis=0)} ({png})"
+
+
+@pytest.mark.skipif(missing() is not None, reason=f"no headless viewer here: {missing()}")
+def test_the_sample_plots_show_each_step_as_a_dot(shots):
+    """At the default 2 steps each series of the noise and residual norms is two dots joined by a line, the dots
+    away from the plot's edges (a single line from edge to edge read as one segment)."""
+    from cmtool.viz.trajectory import EPS_SERIES, block_colours
+
+    png = shots("sample")
+    img = rgb(png)
+    hues = {"noise norms": [c for key, (_, c) in EPS_SERIES.items() if key != "guided"],  # (guided is white)
+            "residual norms": block_colours(6).tolist()}
+    for plot, colours in hues.items():
+        at = dots_at(cell(img, *VIEWS["sample"][plot]), colours)
+        assert len(at) == 2 and 0.1 < at[0] < at[1] - 0.15 and at[1] < 0.9, f"{plot}: dots at {at} ({png})"
+
+
+@pytest.mark.skipif(missing() is not None, reason=f"no headless viewer here: {missing()}")
+def test_no_legend_covers_what_the_sample_plots_show(recordings, shots):
+    """Rerun's legend, drawn inside a plot, covered the noise norms' lines, the block-0 residual line and the top of
+    the validity bar. The sample layout hides it in every plot (its blueprint, read back) and names the series in a
+    key under each plot, each name in its series' colour (the screenshot); every score's bar shows whole, its top
+    flat and its height in proportion to the score."""
+    import json
+
+    from rerun.chunk import RrdReader
+
+    from cmtool.sample.scores import SCORES
+    from cmtool.viz.trajectory import EPS_SERIES, SCORE_COLOURS, block_colours
+
+    path = recordings["sample"]
+    views, legends = {}, {}
+    for chunk in RrdReader(path).stream(store=RrdReader(path).blueprints()[0]):
+        batch = chunk.to_record_batch()
+        if "ViewBlueprint:class_identifier" in batch.schema.names:
+            views[chunk.entity_path] = (batch.column("ViewBlueprint:class_identifier")[0][0].as_py(),
+                                        batch.column("ViewBlueprint:display_name")[0][0].as_py())
+        if chunk.entity_path.endswith("/PlotLegend"):
+            visible = batch.column("PlotLegend:visible") if "PlotLegend:visible" in batch.schema.names else None
+            legends[chunk.entity_path.removesuffix("/PlotLegend")] = None if visible is None else visible[0][0].as_py()
+    plots = {path: name for path, (kind, name) in views.items() if kind in ("TimeSeries", "BarChart")}
+    assert len(plots) == 3, views
+    for view, name in plots.items():
+        assert legends.get(view) is False, f"{name}: Rerun's legend is shown over the plot"
+
+    png = shots("sample")
+    img = rgb(png)
+    keys = {"noise norms": [c for _, c in EPS_SERIES.values()], "residual norms": block_colours(6).tolist(),
+            "scores": list(SCORE_COLOURS)}
+    for plot, colours in keys.items():
+        region = cell(img, *VIEWS["sample"][f"{plot} key"])
+        for colour in colours:
+            if max(colour) - min(colour) < 30:  # white: the series shown as white text
+                shown = (region.min(axis=2) > 200).sum()
+            else:
+                shown = of_hue(region, [colour]).sum()
+            assert shown > 20, f"{plot}: no key for the series in {colour} ({png})"
+
+    meta = json.loads(next(path.parent.glob("*.json")).read_text())["meta"]
+    chart = cell(img, 0.755, 0.995, 0.46, 0.73)
+    heights = {}
+    for key, colour in zip(SCORES, SCORE_COLOURS):
+        _, labels, stats, _ = cv2.connectedComponentsWithStats(of_hue(chart, [colour]).astype(np.uint8))
+        k = 1 + int(np.argmax(stats[1:, cv2.CC_STAT_AREA]))  # the bar
+        x, w = stats[k, cv2.CC_STAT_LEFT], stats[k, cv2.CC_STAT_WIDTH]
+        tops = [int(np.argmax(labels[:, c] == k)) for c in range(x + w // 10, x + w - w // 10)]
+        assert np.ptp(tops) <= 2, f"the {SCORES[key]} bar is partly covered: its top at rows {sorted(set(tops))}"
+        heights[key] = stats[k, cv2.CC_STAT_TOP] + stats[k, cv2.CC_STAT_HEIGHT] - np.median(tops)
+    tallest = max(heights, key=heights.get)
+    for key, h in heights.items():
+        assert abs(h / heights[tallest] - meta[key] / meta[tallest]) < 0.03, (heights, meta, png)
+
+
+@pytest.mark.skipif(missing() is not None, reason=f"no headless viewer here: {missing()}")
+def test_the_area_recording_is_north_up_as_its_picture(recordings, shots):
     """Where the viewer draws the area's roads, on a grid over the box, agrees with the SD map of the area's PNG
     (north up), not with that map mirrored north-south, as the viewer drew it before."""
     import json
@@ -205,7 +356,7 @@ def test_the_area_recording_is_north_up_as_its_picture(recordings, tmp_path):
     sd = roads(cv2.imread(str(next(out.glob("*_area.png"))))[top:top + size, :size])
     px = lambda m: (m + extent / 2) / extent * size  # noqa: E731
     picture = box_grid(sd, px(-y1), px(-y0), px(x0), px(x1))
-    img = cv2.imread(str(screenshot(recordings["area"], tmp_path / "area.png")))
+    img = cv2.imread(str(shots("area")))
     # the area view, which fits the roads it shows, left of the corner where the viewer's notices may pop up
     view = roads(cell(img, 0.0, 0.78, 0.06, 0.75))
     rows, cols = np.nonzero(view)

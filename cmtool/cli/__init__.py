@@ -76,7 +76,7 @@ def main(argv=None) -> None:
     except OSError as e:  # a path the user gave that cannot be made, read or written (the command did not say which)
         if e.filename is None and e.errno not in (errno.ENOSPC, errno.EFBIG, errno.EDQUOT):
             raise
-        from cmtool.core.jsonio import os_reason
+        from cmtool.core.outputs import os_reason
 
         where = f"{e.filename}: " if e.filename is not None else "cannot write: "
         click.echo(f"Error: {where}{os_reason(e)}", err=True)

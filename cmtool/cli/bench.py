@@ -50,7 +50,7 @@ def bench_sample_cmd(ckpt, sd_path, steps, sampler, cfg, batch, repeats, data, n
     from cmtool.core.workers import MODEL_THREADS
     from cmtool.eval.bench_sample import LOG_LIMIT, bench_sample, default_sd
     from cmtool.sample.inputs import image_inputs
-    from cmtool.sample.run import SampleSettings
+    from cmtool.sample.job import SampleSettings
 
     settings = SampleSettings(steps=steps, cfg=cfg, sampler=sampler)
     settings.check()
@@ -192,9 +192,9 @@ def bench_metrics_cmd(eval_dir, method, tile, repeats, no_features, device, feat
     """Time each family of metrics (topology, lane distances, validity, SD adherence, driving side, legal
     one-way, features, recall) on an evaluation's maps: minimum and median over the repeats; with the features,
     also the ResNet-50 passes alone on the same rasters."""
+    from cmtool.core.workers import cores
     from cmtool.eval.bench_metrics import bench_metrics, eval_set, report_table
     from cmtool.metrics.features import FeatureExtractor
-    from cmtool.core.workers import cores
 
     generated, reference, controls = eval_set(eval_dir, method, tile)
     extractor = None if no_features else FeatureExtractor("resnet50-seeded", None, _device(device),

@@ -10,7 +10,7 @@ import click
 
 from cmtool.core.errors import CmtoolError
 from cmtool.diffusion.settings import DEFAULT_SAMPLER, DEFAULT_STEPS, SAMPLERS
-from cmtool.sample import DEFAULT_SMOOTH
+from cmtool.sample import COUNTS, DEFAULT_COUNTS, DEFAULT_SMOOTH
 
 
 class Finite(click.FloatRange):
@@ -119,10 +119,9 @@ def sampler_options(fn):
 
 
 LANE_COUNTS_OPTION = click.option(
-    "--lane-counts", default="class", show_default=True, type=click.Choice(["class", "model"]),
-    help="Lanes per direction of an SD road without a lanes tag: its class's usual count, or as many as the model drew "
-         "along it (the class's where it drew none). The shipped weights' counts match real roads less often than "
-         "the class's (docs/baselines.md).")
+    "--lane-counts", default=DEFAULT_COUNTS, show_default=True, type=click.Choice(COUNTS),
+    help="Lanes per direction of an SD road without a lanes tag: as many as the model drew along it (its class's "
+         "usual count where it drew none), or its class's usual count (docs/baselines.md).")
 
 PRECISION_OPTION = click.option(
     "--precision", default="fp32", show_default=True, type=click.Choice(["fp32", "bf16"]),
@@ -146,7 +145,7 @@ def _generator(ckpt, device, smooth: int = DEFAULT_SMOOTH, precision: str = "fp3
     """The generator of ``--ckpt`` (default: the shipped weights) on ``--device``, warning when bf16 would be
     emulated."""
     from cmtool.sample.generator import MapGenerator
-    from cmtool.train.loop import cpu_has_native_bf16
+    from cmtool.train.precision import cpu_has_native_bf16
 
     dev = _device(device)
     if precision == "bf16" and dev.type == "cpu" and not cpu_has_native_bf16():

@@ -6,10 +6,10 @@ import time
 
 import click
 
-from cmtool.core.errors import CmtoolError
 from cmtool.cli.common import (FEATURE_PRECISION_OPTION, LANE_COUNTS_OPTION, PRECISION_OPTION, SEED, SMOOTH_OPTION,
                                WORKERS_OPTION, DatasetDir, Finite, InPath, OutPath, _device, _generator, attach_init,
                                init_options, sampler_options)
+from cmtool.core.errors import CmtoolError
 
 
 @click.command()
@@ -36,9 +36,9 @@ def metrics(generated, reference, control, json_out, backbone, weights, no_featu
     """Score generated lane graphs against a reference set (and their SD controls): topology FDs,
     improved precision/recall, Control / GT Recall with p-values, and geometric lane metrics."""
     from cmtool.core.jsonio import write_json
+    from cmtool.core.workers import cores
     from cmtool.formats.mapfile import read_lane_graphs
     from cmtool.metrics.features import FeatureExtractor
-    from cmtool.core.workers import cores
     from cmtool.metrics.suite import evaluate, load_controls, summary_table
 
     names = [p.name for p in generated]
@@ -102,9 +102,9 @@ def eval_cmd(ckpt, data_dir, split, n, cfg, steps, sampler, init, strength, enco
     Under torchrun the processes share the generation (the same maps as one process)."""
 
     from cmtool.core import dist as D
+    from cmtool.core.workers import cores
     from cmtool.eval.evaluation import EvalSettings, run_eval
     from cmtool.metrics.features import FeatureExtractor
-    from cmtool.core.workers import cores
 
     info = D.setup(str(_device(device)))
     try:

@@ -113,8 +113,9 @@ def sample(ckpt, sd_paths, osm, center, heading, from_hd, pose, area, px_m, num,
 
     from cmtool.core import dist as D
     from cmtool.sample import inputs as src
+    from cmtool.sample.job import SampleSettings
     from cmtool.sample.pool import default_workers
-    from cmtool.sample.run import SampleSettings, plan, run_sample
+    from cmtool.sample.run import plan, run_sample
     from cmtool.sample.summary import summary_table
 
     settings = SampleSettings(num=num, seed=seed, steps=steps, sampler=sampler, eta=eta, cfg=cfg, city=city,
@@ -186,8 +187,8 @@ def _area(ckpt, sd_paths, px_m, osm, center, from_hd, pose, area, num, candidate
     from cmtool.data.tiles import check_extent
     from cmtool.sample import inputs as src
     from cmtool.sample.area import area_box, run_area
+    from cmtool.sample.job import SampleSettings
     from cmtool.sample.pool import default_workers
-    from cmtool.sample.run import SampleSettings
 
     settings = SampleSettings(seed=seed, steps=steps, sampler=sampler, eta=eta, cfg=cfg, city=city, city_cfg=city_cfg,
                               batch=batch, init=init, strength=strength if init != "none" else 1.0, guarantee=not raw,

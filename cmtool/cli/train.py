@@ -19,14 +19,16 @@ from cmtool.train import PRECISIONS
 @click.option("--out", type=OutPath(file_okay=False),
               help="Run folder [default: the recipe's train.out].")
 @click.option("--resume", is_flag=True, help="Continue from the run folder's newest checkpoint (pipeline: from where "
-              "it stopped, finished stages skipped).")
+              "it stopped, finished stages skipped). A run stopped after its last step (while it encoded the latent "
+              "cache) needs none: the same command finishes it.")
 @click.option("--data", "data_dir", type=DatasetDir(),
               help="Override train.data (the dataset cache); pipeline: a dataset built before, instead of its data "
                    "stage.")
 @click.option("--steps", type=click.IntRange(min=1), help="Override train.steps (e.g. for a quick try).")
 @click.option("--precision", type=click.Choice(PRECISIONS),
               help="Override train.precision: bf16 autocast pays on CUDA and on CPUs with native bf16 "
-                   "(AVX512-BF16, AMX); fp32 elsewhere on CPU.")
+                   "(AVX512-BF16, AMX); auto takes it where the device has it and a test block runs faster in it "
+                   "(a line says which and why), fp32 elsewhere.")
 @click.option("--device", help="torch device [default: cuda when available, else cpu].")
 @click.option("--quiet", is_flag=True, help="No progress line.")
 @click.option("--serve", is_flag=True, help="Serve the training recording and Rerun's web viewer from this machine "

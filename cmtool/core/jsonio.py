@@ -2,7 +2,6 @@
 
 from __future__ import annotations
 
-import errno
 import hashlib
 import json
 import math
@@ -15,7 +14,7 @@ from pathlib import Path
 import numpy as np
 
 from cmtool.core.errors import CmtoolError
-from cmtool.core.outputs import target
+from cmtool.core.outputs import os_reason, target
 
 
 def read_text(path: str | os.PathLike) -> str:
@@ -104,17 +103,6 @@ def json_lines(path: str | os.PathLike) -> list[tuple[int, object]]:
             except MalformedJson as e:
                 raise MalformedLine(str(e), lineno) from None
     return out
-
-
-def os_reason(e: OSError) -> str:
-    """Why an operating-system call failed, in words that name what the user can fix."""
-    if e.errno in (errno.ENOTDIR, errno.EEXIST) and e.filename:
-        for parent in Path(e.filename).parents if e.errno == errno.ENOTDIR else [Path(e.filename)]:
-            if parent.is_file():
-                return f"{parent} is a file, not a folder"
-    if e.errno == errno.EFBIG:
-        return "file too large (the file size limit, or a full disk)"
-    return e.strerror.lower() if e.strerror else str(e)
 
 
 @contextmanager

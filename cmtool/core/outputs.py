@@ -3,8 +3,8 @@ link, and never into an output folder that another run is writing.
 
 The CLI names each command's inputs (:func:`note_input`) and output folders (:func:`claim_folder`, which removes
 the temporary files a killed run left there) as it parses its options; every writer of :mod:`cmtool.core.jsonio`
-asks :func:`target` where a write may go. :func:`release` ends a command: it forgets the inputs, unlocks the folders
-and removes those it made and left empty.
+asks :func:`target` where a write may go, and says why a file could not be read or written with :func:`os_reason`.
+:func:`release` ends a command: it forgets the inputs, unlocks the folders and removes those it made and left empty.
 """
 
 from __future__ import annotations
@@ -60,6 +60,17 @@ def target(path: str | os.PathLike) -> Path:
     return Path(os.path.realpath(path)) if path.is_symlink() else path
 
 
+def os_reason(e: OSError) -> str:
+    """Why an operating-system call failed, in words that name what the user can fix."""
+    if e.errno in (errno.ENOTDIR, errno.EEXIST) and e.filename:
+        for parent in Path(e.filename).parents if e.errno == errno.ENOTDIR else [Path(e.filename)]:
+            if parent.is_file():
+                return f"{parent} is a file, not a folder"
+    if e.errno == errno.EFBIG:
+        return "file too large (the file size limit, or a full disk)"
+    return e.strerror.lower() if e.strerror else str(e)
+
+
 def claim_folder(path: str | os.PathLike) -> None:
     """Make the output folder ``path`` (with its parents) and lock it for this run, so that a second run on the same
     folder fails at once with one line instead of mixing its files with this run's; the temporary files a killed run
@@ -76,8 +87,6 @@ def claim_folder(path: str | os.PathLike) -> None:
         path.mkdir(parents=True, exist_ok=True)
         fd = os.open(path, os.O_RDONLY | os.O_DIRECTORY)
     except OSError as e:
-        from cmtool.core.jsonio import os_reason
-
         raise CmtoolError(f"cannot write {path}: {os_reason(e)}") from None
     _made.extend(reversed(missing))
     try:

@@ -36,8 +36,8 @@ import cv2
 import numpy as np
 
 from cmtool.core.errors import CmtoolError
-from cmtool.core.memory import check_fits
 from cmtool.core.geometry import CV_SHIFT, ego_to_pixel, to_frame
+from cmtool.core.memory import check_fits
 from cmtool.maps.sdmap import ROAD_CLASSES, Road, SDMap
 
 SIZE = 128

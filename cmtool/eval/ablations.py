@@ -129,7 +129,8 @@ def _cfg_blueprint(scenes: int) -> rrb.Blueprint:
 
     maps = rrb.Grid(*[view(k, "generated", "at this w") for k in range(scenes)],
                     *[view(k, "truth", "ground truth") for k in range(scenes)], grid_columns=max(scenes, 1))
-    plots = rrb.Horizontal(*[rrb.TimeSeriesView(origin=f"/metrics/{key}", name=title)
+    plots = rrb.Horizontal(*[rrb.TimeSeriesView(origin=f"/metrics/{key}", name=title,  # one series: the title names it
+                                                plot_legend=rrb.PlotLegend(visible=False))
                              for key, title in CFG_SCORES.items()])
     return rrb.Blueprint(rrb.Vertical(maps, plots, row_shares=[3, 1]), rrb.BlueprintPanel(expanded=False),
                          rrb.SelectionPanel(expanded=False), rrb.TimePanel(expanded=True, timeline="cfg"))

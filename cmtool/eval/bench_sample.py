@@ -31,8 +31,9 @@ from cmtool.metrics.features import FeatureExtractor
 from cmtool.metrics.suite import evaluate, shared_features
 from cmtool.sample.generator import MapGenerator
 from cmtool.sample.inputs import ControlInput
+from cmtool.sample.job import Job, SampleSettings
 from cmtool.sample.roads import frame_roads
-from cmtool.sample.run import Job, SampleSettings, generate_maps, log_run_header, plan, run_sample
+from cmtool.sample.run import generate_maps, log_run_header, plan, run_sample
 from cmtool.viz.recording import close_recording, open_recording
 
 LOG_LIMIT = 1.10  # full logging may cost at most 10% over --no-log (tiny model, batch 1)
@@ -201,7 +202,7 @@ def decisions_row(maps, scenes, sd_maps, frames, roads) -> dict:
     where they draw as many lanes as the truth (:func:`cmtool.eval.evaluation.lane_count_agreement`), junction
     movement precision, recall and F1 and the unexplained share of the lane length
     (:func:`cmtool.metrics.decisions.decision_scores` against ``frames``, :func:`truth_frames`)."""
-    counts = lane_count_agreement(scenes, maps, sd_maps).get("model")
+    counts = lane_count_agreement(scenes, {"maps": maps}, sd_maps).get("maps")
     return {"lane_count_equal": counts["equal"] if counts else float("nan"),
             **{k: v for k, v in decision_scores(maps, frames, roads).items() if k in DECISIONS}}
 

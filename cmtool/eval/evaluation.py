@@ -37,7 +37,6 @@ from cmtool.core.progress import Progress
 from cmtool.core.workers import each
 from cmtool.data.cache import MissingSDMaps, load_dataset, scene_sd_maps
 from cmtool.data.layouts import LAYOUTS, layout_raster, scene_layouts
-from cmtool.data.rules import lane_counts
 from cmtool.data.scene import Scene
 from cmtool.diffusion.settings import SamplerSettings
 from cmtool.formats.sumo import netconvert_path
@@ -51,15 +50,16 @@ from cmtool.metrics.validity import check
 from cmtool.model import checkpoint as ckpt
 from cmtool.model.controlmap import NO_LAYOUT
 from cmtool.model.release import BUNDLED
-from cmtool.sample import DEFAULT_SMOOTH
-from cmtool.sample.compose import DEFAULT_COUNTS, check_counts
-from cmtool.sample.roads import drawn_lane_counts, frame_roads
+from cmtool.sample import DEFAULT_COUNTS, DEFAULT_SMOOTH
 from cmtool.sample.checks import guaranteed
+from cmtool.sample.compose import check_counts
 from cmtool.sample.generator import MapGenerator
 from cmtool.sample.layouts import NO_INIT, check_init
+from cmtool.sample.roads import drawn_lane_counts, frame_roads
 from cmtool.viz.draw import graph_panel, grid, sd_panel, title_strip
 from cmtool.viz.recording import close_recording, log_lanes, log_sd, open_recording
 from cmtool.viz.show import write_png
+from cmtool.viz.trajectory import key_view, log_key
 
 METHODS = ("unguided", "controlmap")
 # How each batch's noise is drawn (x_T from the scene seed, step noise from ``step_generator``). Caches
@@ -126,7 +126,8 @@ def run_eval(gen: MapGenerator, settings: EvalSettings, out: Path, extractor: Fe
         final = as_sampled(generated["controlmap"], settings.data, settings.split, scenes, settings.lane_counts,
                            workers)
         sd_maps = scene_sd_maps(settings.data, settings.split)
-        counts = lane_count_agreement(scenes, generated["controlmap"], sd_maps)
+        counts = lane_count_agreement(scenes, {"model": generated["controlmap"], "guaranteed": final,
+                                               "rules": baselines["rules"]}, sd_maps)
         roads = [frame_roads(sd_map, s.pose.as_array(), s.frame_m) for s, sd_map in zip(scenes, sd_maps)]
         generated = {"unguided": generated["unguided"], **baselines, "controlmap": generated["controlmap"],
                      "guaranteed": final}
@@ -160,19 +161,18 @@ def baseline_methods() -> list[str]:
     return [m for m in LAYOUTS if m != "netconvert" or netconvert_path() is not None]
 
 
-def lane_count_agreement(scenes, maps: list[LaneGraph], sd_maps) -> dict:
-    """How many lanes a direction of each SD road in the frames has: the model's ``maps`` and the rules' guess (the
-    road's ``lanes`` tag, else its class's usual count) against the ground truth, both maps' lanes counted by
-    :func:`drawn_lane_counts`, over the road directions where the ground truth has lanes: the share
-    equal to the truth's, the mean difference and the mean absolute difference."""
-    diffs = {"model": [], "rules": []}
-    for scene, graph, sd_map in zip(scenes, maps, sd_maps):
+def lane_count_agreement(scenes, maps: dict[str, list[LaneGraph]], sd_maps) -> dict:
+    """How many lanes a direction of each SD road in the frames has in each of ``maps`` (the model's own, the maps
+    ``cmtool sample`` writes, the rules') against the ground truth, all counted by :func:`drawn_lane_counts`, over the
+    road directions where the ground truth has lanes: the share equal to the truth's, the mean difference and the mean
+    absolute difference."""
+    diffs = {k: [] for k in maps}
+    for f, (scene, sd_map) in enumerate(zip(scenes, sd_maps)):
         roads, side = frame_roads(sd_map, scene.pose.as_array(), scene.frame_m), drives_on(scene.city)
-        truth, model = drawn_lane_counts(scene.to_lanegraph(), roads, side), drawn_lane_counts(graph, roads, side)
-        for (p, sign), n in truth.items():
-            along, against = lane_counts(roads[p])
-            diffs["model"].append(model.get((p, sign), 0) - n)
-            diffs["rules"].append((along if sign == 1 or roads[p].oneway else against) - n)
+        truth = drawn_lane_counts(scene.to_lanegraph(), roads, side)
+        for k, m in maps.items():
+            drawn = drawn_lane_counts(m[f], roads, side)
+            diffs[k] += [drawn.get(key, 0) - n for key, n in truth.items()]
     return {k: {"road_directions": len(v), "equal": float(np.mean(np.equal(v, 0))),
                 "mean_difference": float(np.mean(v)), "mean_abs_difference": float(np.mean(np.abs(v)))}
             for k, v in diffs.items() if v}
@@ -358,10 +358,12 @@ def summary_markdown(report: dict) -> str:
                  for k in ("junction", "other")]
     counts = report.get("lane_counts")
     if counts:
+        cols = [(k, label) for k, label in (("model", "ControlMap (the model's own)"), ("guaranteed", "+ guarantee"),
+                                            ("rules", "rules (tag, else road class)")) if k in counts]
         tail += ["", "", f"### Lanes per road direction ({counts['model']['road_directions']} SD road directions with "
-                 "ground-truth lanes)", "", "| | ControlMap (the model's own) | rules' guess (tag, else road class) |",
-                 "|---|---|---|"]
-        tail += [f"| {label} | {counts['model'][k]:.3f} | {counts['rules'][k]:.3f} |" for k, label in
+                 "ground-truth lanes)", "", "| | " + " | ".join(label for _, label in cols) + " |",
+                 "|---|" + "---|" * len(cols)]
+        tail += [f"| {label} | " + " | ".join(f"{counts[c][k]:.3f}" for c, _ in cols) + " |" for k, label in
                  (("equal", "equal to the ground truth's ↑"), ("mean_difference", "mean difference (lanes)"),
                   ("mean_abs_difference", "mean absolute difference ↓"))]
     tail += decision_rows(report.get("decisions"), s["n"])
@@ -398,6 +400,7 @@ PANELS = {"unguided": "unguided DiT", "rules": "rules", "netconvert": "netconver
           "guaranteed": "ControlMap + guarantee", "truth": "ground truth"}
 SHORT = {"unguided": "unguided", "rules": "rules", "netconvert": "netconvert", "controlmap": "ControlMap",
          "guaranteed": "+ guarantee"}
+METHODS_KEY = "keys/methods"  # the key under the score plots (:func:`cmtool.viz.trajectory.log_key`)
 SERIES_COLOURS = {"unguided": [230, 140, 40], "rules": [150, 150, 150], "netconvert": [150, 220, 120],
                   "controlmap": [60, 150, 255], "guaranteed": [200, 90, 230]}
 
@@ -411,6 +414,7 @@ def _write_recording(path: Path, scenes, reference, generated, results: dict, rr
     for key in RECORDED_SCORES:
         for m in methods:
             rec.log(f"metrics/{key}/{m}", rr.SeriesLines(colors=SERIES_COLOURS[m], names=PANELS[m]), static=True)
+    log_key(rec, METHODS_KEY, [(PANELS[m], SERIES_COLOURS[m]) for m in methods])
     shown = min(rrd_samples, len(scenes))
     for k, (scene, truth) in enumerate(zip(scenes, reference)):
         rec.set_time("sample", sequence=k)
@@ -438,10 +442,11 @@ def _eval_blueprint() -> rrb.Blueprint:
     maps = [rrb.Spatial2DView(origin="/scene", name="SD input", contents=["/scene/control/sd"], visual_bounds=bounds)]
     maps += [rrb.Spatial2DView(origin="/scene", name=title, contents=["/scene/control/sd", f"/scene/{m}/**"],
                                visual_bounds=bounds) for m, title in PANELS.items()]
-    plots = [rrb.TimeSeriesView(origin=f"/metrics/{key}", name=title, plot_legend=rrb.PlotLegend(corner="LeftTop"))
-             for key, title in RECORDED_SCORES.items()]
+    plots = [rrb.TimeSeriesView(origin=f"/metrics/{key}", name=title, plot_legend=rrb.PlotLegend(visible=False))
+             for key, title in RECORDED_SCORES.items()]  # no legend over the lines: the key under them names them
     top = rrb.Grid(*maps, rrb.TextDocumentView(origin="/scene/scores", name="scores of this scene"),
                    grid_columns=(len(maps) + 2) // 2)  # two rows: SD and the baselines, then the model and the truth
-    return rrb.Blueprint(rrb.Vertical(top, rrb.Horizontal(*plots), row_shares=[3, 2]),
+    return rrb.Blueprint(rrb.Vertical(top, rrb.Horizontal(*plots), key_view(METHODS_KEY, "key"),
+                                      row_shares=[3, 2, 0.3]),
                          rrb.BlueprintPanel(expanded=False), rrb.SelectionPanel(expanded=False),
                          rrb.TimePanel(expanded=True, timeline="sample"))

@@ -43,8 +43,10 @@ Movement = tuple[tuple[int, int], tuple[int, int]]  # (edge, direction) in, (edg
 
 
 def road_reach(road: Road) -> float:
-    """How far from a road's line a lane of it may lie: one lane beyond its count per direction."""
-    return (max(lane_counts(road)) + 1) * lane_width(road)
+    """How far from a road's line a lane of it may lie: one lane beyond the lanes a direction the SD map allows, its
+    ``lanes`` tag's count or, untagged, up to ``MAX_LANES`` (the count is left open, as a map may decide it)."""
+    allowed = max(lane_counts(road)) if road.lanes is not None else MAX_LANES
+    return (allowed + 1) * lane_width(road)
 
 
 def lane_runs(samples: list[np.ndarray], roads: list[Road]) -> list[list[Run]]:

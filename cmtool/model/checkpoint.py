@@ -34,7 +34,8 @@ from safetensors import SafetensorError, safe_open
 from safetensors.torch import load_file, save_file
 
 from cmtool.core.errors import CmtoolError
-from cmtool.core.jsonio import file_mode, os_reason, read_json
+from cmtool.core.jsonio import file_mode, read_json
+from cmtool.core.outputs import os_reason
 
 FORMAT = "cmtool.checkpoint"
 CONFIG, WEIGHTS, INDEX = "config.json", "model.safetensors", "model.safetensors.index.json"
@@ -239,6 +240,12 @@ def portable(path) -> str:
     if path.resolve().is_relative_to(PACKAGE):
         return path.resolve().relative_to(PACKAGE.parent).as_posix()
     return "/".join(path.parts[-3:]) if path.parent.name == "checkpoints" else path.name
+
+
+def shown(path) -> str:
+    """``path`` as maps' meta and recordings show it: the shipped weights from the package's root
+    (``cmtool/weights/controlmap``, wherever it is installed), any other path as it is."""
+    return portable(path) if Path(path).resolve().is_relative_to(PACKAGE) else str(path)
 
 
 def linked(checkpoint: Path, target: str) -> Path:

@@ -43,11 +43,13 @@ from cmtool.metrics.connectivity import END_M, routed_share, sd_end_pairs, unrou
 from cmtool.metrics.geometric import legal_oneway, sd_adherence
 from cmtool.metrics.lanes import distance_to_polylines
 from cmtool.metrics.validity import check
+from cmtool.model import checkpoint as ckpt
 from cmtool.sample.generator import MapGenerator
 from cmtool.sample.inputs import ControlInput
+from cmtool.sample.job import SampleSettings
 from cmtool.sample.layouts import NO_INIT
 from cmtool.sample.pool import pipelined
-from cmtool.sample.run import SampleSettings, batch_maps, denoiser, plan
+from cmtool.sample.run import batch_maps, denoiser, plan
 from cmtool.viz.area import area_blueprint, log_area, place_tile
 from cmtool.viz.draw import lanes_image, legend, sd_panel, title_strip
 from cmtool.viz.recording import close_recording, open_recording
@@ -160,8 +162,8 @@ def generate_area(gen: MapGenerator, sd_map: SDMap, box, settings: SampleSetting
         graph, changed = area_guarantee(graph, sd_map, box, centre, disagreed)
         still = open_ends(graph, np.array([s.point for s in disagreed]).reshape(-1, 2))
         seams = [s for s in disagreed if len(still) and np.min(np.linalg.norm(still - s.point, axis=1)) < 0.01]
-    graph.meta = {"source": f"area of {sd_map.source or name}", "checkpoint": str(gen.path), "seed": settings.seed,
-                  "cfg": settings.cfg, "steps": settings.steps, "sampler": settings.sampler,
+    graph.meta = {"source": f"area of {sd_map.source or name}", "checkpoint": ckpt.shown(gen.path),
+                  "seed": settings.seed, "cfg": settings.cfg, "steps": settings.steps, "sampler": settings.sampler,
                   "precision": gen.precision, "guarantee": settings.guarantee, "area_guarantee": changed,
                   **({"init": settings.init, "strength": settings.strength} if settings.init != NO_INIT else {})}
     if "lat0" in sd_map.meta:

@@ -7,10 +7,10 @@ import time
 from pathlib import Path
 
 from cmtool.core.jsonio import OutputSet, json_text
-from cmtool.sample.inputs import ControlInput
-from cmtool.sample.layouts import layout_scenes
 from cmtool.sample.files import write_maps
-from cmtool.sample.run import Job, SampledMap
+from cmtool.sample.inputs import ControlInput
+from cmtool.sample.job import Job, SampledMap
+from cmtool.sample.layouts import layout_scenes
 from cmtool.sample.scores import score_map
 
 

@@ -13,7 +13,7 @@ from cmtool.sample.roads import frame_roads
 from cmtool.sample.scores import score_map
 
 if TYPE_CHECKING:
-    from cmtool.sample.run import Job, SampleSettings
+    from cmtool.sample.job import Job, SampleSettings
 
 
 def check_maps(batch: list[Job], graphs: list[LaneGraph], settings: SampleSettings) -> None:

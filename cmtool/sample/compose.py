@@ -8,9 +8,8 @@ both, no tighter than ``TURN_RADIUS_M`` where the lanes have another way on. The
 open:
 
 - **lanes per direction** where the road has no ``lanes`` tag (``counts="model"``): as many as the model drew along
-  it (:func:`cmtool.sample.roads.drawn_lane_counts`), the road class's usual count where it drew none. The shipped
-  weights' counts match real roads less often than the class's do (docs/baselines.md), so by default
-  (``counts="class"``) the class decides;
+  it (:func:`cmtool.sample.roads.drawn_lane_counts`), the road class's usual count where it drew none; or
+  (``counts="class"``) the class's usual count everywhere;
 - **movements**: a junction's movement from one arm into another is made where one of the model's lanes (or a chain
   of up to ``CHAIN`` of them joined by successor links) passes the first arm's lane ends, then the second's lane
   starts, heading on (:func:`_gate`). An arm that the model enters or leaves by no movement keeps every legal one,
@@ -41,6 +40,7 @@ from cmtool.maps.lanegraph import LaneGraph
 from cmtool.maps.sdmap import Road, SDMap
 from cmtool.metrics.decisions import unexplained
 from cmtool.metrics.lanes import distance_to_polylines, resampled
+from cmtool.sample import COUNTS, DEFAULT_COUNTS
 from cmtool.sample.roads import drawn_lane_counts
 
 CHAIN = 3  # lanes joined by successor links that count as one path through a junction
@@ -49,8 +49,6 @@ GATE_SIDE_M = 2.0  # ... and within this far beyond its outer lanes
 GATE_DEG = 40.0  # ... heading within this of the lanes
 LIGHT_M = 3.0  # a light stays where a lane runs within this of its middle
 POINTS = 20  # points per lane, as the model's lanes have
-COUNTS = ("class", "model")  # where an untagged road's lane counts come from
-DEFAULT_COUNTS = "class"
 TURN_RADIUS_M = 5.0  # the tightest turn a connector makes where its lanes have another way (the kink check's is 4 m)
 
 

@@ -14,7 +14,7 @@ from cmtool.viz.draw import graph_panel, legend, sd_panel, title_strip
 from cmtool.viz.show import png_bytes, write_png
 
 if TYPE_CHECKING:
-    from cmtool.sample.run import Job, SampledMap
+    from cmtool.sample.job import Job, SampledMap
 
 PANEL = 256
 MAP_FILES = (".json", ".gt.json", ".png")  # the files of a map named NAME: NAME.json, NAME.gt.json, NAME.png

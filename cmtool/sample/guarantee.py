@@ -25,7 +25,8 @@ from cmtool.maps.lanegraph import LaneGraph, infer_successors
 from cmtool.maps.neighbours import relaned
 from cmtool.maps.sdmap import Road
 from cmtool.metrics.geometric import legal_oneway_by_lane
-from cmtool.sample.compose import DEFAULT_COUNTS, compose
+from cmtool.sample import DEFAULT_COUNTS
+from cmtool.sample.compose import compose
 
 
 def guarantee(graph: LaneGraph, sd: np.ndarray | None, roads: list[Road] | None = None, side: str = "right",

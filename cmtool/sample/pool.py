@@ -27,7 +27,7 @@ from cmtool.sample.checks import check_maps
 from cmtool.sample.files import MapFiles
 
 if TYPE_CHECKING:
-    from cmtool.sample.run import Job, SampleSettings
+    from cmtool.sample.job import Job, SampleSettings
 
 
 def default_workers() -> int:

@@ -13,9 +13,7 @@ a failed run leaves earlier files as they were.
 
 from __future__ import annotations
 
-import math
 import time
-from dataclasses import dataclass
 from functools import partial
 from pathlib import Path
 
@@ -28,71 +26,22 @@ from cmtool.core.jsonio import OutputSet
 from cmtool.core.outputs import target
 from cmtool.core.progress import Progress
 from cmtool.data.layouts import layout_raster
-from cmtool.data.scene import Scene
-from cmtool.diffusion.settings import SamplerSettings, SamplingError
 from cmtool.maps.lanegraph import LaneGraph
+from cmtool.metrics.decisions import unexplained
+from cmtool.model import checkpoint as ckpt
 from cmtool.model.controlmap import NO_LAYOUT
 from cmtool.sample.checks import check_maps
-from cmtool.sample.compose import DEFAULT_COUNTS, check_counts, unexplained
 from cmtool.sample.files import MAP_FILES, MapFiles
 from cmtool.sample.generator import MapGenerator
 from cmtool.sample.inputs import ControlInput
-from cmtool.sample.layouts import NO_INIT, check_init, layout_scenes
+from cmtool.sample.job import AUTO, Job, SampledMap, SampleSettings
+from cmtool.sample.layouts import NO_INIT, layout_scenes
 from cmtool.sample.pool import pipelined
 from cmtool.sample.roads import frame_roads
 from cmtool.sample.scores import SCORES, SCORES_NOTE, choose
 from cmtool.viz.recording import log_decoded, log_lanes, log_layout, log_sd
 from cmtool.viz.trajectory import TrajectoryLogger, log_scores, sampling_blueprint
 from cmtool.viz.viewer import drop_recording, finish_recording, run_recording
-
-AUTO = "auto"  # --city default: the source map's city when the checkpoint knows it, else none
-
-
-@dataclass(kw_only=True)
-class SampleSettings(SamplerSettings):
-    """``cmtool sample``'s settings: the sampler's, and how many maps per input, the city label and its guidance."""
-
-    num: int = 1
-    eta: float = 0.0
-    city: str = AUTO  # a label of the checkpoint, "none", or "auto"
-    city_cfg: float = 1.0  # guidance on the city label (1: the label as trained)
-    init: str = NO_INIT  # start from this rule-based layout of the input (cmtool.sample.layouts), encoded
-    strength: float = 1.0  # with init: how far up the noise schedule the layout is noised before denoising
-    guarantee: bool = True  # each map composed from its SD map (cmtool.sample.guarantee)
-    lane_counts: str = DEFAULT_COUNTS  # where an untagged road's lane counts come from (cmtool.sample.compose)
-    candidates: int = 1  # maps drawn per map asked for; the best (:func:`choose`) is kept
-
-    def check(self, prefix: str = "--") -> None:
-        super().check(prefix)
-        check_init(self.init, self.strength, prefix)
-        check_counts(self.lane_counts, prefix)
-        if not (math.isfinite(self.city_cfg) and self.city_cfg >= 0):
-            raise SamplingError(f"{prefix}city-cfg: guidance weight must be a finite number >= 0, got {self.city_cfg}")
-        if self.num < 1:
-            raise SamplingError(f"{prefix}num: must be at least 1, got {self.num}")
-        if self.candidates < 1:
-            raise SamplingError(f"{prefix}candidates: must be at least 1, got {self.candidates}")
-
-
-@dataclass
-class Job:
-    """One map to generate: its name, input and label, and where it goes in the recording."""
-
-    name: str
-    source: ControlInput
-    label: int
-    index: int  # the map's number for this input (0 .. num-1)
-    prefix: str = ""
-    candidate: int = 0  # which of the --candidates drawn for this map (0 .. candidates-1)
-    init: Scene | None = None  # the layout the map starts from (--init)
-    layout: np.ndarray | None = None  # the layout raster the control branch reads (when it reads one)
-
-
-@dataclass
-class SampledMap:
-    job: Job
-    graph: LaneGraph
-    seconds: float  # this map's share of the time its batch took (the maps' times add up to the run's)
 
 
 def plan(gen: MapGenerator, inputs: list[ControlInput], settings: SampleSettings) -> list[Job]:
@@ -289,7 +238,7 @@ def _denoised(gen: MapGenerator, batch: list[Job], start: int, settings: SampleS
 
 def _meta(gen: MapGenerator, job: Job, settings: SampleSettings) -> dict:
     geo = {} if job.source.geo is None else {"geo": job.source.geo}
-    return {"source": job.source.source, "checkpoint": str(gen.path), "seed": settings.seed, "index": job.index,
+    return {"source": job.source.source, "checkpoint": ckpt.shown(gen.path), "seed": settings.seed, "index": job.index,
             "cfg": settings.cfg, "city_cfg": settings.city_cfg, "steps": settings.steps, "sampler": settings.sampler,
             "eta": settings.eta, "smooth": gen.smooth, "precision": gen.precision, **geo,
             **({"init": settings.init, "strength": settings.strength} if settings.init != NO_INIT else {}),
@@ -304,7 +253,7 @@ def log_run_header(rec, gen: MapGenerator, jobs: list[Job], settings: SampleSett
     rec.send_blueprint(sampling_blueprint([j.prefix for j in jobs], names, gen.control_blocks,
                                           any(j.source.truth is not None for j in jobs)))
     lines = [f"# cmtool sample\n\n`{command}`\n" if command else "# cmtool sample\n",
-             f"- checkpoint: `{gen.path}` ({gen.config['kind']})",
+             f"- checkpoint: `{ckpt.shown(gen.path)}` ({gen.config['kind']})",
              f"- seed {settings.seed}, cfg w = {settings.cfg}, city cfg {settings.city_cfg}, "
              f"{settings.steps} {settings.sampler} steps"
              + (f", eta {settings.eta}" if settings.sampler == "ddim" else ""), "",

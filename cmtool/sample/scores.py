@@ -13,7 +13,7 @@ from cmtool.metrics.geometric import legal_oneway, sd_adherence
 from cmtool.metrics.validity import Validity, check
 
 if TYPE_CHECKING:
-    from cmtool.sample.run import SampledMap
+    from cmtool.sample.job import SampledMap
 
 SCORES = {"validity": "validity", "sd_coverage": "SD covered", "legal_oneway": "one-way ok"}  # meta key: column
 SCORES_NOTE = ("validity: share of lanes free of problems (cmtool validate); SD covered: share of the SD road with a "

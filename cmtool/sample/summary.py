@@ -12,7 +12,7 @@ from cmtool.metrics.suite import weighted_mean
 from cmtool.sample.scores import SCORES, SCORES_NOTE
 
 if TYPE_CHECKING:
-    from cmtool.sample.run import SampledMap
+    from cmtool.sample.job import SampledMap
 
 
 def summary_table(maps: list[SampledMap]) -> str:

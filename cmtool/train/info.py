@@ -7,6 +7,7 @@ from pathlib import Path
 
 import torch
 
+from cmtool.core.errors import CmtoolError
 from cmtool.core.progress import format_seconds
 from cmtool.model import checkpoint as ckpt
 
@@ -40,6 +41,27 @@ def _dit_line(record: dict) -> str:
             f"{tr.get('samples', 0):,} samples, recipe {record.get('recipe_path') or '?'}")
 
 
+def _state(config: dict, checkpoint: Path) -> str:
+    """Complete; in progress (training); or trained, its work after the last step not done (or cut short by a stop):
+    for an RVAE that encodes the latent cache, how far that is."""
+    if config.get("complete"):
+        return "complete"
+    step, steps = config.get("step"), config.get("steps")
+    if not (isinstance(step, int) and isinstance(steps, int) and step >= steps):
+        return "in progress"
+    latents = checkpoint.parent.parent / "latents"
+    if config["kind"] == "rvae" and "data" in config and latents.is_dir():
+        from cmtool.train.latents import encoding_progress
+
+        try:
+            done, total = encoding_progress(latents, config["data"], ckpt.weights_digest(checkpoint))
+        except CmtoolError:  # the dataset is gone: how far is not known
+            return "trained, encoding latents"
+        if done < total:
+            return f"trained, encoding latents {done:,}/{total:,}"
+    return "trained, finishing"
+
+
 def describe(path: Path, as_json: bool = False) -> str:
     path = Path(path)
     if path.suffix == ".toml":
@@ -50,10 +72,8 @@ def describe(path: Path, as_json: bool = False) -> str:
     where = ckpt.resolve(path)
     with torch.device("meta"):
         counts = param_counts(ckpt.build_model(config, str(where)))
-    shipped = where.resolve().is_relative_to(ckpt.PACKAGE)  # shown as in the package, wherever it is installed
-    rows = [("checkpoint", ckpt.portable(where) if shipped else str(where)),
-            ("kind", f"{config['kind']} ({'complete' if config.get('complete') else 'in progress'}, "
-                     f"step {config.get('step')}/{config.get('steps')})"),
+    rows = [("checkpoint", ckpt.shown(where)),
+            ("kind", f"{config['kind']} ({_state(config, where)}, step {config.get('step')}/{config.get('steps')})"),
             ("model", _fields(config["model"]))]
     if "control" in config:
         rows.append(("control", _fields(config["control"])))

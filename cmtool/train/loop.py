@@ -2,7 +2,7 @@
 
 A :class:`Stage` says what is trained (model, data, loss, previews, what happens at the end);
 :func:`train` does the rest: AdamW with warm-up and cosine decay, gradient clipping, EMA
-weights, bf16 autocast on CUDA (on CPU fp32, or bf16 with ``train.precision``),
+weights, bf16 autocast or fp32 (``train.precision``; ``auto``: :mod:`cmtool.train.precision`),
 DistributedDataParallel under ``torchrun``, atomic checkpoints every ``ckpt_every`` steps with
 exact ``--resume``, a progress line and a Rerun recording of the run (``train/loss``,
 ``train/lr``, ``train/grad_norm``, previews).
@@ -10,7 +10,9 @@ exact ``--resume``, a progress line and a Rerun recording of the run (``train/lo
 
 from __future__ import annotations
 
+import json
 import math
+import os
 import sys
 import time
 from abc import ABC, abstractmethod
@@ -25,12 +27,13 @@ from torch.utils.data import DataLoader, Dataset
 
 from cmtool.core import dist as D
 from cmtool.core.errors import CmtoolError
-from cmtool.core.jsonio import read_json
+from cmtool.core.jsonio import atomic_open, read_json
 from cmtool.core.memory import check_fits
 from cmtool.core.progress import Progress
 from cmtool.data.sd_raster import ENCODINGS
 from cmtool.model import checkpoint as ckpt
 from cmtool.train.data import StepBatches
+from cmtool.train.precision import resolve
 from cmtool.train.recipe import Recipe, TrainRecipe
 from cmtool.viz.recording import ReplayRecording, served, training_blueprint
 
@@ -70,7 +73,8 @@ class Stage(ABC):
         return []
 
     def finish(self, model, run_dir: Path) -> dict:
-        """Work after the last step (e.g. the latent cache); returns extra config entries."""
+        """Work after the last step (e.g. the latent cache), once the final checkpoint is written; returns extra
+        config entries. Run again after a stop, it goes on from where that stopped (or starts over)."""
         return {}
 
 
@@ -93,12 +97,6 @@ def optimizer(params: list[torch.nn.Parameter], t: TrainRecipe) -> torch.optim.A
     return torch.optim.AdamW(groups, lr=t.lr, betas=tuple(t.betas))
 
 
-def cpu_has_native_bf16() -> bool:
-    """Whether this CPU computes bf16 natively (AVX512-BF16 or AMX), where bf16 autocast speeds training up."""
-    checks = (getattr(torch.cpu, name, None) for name in ("_is_avx512_bf16_supported", "_is_amx_tile_supported"))
-    return any(check() for check in checks if check is not None)
-
-
 def optimise(stage: Stage, net: torch.nn.Module, opt: torch.optim.Optimizer, params: list[torch.nn.Parameter],
              batch: dict, autocast, step: int) -> tuple[torch.Tensor, dict[str, float], torch.Tensor]:
     """One optimiser step of ``stage``'s loss on ``batch`` (on the device): loss (refused when not finite), the
@@ -115,12 +113,15 @@ def optimise(stage: Stage, net: torch.nn.Module, opt: torch.optim.Optimizer, par
     return loss, logs, grad_norm
 
 
-def precision(t: TrainRecipe, device: torch.device, warn: bool = True) -> tuple[bool, torch.autocast]:
-    """Whether ``t`` trains in bf16 on ``device`` (``auto``: on CUDA), and the autocast context that does."""
-    bf16 = t.precision == "bf16" or (t.precision == "auto" and device.type == "cuda")
-    if bf16 and warn and device.type == "cpu" and not cpu_has_native_bf16():
-        print("warning: train.precision bf16 on a CPU without native bf16 (AVX512-BF16 or AMX): autocast "
-              "emulates it, many times slower than fp32; give --precision fp32", file=sys.stderr)
+def precision(t: TrainRecipe, device: torch.device, info: D.DistInfo = D.SINGLE,
+              kept: str | None = None) -> tuple[bool, torch.autocast]:
+    """Whether ``t`` trains in bf16 on ``device`` (:func:`cmtool.train.precision.resolve`; ``kept``: the precision
+    of the checkpoint resumed from), and the autocast context that does. The main process decides and says why in
+    one line; the others take its choice."""
+    bf16, line = resolve(t.precision, device, kept) if info.main else (False, "")
+    bf16 = D.broadcast(bf16, info)
+    if line:
+        print(line, file=sys.stderr, flush=True)
     return bf16, torch.autocast(device.type, dtype=torch.bfloat16, enabled=bf16)
 
 
@@ -182,17 +183,20 @@ def _load_state(model, opt, checkpoint: Path) -> None:
                           f"from an earlier checkpoint (delete this one) or start anew") from None
 
 
-def _resume_point(run_dir: Path, resume: bool, kind: str, model_config: dict) -> tuple[Path, dict] | None:
-    """The newest checkpoint of ``run_dir`` and its config, checked against the model to train."""
+def _resume_point(run_dir: Path, resume: bool, kind: str, model_config: dict,
+                  steps: int | None = None) -> tuple[Path, dict] | None:
+    """The newest checkpoint of ``run_dir`` and its config, checked against the model to train. Without ``resume``
+    only a run trained to its last step of ``steps`` whose work after it a stop cut short: the same command again
+    finishes it."""
     found = ckpt.run_checkpoints(run_dir)
-    if found and not resume:
-        raise CmtoolError(f"{run_dir} already holds checkpoints; pass --resume to continue it or choose another --out")
     if not found:
         if resume:
             print(f"{run_dir}: no checkpoint yet, starting from step 0", file=sys.stderr)
         return None
     last = found[-1]
     config = ckpt.load_config(last)
+    if not resume and (config.get("complete") or not config.get("step") == config.get("steps") == steps):
+        raise CmtoolError(f"{run_dir} already holds checkpoints; pass --resume to continue it or choose another --out")
     wanted = ckpt.as_stored(model_config)
     had, want = (c.get("control", {}).get("sd_encoding") for c in (config, wanted))
     if kind == "controlmap" and had != want:
@@ -207,11 +211,27 @@ def _resume_point(run_dir: Path, resume: bool, kind: str, model_config: dict) ->
     return last, config
 
 
+def _finish(stage: Stage, model: torch.nn.Module, run_dir: Path, final: Path, info: D.DistInfo) -> None:
+    """The stage's work after its last step (:meth:`Stage.finish`, on the main process) into the final checkpoint
+    ``final``, written before it: then its config says ``complete``, rewritten whole or not at all."""
+    if info.main:
+        model.eval()
+        extra = ckpt.as_stored(stage.finish(model, run_dir))
+        config = {**read_json(final / ckpt.CONFIG, ckpt.MAX_JSON_BYTES), **extra, "complete": True}
+        with atomic_open(final / ckpt.CONFIG) as f:
+            json.dump(config, f, indent=1)
+            f.write("\n")
+            f.flush()
+            os.fsync(f.fileno())
+    D.barrier()  # the other processes go on (to a next stage of a pipeline) once the stage is complete
+
+
 def train(stage: Stage, run_dir: Path, resume: bool = False, progress: bool = True, serve: int | None = None,
           log: bool = True) -> Path:
     """Train ``stage`` into ``run_dir``; returns the final checkpoint directory. ``serve``: a port to serve the
     recording on (gRPC, for viewers elsewhere) while the stage trains; ``log=False``: no recording (train.rrd) and
-    no previews."""
+    no previews. The final checkpoint is written before the stage's work after the last step (:meth:`Stage.finish`),
+    so a stop there keeps every step: the same command again (or ``resume``) does only that work."""
     t = stage.recipe.train
     info = D.setup(str(stage.device))
     stage.device = info.device
@@ -226,15 +246,20 @@ def train(stage: Stage, run_dir: Path, resume: bool = False, progress: bool = Tr
     base_config = stage.config()
 
     start, record = 0, {"time_s": 0.0, "samples": 0}
-    point = _resume_point(run_dir, resume, stage.kind, base_config)
+    point = _resume_point(run_dir, resume, stage.kind, base_config, t.steps)
     if point is not None:
         last, config = point
         _load_state(model, opt, last)
         ckpt.load_weights(ema.module, last)
         ema.n_averaged.fill_(config["step"])
         start, record = config["step"], config["training"]
-        if config.get("complete") and start >= t.steps:
-            if info.main:
+        if start >= t.steps and (config.get("complete") or start >= config.get("steps", start)):
+            if not config.get("complete"):
+                if info.main:
+                    print(f"{run_dir}: trained to step {start} before (no training now); finishing the "
+                          f"{stage.name or stage.kind} stage", file=sys.stderr)
+                _finish(stage, ema.module, run_dir, last, info)
+            elif info.main:
                 print(f"{run_dir}: training already complete at step {start}", file=sys.stderr)
             D.cleanup()
             return last
@@ -246,7 +271,7 @@ def train(stage: Stage, run_dir: Path, resume: bool = False, progress: bool = Tr
                         pin_memory=info.device.type == "cuda", persistent_workers=t.workers > 0)
     net = DistributedDataParallel(model, device_ids=[info.device.index] if info.device.type == "cuda" else None) \
         if info.world > 1 else model
-    bf16, autocast = precision(t, info.device, warn=info.main)
+    bf16, autocast = precision(t, info.device, info, record.get("precision"))
 
     rec = None
     if info.main and log:
@@ -255,12 +280,12 @@ def train(stage: Stage, run_dir: Path, resume: bool = False, progress: bool = Tr
                               served(serve) if serve else None)
         rec.send_blueprint(training_blueprint(stage.name or stage.kind, stage.preview_views()))
 
-    def save(step: int, complete: bool = False, extra: dict | None = None) -> Path:
+    def save(step: int) -> Path:
         fingerprints = _check_replicas(model, info)
         target = ckpt.step_dir(run_dir, step)
         if info.main:
             tensors, meta = _state_tensors(model, opt)
-            config = {**base_config, **(extra or {}), "step": step, "steps": t.steps, "complete": complete,
+            config = {**base_config, "step": step, "steps": t.steps, "complete": False,
                       "recipe": stage.recipe.to_dict(), "recipe_path": str(stage.recipe.path or ""),
                       "training": {**record, "hardware": D.hardware(info), "world_size": info.world,
                                    "precision": "bf16" if bf16 else "fp32",
@@ -306,13 +331,10 @@ def train(stage: Stage, run_dir: Path, resume: bool = False, progress: bool = Tr
         if done % t.ckpt_every == 0 and done < t.steps:
             save(done)
     bar.close()
-    extra = {}
-    if info.main:
-        ema.module.eval()
-        extra = stage.finish(ema.module, run_dir)
-    final = save(t.steps, complete=True, extra=extra)
+    final = save(t.steps)
     if rec is not None:
         rec.close()  # the final save wrote train.rrd; this frees the served port for the next stage
+    _finish(stage, ema.module, run_dir, final, info)
     if info.main:
         print(f"{stage.name or stage.kind}: {t.steps} steps in {record['time_s']:.0f} s, last loss {record.get('last_loss', float('nan')):.4f} -> {final}",
               file=sys.stderr)

@@ -69,8 +69,9 @@ class TrainRecipe:
     preview_every: int = 500  # steps between decoded previews (0: off)
     preview_steps: int = 25  # sampler steps of the previews (dit, controlnet)
     workers: int = 0  # DataLoader worker processes
-    precision: str = "auto"  # auto: bf16 autocast on CUDA, fp32 on CPU | bf16: bf16 autocast on any device (on a
-    #                          CPU with native bf16, AVX512-BF16 or AMX, about 1.7x faster) | fp32: none
+    precision: str = "auto"  # auto: bf16 autocast where the device computes bf16 natively (CUDA 8.0+, a CPU with
+    #                          AVX512-BF16 or AMX) and a test block runs faster in it, else fp32; the run says which
+    #                          and why | bf16: bf16 autocast on any device | fp32: none
     seed: int = 0
 
     def check(self, where: str) -> None:

@@ -124,7 +124,8 @@ class RVAEStage(Stage):
                 for title, part in (("ground truth", "truth"), ("decoded", "decoded"))]
 
     def finish(self, model, run_dir):
-        scale = write_latents(model, self.data_dir, run_dir / "latents", self.device)
+        scale = write_latents(model, self.data_dir, run_dir / "latents", self.device,
+                              ckpt.weights_digest(ckpt.resolve(run_dir)))
         recon = reconstruction_scores(model, self.data_dir, _preview_split(self.data_dir), self.device, RECON_EVAL)
         print(f"rvae: latent scale {scale:.4f}; held-out reconstruction at 1 m: precision {recon['precision']:.3f} "
               f"recall {recon['recall']:.3f} F1 {recon['f1']:.3f} ({recon['scenes']} scenes)")
@@ -248,7 +249,8 @@ class EncoderStage(RVAEStage):
         if any(not torch.equal(v.to(own[k].dtype).cpu(), own[k].cpu()) for k, v in parent.items()
                if not k.startswith(ENCODER_PREFIXES)):
             raise CmtoolError(f"{run_dir}: the decoder changed during encoder training (it must stay frozen)")
-        scale = write_latents(model, self.data_dir, run_dir / "latents", self.device)
+        scale = write_latents(model, self.data_dir, run_dir / "latents", self.device,
+                              ckpt.weights_digest(ckpt.resolve(run_dir)))
         kept = float(self.parent_config["latent_scale"])
         recon = reconstruction_scores(model, self.data_dir, _preview_split(self.data_dir), self.device, RECON_EVAL)
         print(f"encoder: the latent scale of its train means {scale:.4f} (the decoder's, kept: {kept:.4f}); "
@@ -340,10 +342,17 @@ class DiTStage(_DiffusionStage):
 
     def __init__(self, recipe, device):
         super().__init__(recipe, device)
-        self.latents = read_latents(self.latent_dir, "train")
-        self.cities = sorted({str(c) for c in self.latents.city})
-        self.dit_config = dataclasses.replace(recipe.dit, num_classes=len(self.cities)).resolved()
+        data = _path(recipe.train.data, "data", recipe.path) if recipe.train.data else None
+        if data is not None and data.resolve() != Path(self.rvae_config.get("data", "")).resolve():
+            # other data than the RVAE's (e.g. the shipped DiT trained further on real roads): encoded once
+            self.latents, self.latent_dir = data_latents(self.rvae, self.rvae_run, data, self.device)
+        else:
+            self.latents = read_latents(self.latent_dir, "train")
         self.init_from = ckpt.resolve(recipe.train.init_from).resolve() if recipe.train.init_from else None
+        # a DiT trained further keeps its labels (a city it does not know trains its null label); else the data's
+        self.cities = ckpt.load_config(self.init_from)["cities"] if self.init_from else \
+            sorted({str(c) for c in self.latents.city})
+        self.dit_config = dataclasses.replace(recipe.dit, num_classes=len(self.cities)).resolved()
 
     def model(self, weights=True):
         model = DiT(self.dit_config)
@@ -359,9 +368,6 @@ class DiTStage(_DiffusionStage):
         if config["model"] != ckpt.as_stored(self.dit_config):
             raise CmtoolError(f"{path}: its DiT ({_brief(config['model'])}) is not the one this recipe builds "
                               f"({_brief(dataclasses.asdict(self.dit_config))})")
-        if config.get("cities") != self.cities:
-            raise CmtoolError(f"{path}: its city labels {config.get('cities')} differ from this RVAE's latent "
-                              f"cache's {self.cities}")
         if config.get("latent_scale") != self.scale:
             print(f"warning: {path} was trained on other latents (latent scale {config.get('latent_scale')}, this "
                   f"RVAE's {self.scale}); its weights are only a starting point", file=sys.stderr)

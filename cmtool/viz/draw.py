@@ -20,6 +20,8 @@ BACKGROUND = (24, 24, 28)
 GREEN = (40, 200, 80)
 RED = (230, 50, 50)
 TEXT = (235, 235, 235)
+# a light is drawn as a bar across its lane at its stop line: half its length, half its width (metres)
+LIGHT_BAR_HALF_M, LIGHT_BAR_RADIUS_M = 1.6, 0.45
 
 
 def heading_colours(h) -> np.ndarray:
@@ -55,32 +57,46 @@ def graph_panel(graph, size: int = 256) -> np.ndarray:
 
 
 def lanes_image(lines, green, red, edges, frame_m: float = 64.0, size: int = 256, ego: bool = True) -> np.ndarray:
-    """HD vectors in ego metres: light lines (wide green / red bands, a lamp where each starts)
-    under direction-coloured lanes with a dot at each lane start, an arrow head at each end, white
-    successor arrows across joints and (``ego``) the ego as a white triangle."""
+    """HD vectors in ego metres: direction-coloured lanes with a dot at each lane start, an arrow head at each end,
+    white successor arrows across joints, each light as a short green / red bar across its lane at its stop line
+    (where its light line starts: :func:`light_bars`, outlined in white) and (``ego``) the ego as a white
+    triangle."""
     img = _blank(size, size, BACKGROUND).copy()
     fm = frame_m
     scale = size / fm
-    bands = img.copy()
-    stops = []
-    for lights, colour in ((green, GREEN), (red, RED)):
-        pix = [_pix(line, size, fm) for line in lights]
-        if pix:  # one call draws them all, one after the other
-            cv2.polylines(bands, [p.reshape(-1, 1, 2) for p in pix], False, colour, max(3, int(round(2.2 * scale))),
-                          cv2.LINE_AA, CV_SHIFT)
-        stops += [(tuple(p[0].tolist()), colour) for p in pix]
-    if stops:  # (the background blended with itself stays as it is)
-        img = cv2.addWeighted(bands, 0.55, img, 0.45, 0.0)
     lines = [np.asarray(l, np.float64) for l in lines]
     if lines:
         _draw_lanes(img, lines, edges, fm, size)
-    for centre, colour in stops:  # a lamp where each light line starts (at its stop line)
-        cv2.circle(img, centre, int(1.3 * scale) << CV_SHIFT, (255, 255, 255), -1, cv2.LINE_AA, CV_SHIFT)
-        cv2.circle(img, centre, int(0.9 * scale) << CV_SHIFT, colour, -1, cv2.LINE_AA, CV_SHIFT)
+    bars = [(_pix(bar, size, fm), colour) for lights, colour in ((green, GREEN), (red, RED))
+            for bar in light_bars(lights)]
+    thick = max(2, round(2 * LIGHT_BAR_RADIUS_M * scale))
+    for (a, b), _ in bars:  # a white outline first, so that a bar stands out from a lane of its colour
+        cv2.line(img, tuple(a.tolist()), tuple(b.tolist()), (255, 255, 255), thick + 2, cv2.LINE_AA, CV_SHIFT)
+    for (a, b), colour in bars:
+        cv2.line(img, tuple(a.tolist()), tuple(b.tolist()), colour, thick, cv2.LINE_AA, CV_SHIFT)
     if ego:
         triangle = np.array([[2.5, 0.0], [-1.5, 1.5], [-1.5, -1.5]])
         cv2.fillPoly(img, [_pix(triangle, size, fm).reshape(-1, 1, 2)], (255, 255, 255), cv2.LINE_AA, CV_SHIFT)
     return img
+
+
+def light_bars(lights, half_m: float = LIGHT_BAR_HALF_M) -> np.ndarray:
+    """(N, 2, 2): each light line's marker, a bar ``2 half_m`` long across its lane where the line starts (its stop
+    line), square to the line's first metre."""
+    lights = [np.asarray(l, np.float64).reshape(-1, 2) for l in lights]
+    lights = [l for l in lights if len(l)]
+    if not lights:
+        return np.zeros((0, 2, 2), np.float64)
+    starts = np.array([l[0] for l in lights])
+    ahead = []
+    for l in lights:  # the first point a metre on (or the last), for the line's direction where it starts
+        far = np.flatnonzero(np.linalg.norm(l - l[0], axis=1) >= 1.0)
+        ahead.append(l[far[0]] if len(far) else l[-1])
+    d = np.array(ahead) - starts
+    n = np.linalg.norm(d, axis=1, keepdims=True)
+    d = np.where(n > 1e-9, d / np.maximum(n, 1e-9), [1.0, 0.0])
+    across = np.stack([-d[:, 1], d[:, 0]], axis=1) * half_m
+    return np.stack([starts - across, starts + across], axis=1)
 
 
 def _draw_lanes(img: np.ndarray, lines: list[np.ndarray], edges, fm: float, size: int) -> None:
@@ -175,7 +191,9 @@ def _legend(width: int, row: int) -> np.ndarray:
     for text, colour, x, line in placed:
         mid = line * row + cy
         if colour is not None:
-            cv2.line(img, (x, mid), (x + 18, mid), colour, 4, cv2.LINE_AA)
+            if "light" in text:  # as a light is drawn: a short bar outlined in white
+                cv2.line(img, (x + 2, mid), (x + 16, mid), (255, 255, 255), 6, cv2.LINE_AA)
+            cv2.line(img, (x + 2, mid), (x + 16, mid), colour, 4, cv2.LINE_AA)
             x += 24
         cv2.putText(img, text, (x, mid + 5), cv2.FONT_HERSHEY_SIMPLEX, 0.45, TEXT, 1, cv2.LINE_AA)
     return img

@@ -20,14 +20,15 @@ import rerun.blueprint as rrb
 
 from cmtool.core.errors import CmtoolError
 from cmtool.core.jsonio import OutputSet, atomic_open
-from cmtool.viz.draw import GREEN, RED, heading_colours, sd_panel
+from cmtool.viz.draw import GREEN, LIGHT_BAR_RADIUS_M, RED, heading_colours, light_bars, sd_panel
 
 # ego (x forward, y left) -> screen (u right, v down): u = -y, v = -x
 _EGO_TO_SCREEN = [[0.0, -1.0, 0.0], [-1.0, 0.0, 0.0], [0.0, 0.0, 1.0]]
 # one application id per kind of recording: a viewer keeps a layout per application id, so a second kind of
 # recording opened in a running viewer shows its own layout, not the first one's
 APP_IDS = {kind: f"cmtool_{kind}" for kind in ("data", "train", "sample", "eval", "ablate", "area")}
-LANE_RADIUS_M, LIGHT_RADIUS_M = 0.2, 0.3  # thin enough to see the junction through
+LANE_RADIUS_M = 0.2  # thin enough to see the junction through
+LIGHT_RADIUS_M, LIGHT_DRAW_ORDER = LIGHT_BAR_RADIUS_M, 25.0  # a light's bar across its lane, over the lanes (20)
 DECODED = [150, 150, 150]  # the decoded lanes under the final map
 DROPPED = [255, 255, 255]  # the decoded lanes the final map leaves out (no SD road explains them): no heading's hue
 GRPC_PORT, WEB_PORT = 9876, 9090  # where --serve serves a recording and Rerun's web viewer
@@ -175,7 +176,8 @@ def lane_colours(lines) -> np.ndarray:
 
 
 def log_lanes(rec: rr.RecordingStream, prefix: str, lines, green=(), red=(), edges=(), static: bool = False) -> None:
-    """Log lane polylines (heading-coloured), successor arrows and light lines under ``<prefix>hd``."""
+    """Log lane polylines (heading-coloured), successor arrows and lights (:func:`light_strips`) under
+    ``<prefix>hd``."""
     log_ego_frame(rec, f"{prefix}hd")
     lines = [np.asarray(l) for l in lines]
     rec.log(f"{prefix}hd/lanes", rr.LineStrips2D(lines, radii=LANE_RADIUS_M, colors=lane_colours(lines)),
@@ -186,8 +188,13 @@ def log_lanes(rec: rr.RecordingStream, prefix: str, lines, green=(), red=(), edg
     rec.log(f"{prefix}hd/successors", rr.Arrows2D(origins=origins, vectors=targets - origins, radii=0.15,
                                                   colors=[255, 255, 255]), static=static)
     for state, colour, vecs in (("green", GREEN, green), ("red", RED, red)):
-        rec.log(f"{prefix}hd/lights/{state}", rr.LineStrips2D([np.asarray(v) for v in vecs], radii=LIGHT_RADIUS_M,
-                                                              colors=colour, draw_order=20.0), static=static)
+        rec.log(f"{prefix}hd/lights/{state}", light_strips(vecs, colour), static=static)
+
+
+def light_strips(lights, colour) -> rr.LineStrips2D:
+    """Lights as the viewer draws them: each a short bar of ``colour`` across its lane at its stop line (where its
+    light line starts: :func:`~cmtool.viz.draw.light_bars`), over the lanes."""
+    return rr.LineStrips2D(light_bars(lights), radii=LIGHT_RADIUS_M, colors=colour, draw_order=LIGHT_DRAW_ORDER)
 
 
 def log_decoded(rec: rr.RecordingStream, prefix: str, lines, dropped=()) -> None:
@@ -224,7 +231,7 @@ def log_layout(rec: rr.RecordingStream, prefix: str, layout: np.ndarray, frame_m
 
 
 def log_scene(rec: rr.RecordingStream, prefix: str, scene) -> None:
-    """Log a scene's lanes, successor arrows, light lines and SD raster under ``prefix``, static (shown at any
+    """Log a scene's lanes, successor arrows, lights and SD raster under ``prefix``, static (shown at any
     time)."""
     log_lanes(rec, prefix, scene.lines[scene.line_mask], scene.green[scene.green_mask], scene.red[scene.red_mask],
               scene.edges, static=True)
@@ -253,8 +260,10 @@ def scenes_blueprint(names: list[str], half: float = 32.0, info: bool = True) ->
 
 def training_blueprint(stage: str, previews: list[tuple[str, str, list[str]]]) -> rrb.Blueprint:
     """Loss, learning rate, gradient norm and the stage's other scores over ``train_step``, above the
-    decoded previews (``previews``: (title, origin, contents) under ``train/preview``)."""
-    plots = [rrb.TimeSeriesView(origin=f"/train/{key}", name=f"{stage}: {title}")
+    decoded previews (``previews``: (title, origin, contents) under ``train/preview``). A plot of one series has no
+    legend (its title names it; Rerun's legend, inside the plot, covered the curve's end or start)."""
+    plots = [rrb.TimeSeriesView(origin=f"/train/{key}", name=f"{stage}: {title}",
+                                plot_legend=rrb.PlotLegend(visible=False))
              for key, title in (("loss", "loss"), ("lr", "learning rate"), ("grad_norm", "gradient norm"))]
     plots.append(rrb.TimeSeriesView(origin="/train", name=f"{stage}: other scores", contents=[
         "/train/**", "- /train/loss", "- /train/lr", "- /train/grad_norm", "- /train/preview/**"]))

@@ -47,7 +47,10 @@ def screenshot(rrd: str | os.PathLike, png: str | os.PathLike, size: tuple[int, 
     if shutil.which("xdotool"):
         pointer = (f"(while :; do xdotool mousemove 0 {height - 1}; sleep 0.3; xdotool mousemove 1 {height - 1}; "
                    "sleep 0.3; done) >/dev/null 2>&1 & mover=$!; ")
-    viewer = shlex.join([*_rerun(), "--window-size", f"{width}x{height}", "--screenshot-to", str(png), str(rrd)])
+    # --new: a viewer of its own, also where another viewer or a served recording holds Rerun's port (the
+    # viewer would hand the recording to that one and save no screenshot)
+    viewer = shlex.join([*_rerun(), "--new", "--window-size", f"{width}x{height}", "--screenshot-to", str(png),
+                         str(rrd)])
     with tempfile.TemporaryDirectory() as home:  # a fresh viewer state: no layout remembered from earlier runs
         env = os.environ | {"XDG_DATA_HOME": home, "XDG_CONFIG_HOME": home, "XDG_CACHE_HOME": home}
         try:

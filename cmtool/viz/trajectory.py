@@ -36,8 +36,8 @@ from rerun._baseclasses import ComponentColumn, ComponentColumnList
 from rerun.encodings import TensorDimensionIndexSelection, TensorDimensionSelection
 
 from cmtool.diffusion.samplers import StepInfo
-from cmtool.viz.draw import GREEN, RED, heading_colours
-from cmtool.viz.recording import LANE_RADIUS_M, LIGHT_RADIUS_M, in_memory, lane_colours, log_ego_frame
+from cmtool.viz.draw import GREEN, RED, heading_colours, light_bars
+from cmtool.viz.recording import LANE_RADIUS_M, LIGHT_DRAW_ORDER, LIGHT_RADIUS_M, in_memory, lane_colours, log_ego_frame
 
 LATENT_DIMS = ("channel", "row", "col")
 MAX_TABS = 16  # maps that get their own tab in the default layout
@@ -45,6 +45,10 @@ MAX_TABS = 16  # maps that get their own tab in the default layout
 EPS_SERIES = {"cond": ("cond", [70, 140, 255]), "uncond": ("uncond", [255, 150, 30]),
               "guided": ("guided", [235, 235, 235]), "delta": ("guided - uncond", [220, 60, 200])}
 SCORE_COLOURS = ([70, 140, 255], [255, 150, 30], [90, 200, 90])
+# the keys of the noise norms' and the residual norms' plots (under a map's prefix) and of the scores' bars
+NOISE_KEY, RESIDUAL_KEY, SCORES_KEY = "keys/noise_norms", "keys/residual_norms", "keys/scores"
+KEY_GAP, KEY_DOT = 3, rr.components.Radius.ui_points(4.0)  # a key's gap between names (characters), its dots'
+# radius (on screen, whatever the row's width)
 
 
 class _Column:
@@ -152,7 +156,8 @@ class TrajectoryLogger:
         self.rec, self.prefixes, self.decode, self.cfg, self.flush_s = rec, prefixes, decode, cfg, flush_s
         self.pending: list[dict] = []
         self.last = None  # the last step seen
-        self.placed = False  # the heatmaps placed
+        self.placed = False  # the heatmaps placed (and, with ``ego``, the noise norms' key logged)
+        self.ego = ego
         self.last_flush = time.perf_counter()
         for prefix in prefixes if ego else ():
             log_ego_frame(rec, f"{prefix}diffusion/x0")
@@ -184,6 +189,12 @@ class TrajectoryLogger:
         steps, self.pending = self.pending, []
         if not self.placed:
             self._place_heatmaps(steps[0])
+            if self.ego:  # the keys under the plots: the series this run has (no uncond at w = 1), the blocks
+                blocks = [(f"block {m}" if m == 0 else str(m), c.tolist())
+                          for m, c in enumerate(block_colours(len(steps[0].get("heatmaps", []))))]
+                for prefix in self.prefixes:
+                    log_key(self.rec, f"{prefix}{NOISE_KEY}", [EPS_SERIES[k] for k in EPS_SERIES if k in steps[0]])
+                    log_key(self.rec, f"{prefix}{RESIDUAL_KEY}", blocks)
         n, b = len(steps), len(self.prefixes)
         import torch
 
@@ -199,9 +210,9 @@ class TrajectoryLogger:
             send(f"{prefix}diffusion/latent", indexes=inputs, columns=tensor_columns(latents[k], LATENT_DIMS))
             mine = [decoded[i * b + k] for i in range(n)]
             self._send_lines(f"{prefix}diffusion/x0/lanes", times, [d["lines"] for d in mine], None, LANE_RADIUS_M)
-            for state, colour in (("green", GREEN), ("red", RED)):
-                self._send_lines(f"{prefix}diffusion/x0/lights/{state}", times, [d[state] for d in mine], colour,
-                                 LIGHT_RADIUS_M)
+            for state, colour in (("green", GREEN), ("red", RED)):  # each light a bar across its lane, over them
+                self._send_lines(f"{prefix}diffusion/x0/lights/{state}", times,
+                                 [light_bars(d[state]) for d in mine], colour, LIGHT_RADIUS_M, LIGHT_DRAW_ORDER)
             for key in EPS_SERIES:
                 if key in steps[0]:
                     send(f"{prefix}diffusion/eps/{key}", indexes=times,
@@ -242,21 +253,24 @@ class TrajectoryLogger:
                 self.rec.log(f"{prefix}control/residual/block_{m}", rr.Transform3D(
                     translation=[x, y, 0.0], scale=1.0 / heatmaps[m].shape[-1]), static=True)
 
-    def _send_lines(self, path: str, times, per_step: list[np.ndarray], colour, radius: float) -> None:
+    def _send_lines(self, path: str, times, per_step: list[np.ndarray], colour, radius: float,
+                    draw_order: float | None = None) -> None:
         counts = [len(lines) for lines in per_step]
         nonempty = [np.asarray(lines, np.float32) for lines in per_step if len(lines)]
         strips = np.concatenate(nonempty) if nonempty else np.zeros((0, 2, 2), np.float32)
         colours = lane_colours(strips) if colour is None else np.tile(np.array(colour, np.uint8), (len(strips), 1))
         columns = rr.LineStrips2D.columns(colors=colours, radii=np.full(len(strips), radius, np.float32))
-        columns = ComponentColumnList([*columns, strips_column(strips)])
-        self.rec.send_columns(path, indexes=times, columns=columns.partition(counts))
+        columns = ComponentColumnList([*columns, strips_column(strips)]).partition(counts)
+        if draw_order is not None:  # one a row
+            columns = ComponentColumnList([*columns, *rr.LineStrips2D.columns(draw_order=[draw_order] * len(counts))])
+        self.rec.send_columns(path, indexes=times, columns=columns)
 
 
 def log_scores(rec: rr.RecordingStream, scores: dict[str, list]) -> None:
     """Each score of every map as a bar at the map's number (``scores``: name -> a value or None per map, in the
     order of the maps' prefixes), the scores of a map side by side, under ``scores/NAME`` (spaces as ``_``); a score
-    no map has is left out."""
-    width = 0.8 / len(scores)
+    no map has is left out; their key (:func:`log_key`) at ``keys/scores``."""
+    width, key = 0.8 / len(scores), []
     for i, (name, values) in enumerate(scores.items()):
         bars = np.array([np.nan if v is None else v for v in values], np.float64)
         if np.isnan(bars).all():
@@ -265,6 +279,42 @@ def log_scores(rec: rr.RecordingStream, scores: dict[str, list]) -> None:
         chart = rr.BarChart(bars, abscissa=at, widths=np.full(len(bars), 0.9 * width),
                             color=SCORE_COLOURS[i % len(SCORE_COLOURS)])
         rec.log(f"scores/{name.replace(' ', '_')}", chart, static=True)
+        key.append((name, SCORE_COLOURS[i % len(SCORE_COLOURS)]))
+    log_key(rec, SCORES_KEY, key)
+
+
+def log_key(rec: rr.RecordingStream, path: str, entries: list[tuple[str, list[int]]]) -> None:
+    """A plot's key, drawn by :func:`key_view` under the plot instead of Rerun's legend inside it (which covers the
+    lines or bars it names): each entry's name in its colour, under a dot of that colour, in one row."""
+    if not entries:
+        return
+    rec.log(path, rr.Points2D(key_positions([n for n, _ in entries]), labels=[n for n, _ in entries],
+                              colors=[c for _, c in entries], radii=KEY_DOT, show_labels=True), static=True)
+
+
+def key_positions(names: list[str]) -> np.ndarray:
+    """(N, 2): where :func:`log_key` puts each name's dot across the row from 0 to 1, each name in a cell as wide
+    as its characters and a gap."""
+    widths = np.array([len(n) + KEY_GAP for n in names], np.float64)
+    return np.stack([(np.cumsum(widths) - widths / 2) / widths.sum(), np.zeros(len(names))], axis=1)
+
+
+def key_view(path: str, name: str) -> rrb.Spatial2DView:
+    """The view of a key of :func:`log_key`: its row across the view's width, no title bar."""
+    return rrb.Spatial2DView(origin=path, name=name, titlebar=False,
+                             visual_bounds=rrb.VisualBounds2D(x_range=[0.0, 1.0], y_range=[-0.002, 0.006]))
+
+
+def plot(name: str, origin: str, series: dict[str, tuple[str, list[int]]]) -> rrb.TimeSeriesView:
+    """A time series view of ``series`` (entity path -> (name, colour)) that reads at two steps as well as at fifty:
+    each value a dot on its series' line, the axis from step 0 to one step past the time cursor (no dot on the
+    view's edge), and no legend over the lines (:func:`key_view`, or the title, names the series)."""
+    overrides = {path: [rr.SeriesLines(colors=colour, names=label, widths=1.5).visualizer(),
+                        rr.SeriesPoints(colors=colour, names=label, markers="circle", marker_sizes=3.5).visualizer()]
+                 for path, (label, colour) in series.items()}
+    steps = rr.TimeRange(start=rr.TimeRangeBoundary.absolute(seq=0), end=rr.TimeRangeBoundary.cursor_relative(seq=1))
+    return rrb.TimeSeriesView(name=name, origin=origin, overrides=overrides, axis_x=rrb.TimeAxis(view_range=steps),
+                              plot_legend=rrb.PlotLegend(visible=False))
 
 
 def sample_view(prefix: str, name: str, blocks: int, truth: bool) -> rrb.Container:
@@ -284,24 +334,25 @@ def sample_view(prefix: str, name: str, blocks: int, truth: bool) -> rrb.Contain
         top.append(spatial("ground truth", "control/sd", "truth/**"))
     grid = rrb.TensorSliceSelection(width=TensorDimensionSelection(2), height=TensorDimensionSelection(1),
                                     indices=[TensorDimensionIndexSelection(0, 0)], slider=[0])  # (channel, row, col)
+    # the whole 8 x 8 grid, as large as the view lets it be ("Fill" cut its columns off at the view's edge)
     bottom = [rrb.TensorView(origin=f"{root}diffusion/latent", name="latent x_t", slice_selection=grid,
-                             view_fit="Fill")]
-    legend = rrb.PlotLegend(corner="LeftTop")
-    eps = {f"{root}diffusion/eps/{key}": rr.SeriesLines(colors=colour, names=series).visualizer()
-           for key, (series, colour) in EPS_SERIES.items()}
-    plots = [rrb.TimeSeriesView(name="noise prediction norms", origin=f"{root}diffusion/eps", plot_legend=legend,
-                                overrides=eps)]
+                             view_fit="FillKeepAspectRatio")]
+    eps = plot("noise prediction norms", f"{root}diffusion/eps",
+               {f"{root}diffusion/eps/{key}": series for key, series in EPS_SERIES.items()})
+    plots = [rrb.Vertical(eps, key_view(f"{root}{NOISE_KEY}", "noise prediction norms: key"), row_shares=[6, 1])]
     if blocks:
         far = heatmap_cells(blocks).max(axis=0)  # the last column's and row's corner; a label under each heatmap
         bounds = rrb.VisualBounds2D(x_range=[-0.05, far[0] + 1.05], y_range=[-0.05, far[1] + 1.3])
         heatmap = rr.DepthImage.from_fields(colormap="viridis", magnification_filter="Nearest")
         bottom.append(rrb.Spatial2DView(origin=f"{root}control/residual", name="control residual of each block",
                                         visual_bounds=bounds, defaults=[heatmap]))
-        norms = {f"{root}control/residual/block_{m}/norm": rr.SeriesLines(colors=c, names=f"block {m}").visualizer()
-                 for m, c in enumerate(block_colours(blocks))}
-        plots.append(rrb.TimeSeriesView(name="control residual norms", origin=f"{root}control/residual",
-                                        plot_legend=legend, overrides=norms))
-    shares = [2, 4.5][:len(bottom)] + [3] * len(plots)
+        # each block's series in the colour of its heatmap's frame and name
+        residual = plot("control residual norms", f"{root}control/residual",
+                        {f"{root}control/residual/block_{m}/norm": (f"block {m}", c.tolist())
+                         for m, c in enumerate(block_colours(blocks))})
+        plots.append(rrb.Vertical(residual, key_view(f"{root}{RESIDUAL_KEY}", "control residual norms: key"),
+                                  row_shares=[6, 1]))
+    shares = [2.6, 4.5][:len(bottom)] + [3] * len(plots)
     return rrb.Vertical(rrb.Horizontal(*top), rrb.Horizontal(*bottom, *plots, column_shares=shares),
                         row_shares=[1, 1], name=name)
 
@@ -313,7 +364,8 @@ def sampling_blueprint(prefixes: list[str], names: list[str], blocks: int, truth
     body = views[0] if len(views) == 1 else rrb.Tabs(*views)
     side = rrb.Vertical(rrb.TextDocumentView(origin="/info", name="info"),
                         rrb.BarChartView(origin="/scores", name="scores of each map (x: map number)",
-                                         plot_legend=rrb.PlotLegend(corner="LeftTop")), row_shares=[3, 2])
+                                         plot_legend=rrb.PlotLegend(visible=False)),
+                        key_view(f"/{SCORES_KEY}", "scores: key"), row_shares=[4, 2, 0.35])
     return rrb.Blueprint(rrb.Horizontal(body, side, column_shares=[3, 1]),
                          rrb.BlueprintPanel(expanded=False), rrb.SelectionPanel(expanded=False),
                          rrb.TimePanel(expanded=True, timeline="diffusion_step"))

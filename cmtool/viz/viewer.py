@@ -13,7 +13,8 @@ from urllib.parse import urlsplit
 import rerun as rr
 
 from cmtool.core.errors import CmtoolError
-from cmtool.core.jsonio import OutputSet, os_reason, temporary
+from cmtool.core.jsonio import OutputSet, temporary
+from cmtool.core.outputs import os_reason
 from cmtool.viz.recording import APP_IDS, GRPC_PORT, close_recording, open_recording, served
 
 SERVING: list[rr.RecordingStream] = []  # recordings served with --serve, kept alive until the process ends
