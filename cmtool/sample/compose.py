@@ -21,7 +21,7 @@ What the model drew where the SD map has no road is not written; ``meta.composed
 model's lanes lying mostly farther than a road's reach from every SD road:
 :func:`cmtool.metrics.decisions.unexplained`) beside where each road direction's lane
 count came from and which movements the model chose. The traffic lights the model drew stay where one of the map's
-lanes runs under them.
+lanes runs under their stop line.
 """
 
 from __future__ import annotations
@@ -47,7 +47,7 @@ CHAIN = 3  # lanes joined by successor links that count as one path through a ju
 GATE_BACK_M, GATE_ON_M = 10.0, 4.0  # a path passes an arm's lane ends within this far before / after them
 GATE_SIDE_M = 2.0  # ... and within this far beyond its outer lanes
 GATE_DEG = 40.0  # ... heading within this of the lanes
-LIGHT_M = 3.0  # a light stays where a lane runs within this of its middle
+LIGHT_M = 3.0  # a light stays where a lane runs within this of its start (its stop line)
 POINTS = 20  # points per lane, as the model's lanes have
 TURN_RADIUS_M = 5.0  # the tightest turn a connector makes where its lanes have another way (the kink check's is 4 m)
 
@@ -164,8 +164,8 @@ def _gate(tracks, arm: list[np.ndarray], at_end: bool) -> dict[int, int]:
 
 
 def _lit(lights: list[np.ndarray], lanes: list[np.ndarray]) -> list[np.ndarray]:
-    """The light lines whose middle lies within ``LIGHT_M`` of a lane."""
+    """The light lines whose start (the stop line, where the light is drawn) lies within ``LIGHT_M`` of a lane."""
     if not lights or not lanes:
         return []
-    middles = np.array([np.asarray(l, np.float64)[len(l) // 2] for l in lights])
-    return [l for l, d in zip(lights, distance_to_polylines(middles, lanes)) if d <= LIGHT_M]
+    starts = np.array([np.asarray(l, np.float64)[0] for l in lights])
+    return [l for l, d in zip(lights, distance_to_polylines(starts, lanes)) if d <= LIGHT_M]
