@@ -47,7 +47,8 @@ def test_shipped_weights_sample_lane_graphs_for_each_city(tmp_path, capsys):
                                        "--city", city, "--steps", "10", "--no-log", "--quiet", "--out", out)
         assert code == 0, err
         (graph,) = read_jsonl(out / f"sd_{city.lower()}.json")
-        assert graph.city == city and graph.meta["checkpoint"] == "cmtool/weights/controlmap"  # the package's, wherever installed
+        # the package's weights, named so wherever it is installed
+        assert graph.city == city and graph.meta["checkpoint"] == "cmtool/weights/controlmap"
         assert len(graph.lanes) > 0
         assert all(np.isfinite(lane).all() and np.abs(lane).max() <= 40.0 for lane in graph.lanes)
         assert all(0 <= i < len(graph.lanes) and 0 <= j < len(graph.lanes) for i, j in graph.successors)

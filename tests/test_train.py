@@ -681,24 +681,23 @@ def test_real_frames_reach_the_batches_of_the_shipped_branch_trained_further(tmp
     assert len(sources) == 24 and real.sum() == 16
     for batch in StepBatches(range(len(sources)), 8, 0, 1, 0, 0, 6):
         assert real[batch].any()
-    recipe = tmp_path / "controlnet-real.toml"  # the recipe at a batch the 24 scenes hold
-    recipe.write_text((REPO / "recipes" / "tiny-cpu" / "controlnet-real.toml").read_text().replace(
-        "batch_size = 64", "batch_size = 8"))
-    result = cli("train", "controlnet", "--recipe", recipe, "--data", data, "--out", tmp_path / "run", "--steps", 2,
-                 "--quiet", "--no-log")
-    assert result.returncode == 0, result.stderr
-    config = ckpt.load_config(tmp_path / "run")
+
+    def trained(stage: str, name: str) -> dict:
+        """The config of a 2-step run of recipes/tiny-cpu/NAME.toml on the data, at a batch the 24 scenes hold."""
+        recipe = tmp_path / f"{name}.toml"
+        recipe.write_text((REPO / "recipes" / "tiny-cpu" / f"{name}.toml").read_text().replace(
+            "batch_size = 64", "batch_size = 8"))
+        result = cli("train", stage, "--recipe", recipe, "--data", data, "--out", tmp_path / name, "--steps", 2,
+                     "--quiet", "--no-log")
+        assert result.returncode == 0, result.stderr
+        return ckpt.load_config(tmp_path / name)
+
+    config = trained("controlnet", "controlnet-real")
     assert config["control"]["sd_encoding"] == 2 and config["branch_from"].endswith("weights/controlmap")
     (cache,) = (data / "latents").iterdir()
     with np.load(cache / "train.npz") as z:
         assert np.array_equal(z["pose"], load_dataset(data, "train").arrays["pose"])
     # the shipped DiT trained further on the same frames (dit-real.toml): the same latents, its own labels kept
-    recipe = tmp_path / "dit-real.toml"
-    recipe.write_text((REPO / "recipes" / "tiny-cpu" / "dit-real.toml").read_text().replace(
-        "batch_size = 64", "batch_size = 8"))
-    result = cli("train", "dit", "--recipe", recipe, "--data", data, "--out", tmp_path / "dit", "--steps", 2,
-                 "--quiet", "--no-log")
-    assert result.returncode == 0, result.stderr
-    config = ckpt.load_config(tmp_path / "dit")
+    config = trained("dit", "dit-real")
     assert config["cities"] == ckpt.load_config(REPO / "cmtool" / "weights" / "controlmap")["cities"]
     assert config["init_from"]["path"].endswith("weights/controlmap") and [cache] == list((data / "latents").iterdir())

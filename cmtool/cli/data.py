@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+
 import click
 
 from cmtool.cli.common import SEED, Finite, InPath, OutPath, _origin
@@ -122,13 +123,7 @@ def raster(sd_map, x, y, yaw, png):
     import numpy as np
 
     from cmtool.data.frames import read_sd_source
-    from cmtool.data.sd_raster import (
-        ENCODING,
-        ENCODINGS,
-        FRAME_M,
-        decode_sd,
-        rasterize_sd,
-    )
+    from cmtool.data.sd_raster import ENCODING, ENCODINGS, FRAME_M, decode_sd, rasterize_sd
     from cmtool.viz.show import write_png
 
     sd_obj = read_sd_source(sd_map)

@@ -91,9 +91,9 @@ def _nearest_segments(points: np.ndarray, starts: np.ndarray, ends: np.ndarray, 
     :func:`_segment_distances`): every segment is cut into pieces of at most ``piece`` metres (:func:`_pieces`),
     whose middles a KD-tree holds. A segment within d of a point has a piece whose middle lies within d + half a
     piece, so once the nearest k middles reach beyond (the best segment among theirs) + half a piece, or a point
-    lies on a segment, no other segment can be nearer; points where they do not are searched again with 8 times as many, then by a ball search,
-    or, where over ``CROWDED_POINTS`` are left (lanes piled on each other), over pieces 8 times shorter of the
-    segments near them (down to pieces of ``FINEST_M``)."""
+    lies on a segment, no other segment can be nearer; points where they do not are searched again with 8 times as
+    many, then by a ball search, or, where over ``CROWDED_POINTS`` are left (lanes piled on each other), over pieces
+    8 times shorter of the segments near them (down to pieces of ``FINEST_M``)."""
     tree, owner, reach = _pieces(len(points), starts, ends, piece)
     out = np.full(len(points), np.inf)
     todo, k = np.arange(len(points)), 8

@@ -34,7 +34,7 @@ from safetensors import SafetensorError, safe_open
 from safetensors.torch import load_file, save_file
 
 from cmtool.core.errors import CmtoolError
-from cmtool.core.jsonio import file_mode, read_json
+from cmtool.core.jsonio import atomic_open, file_mode, read_json
 from cmtool.core.outputs import os_reason
 
 FORMAT = "cmtool.checkpoint"
@@ -62,10 +62,21 @@ def _write_tensors(path: Path, tensors: dict[str, torch.Tensor]) -> None:
 
 def _write_json(path: Path, obj) -> None:
     with open(path, "w", encoding="utf-8") as f:
-        json.dump(obj, f, indent=1, default=_plain)
-        f.write("\n")
-        f.flush()
-        os.fsync(f.fileno())
+        _dump_json(f, obj)
+
+
+def _dump_json(f, obj) -> None:
+    json.dump(obj, f, indent=1, default=_plain)
+    f.write("\n")
+    f.flush()
+    os.fsync(f.fileno())
+
+
+def update_config(checkpoint: Path, entries: dict) -> None:
+    """Add ``entries`` to the config.json of the written checkpoint ``checkpoint``, rewritten whole or not at all."""
+    config = read_json(checkpoint / CONFIG, MAX_JSON_BYTES)
+    with atomic_open(checkpoint / CONFIG) as f:
+        _dump_json(f, {**config, **entries})
 
 
 def _plain(obj):

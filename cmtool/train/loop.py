@@ -10,9 +10,7 @@ exact ``--resume``, a progress line and a Rerun recording of the run (``train/lo
 
 from __future__ import annotations
 
-import json
 import math
-import os
 import sys
 import time
 from abc import ABC, abstractmethod
@@ -27,7 +25,7 @@ from torch.utils.data import DataLoader, Dataset
 
 from cmtool.core import dist as D
 from cmtool.core.errors import CmtoolError
-from cmtool.core.jsonio import atomic_open, read_json
+from cmtool.core.jsonio import read_json
 from cmtool.core.memory import check_fits
 from cmtool.core.progress import Progress
 from cmtool.data.sd_raster import ENCODINGS
@@ -216,13 +214,7 @@ def _finish(stage: Stage, model: torch.nn.Module, run_dir: Path, final: Path, in
     ``final``, written before it: then its config says ``complete``, rewritten whole or not at all."""
     if info.main:
         model.eval()
-        extra = ckpt.as_stored(stage.finish(model, run_dir))
-        config = {**read_json(final / ckpt.CONFIG, ckpt.MAX_JSON_BYTES), **extra, "complete": True}
-        with atomic_open(final / ckpt.CONFIG) as f:
-            json.dump(config, f, indent=1)
-            f.write("\n")
-            f.flush()
-            os.fsync(f.fileno())
+        ckpt.update_config(final, {**stage.finish(model, run_dir), "complete": True})
     D.barrier()  # the other processes go on (to a next stage of a pipeline) once the stage is complete
 
 
