@@ -13,7 +13,7 @@ from tests.conftest import REPO
 from tests.test_train import write_recipe
 
 SD = REPO / "sample_data" / "sd_bos.png"
-QUICK_START = ("--sd", REPO / "sample_data" / "sd_sgp.png", "--cfg", 0.7, "--city", "SGP")  # README; 2 steps
+QUICK_START = ("--sd", "sample_data/sd_sgp.png", "--cfg", 0.7, "--city", "SGP")  # README, from the root; 2 steps
 
 
 @pytest.fixture(scope="module")
@@ -32,8 +32,9 @@ def recordings(tmp_path_factory, tiny_data):
         from cmtool.cli import main
 
         err = io.StringIO()
-        # the command line as a user types it (the recordings' info quotes it), not pytest's, which differs run to run
-        with contextlib.redirect_stderr(err), contextlib.redirect_stdout(io.StringIO()), \
+        # the command line as a user types it in the repository's root (the recordings' info quotes it), not pytest's,
+        # which differs run to run; the clone's own path, however long, is not in it
+        with contextlib.redirect_stderr(err), contextlib.redirect_stdout(io.StringIO()), contextlib.chdir(REPO), \
                 mock.patch.object(sys, "argv", ["cmtool", *map(str, args)]):
             try:
                 main([str(a) for a in args])
@@ -48,7 +49,7 @@ def recordings(tmp_path_factory, tiny_data):
         root / "eval", "--quiet")
     run("ablate", "cfg", "--data", tiny_data, "--n", 2, "--w", "0,1", "--seeds", 1, "--steps", 2, "--no-features",
         "--out", root / "ablate")
-    run("sample", "--osm", REPO / "sample_data" / "town_bos.osm", "--area", "42.3560,-71.0640,42.3575,-71.0620",
+    run("sample", "--osm", "sample_data/town_bos.osm", "--area", "42.3560,-71.0640,42.3575,-71.0620",
         "--steps", 4, "--sampler", "dpm++2m-sde", "--out", root / "area", "--quiet")
     return {"data": root / "data.rrd", "train": root / "rvae" / "train.rrd", "sample": root / "sample" / "sample.rrd",
             "eval": root / "eval" / "eval.rrd", "ablate": root / "ablate" / "ablate_cfg.rrd",
