@@ -88,6 +88,18 @@ def test_pack_writes_float16_weights_that_sample_like_the_original(sampling_ckpt
     assert verify(tmp_path / "w") == ["rvae/model.safetensors: checksum differs from MANIFEST.json"]
 
 
+def test_packing_the_shipped_weights_again_keeps_their_encoder(tmp_path, capsys):
+    """A branch trained on the shipped RVAE (train.rvae = cmtool/weights/rvae) packs with the encoder that ships,
+    and its record, without --encoder: here the shipped ControlMap itself, whose RVAE is the shipped one."""
+    code, _, err = in_process(capsys, "pack", "--ckpt", BUNDLED / "controlmap", "--out", tmp_path / "w")
+    assert code == 0, err
+    shipped, packed = ckpt.load_config(BUNDLED / "rvae"), ckpt.load_config(tmp_path / "w" / "rvae")
+    assert packed["weights"] == "full" and packed["encoder_trained"] == shipped["encoder_trained"]
+    assert json.loads((tmp_path / "w" / MANIFEST).read_text())["encoder"] == shipped["encoder_trained"]["path"]
+    a, b = ckpt.read_weights(BUNDLED / "rvae"), ckpt.read_weights(tmp_path / "w" / "rvae")
+    assert a.keys() == b.keys() and all(torch.equal(a[k], b[k]) for k in a)
+
+
 def test_pack_refuses_other_checkpoints(sampling_ckpt, tmp_path, capsys):
     code, _, err = in_process(capsys, "pack", "--ckpt", sampling_ckpt["dit"], "--out", tmp_path / "w")
     assert code == 1 and "pack takes a ControlMap" in err

@@ -38,7 +38,8 @@ def info(path, as_json):
                    "with the same latent scale (e.g. cmtool/weights/rvae).")
 @click.option("--encoder", default=None, type=InPath(),
               help="Ship this RVAE's encoder too: a `cmtool train encoder` run for the decoder that ships (same "
-                   "decoder weights and latent scale), so that `sample --init` needs no --encoder.")
+                   "decoder weights and latent scale), so that `sample --init` needs no --encoder. An RVAE "
+                   "packed with an encoder (cmtool/weights/rvae) keeps it without.")
 @click.option("--out", default=None, type=OutPath(file_okay=False),
               help="Folder to write [default: the package's own cmtool/weights].")
 def pack(ckpt, rvae, encoder, out):

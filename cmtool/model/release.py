@@ -50,7 +50,8 @@ def pack(controlmap, out: Path, rvae=None, encoder=None) -> dict:
     returns the manifest. ``rvae``: an RVAE to ship instead of the ControlMap's own, which must
     share its encoder (a decoder fine-tune of it) so that it reads the same latent space. ``encoder``: an RVAE
     whose encoder ships too, one trained for the shipped decoder (``cmtool train encoder``: the same decoder
-    weights and latent scale), so that the weights encode maps (``sample --init``) by themselves."""
+    weights and latent scale), so that the weights encode maps (``sample --init``) by themselves; an RVAE packed
+    with an encoder (the shipped one) keeps it without."""
     src = ckpt.resolve(controlmap)
     config = ckpt.load_config(src)
     if config["kind"] != "controlmap":
@@ -97,10 +98,12 @@ def _write_set(src: Path, config: dict, rvae_src: Path, rvae_config: dict, dit_t
                if not k.startswith(ENCODER_PREFIXES)}
     rvae_out = {k: v for k, v in rvae_config.items() if k not in ("format", "version")}
     rvae_out.update(weights="decoder", packed_from=rvae_config.get("packed_from", str(rvae_src)))
+    if encoder is None and rvae_config.get("encoder_trained"):  # a packed set's RVAE keeps the encoder it ships
+        encoder = rvae_src
     if encoder is not None:
         enc_src, enc_config, trunk = _encoder_for(ckpt.resolve(encoder), rvae_config, decoder)
         decoder |= trunk
-        rvae_out.update(weights="full", encoder_trained={
+        rvae_out.update(weights="full", encoder_trained=enc_config.get("encoder_trained") or {
             "path": enc_config.get("packed_from", str(enc_src)),
             **{k: enc_config[k] for k in ("own_latent_scale", "reconstruction", "step", "recipe_path", "training")
                if k in enc_config}})
