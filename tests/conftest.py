@@ -1,5 +1,6 @@
 """Shared test helpers."""
 
+import signal
 import subprocess
 import sys
 from pathlib import Path
@@ -9,6 +10,11 @@ import torch
 
 REPO = Path(__file__).resolve().parents[1]
 SHARED_DATA = REPO.parent / "shared" / "data"
+
+# A suite started in the background (`nohup pytest &` from a script) has Ctrl-C ignored, and the commands it starts
+# would inherit that: the tests of what Ctrl-C does need it at its default
+if signal.getsignal(signal.SIGINT) is signal.SIG_IGN:
+    signal.signal(signal.SIGINT, signal.default_int_handler)
 
 
 @pytest.fixture
