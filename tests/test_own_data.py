@@ -234,6 +234,12 @@ def test_page_runs_on_a_small_case(tmp_path):
             manifest = json.loads((root / "cmtool/weights/MANIFEST.json").read_text())
             assert manifest["controlmap"].startswith("runs/own/chain/controlnet/checkpoints/")
             assert manifest["encoder"].startswith("runs/own/chain/rvae/checkpoints/")
+            # the run of 4a, whose RVAE folder now holds the chain's, is refused, as the page says
+            old = subprocess.run(["cmtool", "sample", "--ckpt", "runs/own/controlnet", "--sd",
+                                  str(REPO / "sample_data" / "sd_lav.png"), "--steps", "2", "--no-log", "--quiet",
+                                  "--out", "runs/own/old"], cwd=root, env=env, capture_output=True, text=True,
+                                 timeout=600, check=False)
+            assert old.returncode == 1 and "now holds others" in old.stderr, old.stderr
         if k == 8:  # and the shipped set back
             assert json.loads((root / "cmtool/weights/MANIFEST.json").read_text()) == shipped
     assert json.loads((REPO / "cmtool" / "weights" / "MANIFEST.json").read_text()) == shipped

@@ -172,6 +172,27 @@ def test_finished_controlnet_run_extends_with_resume_and_more_steps(runs, tmp_pa
     assert config["step"] == 6 and config["complete"] and config["training"]["samples"] == 6 * 4
 
 
+def test_a_model_whose_rvae_trained_further_is_refused(runs, tmp_path):
+    """A ControlMap names its RVAE by its run folder and records the weights it was trained on: once that run trains
+    further, its latents would decode into other maps, so sampling and packing refuse it in one line."""
+    rvae = tmp_path / "rvae"
+    shutil.copytree(runs["rvae"], rvae)
+    model = ckpt.resolve(shutil.copytree(runs["controlnet"], tmp_path / "controlnet"))
+    config = ckpt.load_config(model)
+    assert config["rvae_weights"] == ckpt.weights_digest(ckpt.resolve(runs["rvae"]))
+    ckpt.update_config(model, {"rvae": str(rvae)})
+    sample = ("sample", "--ckpt", model, "--sd", REPO / "sample_data" / "sd_lav.png", "--steps", 2, "--no-log",
+              "--quiet", "--out", tmp_path / "maps")
+    assert cli(*sample).returncode == 0
+    further = cli("train", "rvae", "--recipe", runs["rvae_recipe"], "--out", rvae, "--resume", "--steps", 6, "--quiet")
+    assert further.returncode == 0, further.stderr
+    for args in (sample, ("pack", "--ckpt", model, "--out", tmp_path / "packed")):
+        result = cli(*args)
+        assert result.returncode == 1 and "Traceback" not in result.stderr, result.stderr
+        assert f"trained on the RVAE weights {config['rvae_weights']}, but its RVAE" in result.stderr
+        assert str(rvae) in result.stderr and len(result.stderr.strip().splitlines()) == 1
+
+
 def _encoder(tensors):
     return {k: v for k, v in tensors.items() if k.startswith(("trunk.", "to_latent."))}
 

@@ -3,7 +3,8 @@
 A *checkpoint directory* holds::
 
     config.json              format, kind (rvae | dit | controlmap), model config, city labels,
-                             latent scale, recipe, step, training record
+                             latent scale, the RVAE it decodes with and a digest of its weights,
+                             recipe, step, training record
     model.safetensors        the weights to use (EMA weights during training), or, split into
                              files of a size limit, model-0000k-of-0000n.safetensors listed in
                              model.safetensors.index.json (Hugging Face's layout)
@@ -263,6 +264,19 @@ def linked(checkpoint: Path, target: str) -> Path:
     """A path a checkpoint config names (its RVAE, its DiT): absolute, or relative to the checkpoint."""
     path = Path(target)
     return path if path.is_absolute() else Path(checkpoint) / path
+
+
+def rvae_of(checkpoint: Path, config: dict) -> Path:
+    """The RVAE checkpoint that the DiT or ControlMap ``checkpoint`` (its ``config``) decodes with: its config's
+    ``rvae`` (a run's newest checkpoint), refused where its weights are not the ``rvae_weights`` it was trained on
+    (the run trained further, or the folder re-packed): its latents would decode into other maps, with no error."""
+    rvae = resolve(linked(checkpoint, config["rvae"]))
+    want = config.get("rvae_weights")
+    if want is not None and (have := weights_digest(rvae)) != want:
+        raise CmtoolError(f"{checkpoint}: trained on the RVAE weights {want}, but its RVAE {rvae} now holds others "
+                          f"({have}), into whose latent space it does not denoise; put the RVAE it was trained on "
+                          "back, or pack the model with it (`cmtool pack`)")
+    return rvae
 
 
 def load_config(path, encoder: bool = True) -> dict:

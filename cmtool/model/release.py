@@ -56,7 +56,7 @@ def pack(controlmap, out: Path, rvae=None, encoder=None) -> dict:
     config = ckpt.load_config(src)
     if config["kind"] != "controlmap":
         raise CmtoolError(f"{src}: a {config['kind']} checkpoint; pack takes a ControlMap")
-    rvae_src = ckpt.resolve(ckpt.linked(src, config["rvae"]))
+    rvae_src = ckpt.rvae_of(src, config)
     if rvae is not None:
         rvae_src = _same_latent_space(rvae_src, ckpt.resolve(rvae))
     rvae_config = ckpt.load_config(rvae_src)
@@ -92,7 +92,6 @@ def _write_set(src: Path, config: dict, rvae_src: Path, rvae_config: dict, dit_t
     cm_config.update(rvae="../rvae", packed_from=config.get("packed_from", str(src)),
                      dit_training=config.get("dit_training", dit_training))
     cm_config = _portable_paths(cm_config)
-    ckpt.save_checkpoint(out / "controlmap", cm_config, half, max_file_bytes=MAX_FILE_BYTES)
 
     decoder = {k: v.half() for k, v in ckpt.read_weights(rvae_src).items()
                if not k.startswith(ENCODER_PREFIXES)}
@@ -109,6 +108,8 @@ def _write_set(src: Path, config: dict, rvae_src: Path, rvae_config: dict, dit_t
                if k in enc_config}})
     rvae_out = _portable_paths(rvae_out)
     ckpt.save_checkpoint(out / "rvae", rvae_out, decoder, max_file_bytes=MAX_FILE_BYTES)
+    cm_config["rvae_weights"] = ckpt.weights_digest(out / "rvae")  # the float16 decoder it ships with
+    ckpt.save_checkpoint(out / "controlmap", cm_config, half, max_file_bytes=MAX_FILE_BYTES)
 
     files = sorted(p for p in out.rglob("*") if p.is_file() and p.name != MANIFEST)
     manifest = {"files": {p.relative_to(out).as_posix(): {"sha256": ckpt.file_sha256(p), "bytes": p.stat().st_size}

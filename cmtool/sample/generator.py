@@ -73,7 +73,7 @@ class MapGenerator:
         if device.type == "cuda":  # full fp32 in matmuls and convolutions: a seed names one map on every device
             torch.backends.cuda.matmul.allow_tf32 = torch.backends.cudnn.allow_tf32 = False
         model, _ = ckpt.load_model(path, device)
-        rvae_path = ckpt.linked(path, config["rvae"])
+        rvae_path = ckpt.rvae_of(path, config)
         rvae, rvae_config = ckpt.load_model(rvae_path, device, encoder=False)  # its encoder: on first use (encode)
         if rvae_config["kind"] != "rvae":
             raise CmtoolError(f"{path}: its rvae {rvae_path} is a {rvae_config['kind']} checkpoint")

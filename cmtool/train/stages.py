@@ -270,6 +270,7 @@ class _DiffusionStage(Stage):
             raise CmtoolError(f"{self.rvae_run}: not a finished RVAE run (no latent scale); finish it with "
                               "`cmtool train rvae --resume`")
         self.scale = float(self.rvae_config["latent_scale"])
+        self.rvae_weights = ckpt.weights_digest(ckpt.resolve(self.rvae_run))  # checked where the model samples
         self.latent_dir = latent_dir(self.rvae_run, self.rvae_config)
         self.schedule = NoiseSchedule(recipe.diffusion)
         self.shift_px = 0  # train.sd_shift_m in SD raster pixels (controlnet stage)
@@ -332,7 +333,7 @@ class _DiffusionStage(Stage):
 
     def common_config(self):
         return {"cities": self.cities, "schedule": dataclasses.asdict(self.recipe.diffusion),
-                "latent_scale": self.scale, "rvae": str(self.rvae_run)}
+                "latent_scale": self.scale, "rvae": str(self.rvae_run), "rvae_weights": self.rvae_weights}
 
 
 class DiTStage(_DiffusionStage):
