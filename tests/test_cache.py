@@ -257,6 +257,27 @@ def test_real_maps_join_the_split_they_name(tmp_path):
     assert data.line_mask.sum() > 0
 
 
+def test_real_maps_read_cmtool_hd_map_files(tmp_path):
+    """[[data.real_maps]] with format = "hdmap" reads cmtool's own HD map JSON (what `data import` and `data synth`
+    write, and what eval's "is a map file" hint sends there), its city kept or set by the entry."""
+    from cmtool.data.synth import generate_city
+
+    hd = generate_city("SGP", seed=3, extent=300.0)
+    hd.save(tmp_path / "mine.json")
+    recipe = tmp_path / "real.toml"
+    recipe.write_text("[data]\nmaps_per_city = 0\ntest_maps_per_city = 0\nscenes_per_map = 3\n"
+                      "[[data.real_maps]]\nformat = 'hdmap'\npath = 'mine.json'\nsplit = 'mine'\n"
+                      "[[data.real_maps]]\nformat = 'hdmap'\npath = 'mine.json'\nsplit = 'other'\ncity = 'KAR'\n")
+    summary = build_dataset(load_recipe(recipe), tmp_path / "out", workers=1, progress=False)
+    assert summary["splits"]["mine"]["scenes"] == 3 and summary["splits"]["other"]["scenes"] == 3
+    mine, other = load_dataset(tmp_path / "out", "mine"), load_dataset(tmp_path / "out", "other")
+    assert mine.city.tolist() == ["SGP"] * 3 and other.city.tolist() == ["KAR"] * 3
+    assert mine.source.tolist() == ["procedural:SGP:seed=3"] * 3 and mine.line_mask.sum() > 0  # the map's own
+    (tmp_path / "mine.json").write_text("{}")
+    with pytest.raises(CmtoolError, match="mine.json"):
+        build_dataset(load_recipe(recipe), tmp_path / "again", workers=1, progress=False)
+
+
 def test_progress_line_reports_rate_and_eta():
     import io
 

@@ -108,6 +108,11 @@ def unit_scenes(unit: WorkUnit, data: DataRecipe) -> tuple[list[Scene], SDMap]:
         from cmtool.data.synth import generate_city
 
         hd = generate_city(unit.city, seed=unit.seed, extent=data.extent)
+    elif unit.fmt == "hdmap":
+        from cmtool.formats.mapfile import read_hd_map
+
+        hd = read_hd_map(unit.path)
+        hd.city = unit.city or hd.city
     else:
         from cmtool.formats.importers import import_hd_map
 

@@ -15,6 +15,8 @@ from cmtool.data.sd_jitter import SDJitter
 from cmtool.data.sd_raster import SIZE as SD_SIZE
 from cmtool.formats.importers import FORMATS as IMPORT_FORMATS
 
+REAL_MAP_FORMATS = (*IMPORT_FORMATS, "hdmap")  # hdmap: cmtool's own HD map JSON (`data import`, `data synth`)
+
 
 MAX_EXTENT_M = 20_000.0  # the side of the largest procedural city (`data synth --extent` allows as much)
 
@@ -22,7 +24,7 @@ MAX_EXTENT_M = 20_000.0  # the side of the largest procedural city (`data synth 
 class RealMapsRecipe:
     """Real HD maps to import: every file matching ``path`` becomes one work unit."""
 
-    format: str  # av2 | lanelet2 | nuplan
+    format: str  # one of REAL_MAP_FORMATS
     path: str  # file or glob, relative to the recipe's folder (or the current folder)
     split: str = "train"
     city: str | None = None  # city label; None keeps the importer's
@@ -81,8 +83,8 @@ class DataRecipe:
             raise CmtoolError(f"{where}: data.frame_mix: shares of {', '.join(KINDS)} must be finite, >= 0 and not "
                               "all 0" + (f" ({bad[0]} = {shares[bad[0]]})" if bad else ""))
         for i, rm in enumerate(self.real_maps):
-            if rm.format not in IMPORT_FORMATS:
-                raise CmtoolError(f"{where}: data.real_maps[{i}].format: expected one of {IMPORT_FORMATS}, "
+            if rm.format not in REAL_MAP_FORMATS:
+                raise CmtoolError(f"{where}: data.real_maps[{i}].format: expected one of {REAL_MAP_FORMATS}, "
                                   f"got {rm.format!r}")
 
     def real_map_files(self, recipe_path: Path | None = None) -> list[tuple[RealMapsRecipe, Path]]:
