@@ -71,7 +71,8 @@ def test_pack_writes_float16_weights_that_sample_like_the_original(sampling_ckpt
     assert verify(tmp_path / "w") == []
     assert os.path.isabs(ckpt.load_config(sampling_ckpt["controlmap"])["dit"]) and absolute_paths(tmp_path / "w") == []
     # the packed ControlMap records the float16 decoder it ships with, which it samples with
-    assert ckpt.load_config(tmp_path / "w" / "controlmap")["rvae_weights"] == ckpt.weights_digest(tmp_path / "w" / "rvae")
+    packed = ckpt.load_config(tmp_path / "w" / "controlmap")
+    assert packed["rvae_weights"] == ckpt.weights_digest(tmp_path / "w" / "rvae")
     assert json.loads((tmp_path / "w" / MANIFEST).read_text())["controlmap"] == "controlmap"  # the folder packed
     weights = ckpt.read_weights(tmp_path / "w" / "rvae")
     assert weights and not any(k.startswith(("trunk.", "to_latent.")) for k in weights)
