@@ -703,11 +703,12 @@ def test_real_frames_reach_the_batches_of_the_shipped_branch_trained_further(tmp
     for batch in StepBatches(range(len(sources)), 8, 0, 1, 0, 0, 6):
         assert real[batch].any()
 
-    def trained(stage: str, name: str) -> dict:
-        """The config of a 2-step run of recipes/tiny-cpu/NAME.toml on the data, at a batch the 24 scenes hold."""
+    def trained(stage: str, name: str, dit: str = "") -> dict:
+        """The config of a 2-step run of recipes/tiny-cpu/NAME.toml on the data, at a batch the 24 scenes hold (over
+        the DiT run ``dit`` where given)."""
         recipe = tmp_path / f"{name}.toml"
-        recipe.write_text((REPO / "recipes" / "tiny-cpu" / f"{name}.toml").read_text().replace(
-            "batch_size = 64", "batch_size = 8"))
+        text = (REPO / "recipes" / "tiny-cpu" / f"{name}.toml").read_text().replace("batch_size = 64", "batch_size = 8")
+        recipe.write_text(text.replace('dit = "runs/tiny-cpu/dit-real"', f'dit = "{dit}"') if dit else text)
         result = cli("train", stage, "--recipe", recipe, "--data", data, "--out", tmp_path / name, "--steps", 2,
                      "--quiet", "--no-log")
         assert result.returncode == 0, result.stderr
@@ -722,3 +723,7 @@ def test_real_frames_reach_the_batches_of_the_shipped_branch_trained_further(tmp
     config = trained("dit", "dit-real")
     assert config["cities"] == ckpt.load_config(REPO / "cmtool" / "weights" / "controlmap")["cities"]
     assert config["init_from"]["path"].endswith("weights/controlmap") and [cache] == list((data / "latents").iterdir())
+    # and the branch trained again over that DiT (controlnet-real-dit.toml)
+    config = trained("controlnet", "controlnet-real-dit", dit=str(tmp_path / "dit-real"))
+    assert config["dit"].startswith(str(tmp_path / "dit-real")) and config["branch_from"].endswith("weights/controlmap")
+    assert config["control"]["sd_encoding"] == 2 and [cache] == list((data / "latents").iterdir())
