@@ -104,7 +104,7 @@ def run_eval(gen: MapGenerator, settings: EvalSettings, out: Path, extractor: Fe
     data = load_dataset(settings.data, settings.split)
     n = min(settings.n, len(data))
     settings.n, settings.checkpoint, settings.smooth = n, str(gen.path), gen.smooth
-    settings.weights = ckpt.weights_digest(gen.path, ckpt.rvae_of(gen.path, gen.config),
+    settings.weights = ckpt.weights_digest(gen.path, gen.rvae_checkpoint,
                                            *([gen.encoder_path] if settings.init != NO_INIT and gen.encoder_path else []))
     scenes = [data.scene(i) for i in range(n)]
     starts = layouts = None

@@ -55,6 +55,7 @@ class MapGenerator:
         self.scale = float(config["latent_scale"])
         self.schedule = NoiseSchedule(from_table(ScheduleConfig, config["schedule"], f"{path}: ", "schedule."))
         self.encoder = self.encoder_path = None  # another RVAE's encoder into this latent space (attach_encoder)
+        self.rvae_checkpoint: Path | None = None  # the RVAE checkpoint it decodes with (load: checked against config)
         self.rvae_path: Path | None = None  # the RVAE checkpoint, when it holds an encoder that encode loads
 
     @classmethod
@@ -82,6 +83,7 @@ class MapGenerator:
             raise CmtoolError(f"{path}: the model's latent {tuple(model.latent_shape)} does not match its RVAE "
                               f"{rvae_path} ({have})")
         gen = cls(model, rvae, config, path, device, smooth, precision)
+        gen.rvae_checkpoint = rvae_path
         gen.rvae_path = rvae_path if rvae_config.get("weights") != "decoder" else None
         return gen
 

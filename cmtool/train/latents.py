@@ -150,13 +150,11 @@ def read_latents(out_dir: Path, split: str) -> LatentSet:
                           "--resume`") from None
 
 
-def data_latents(rvae_loader, rvae_checkpoint: Path, data_dir, device, progress: bool = True) -> tuple[LatentSet, Path]:
-    """The train split of ``data_dir`` encoded once by the RVAE of ``rvae_checkpoint`` (``rvae_loader()`` returns it,
-    with its encoder) into ``data_dir/latents/<weights digest>/``, and that folder: the latents of data other than the
-    RVAE was trained on, e.g. for training the shipped chain further on new data."""
-    from cmtool.model.checkpoint import resolve, weights_digest
-
-    digest = weights_digest(resolve(rvae_checkpoint))
+def data_latents(rvae_loader, digest: str, data_dir, device, progress: bool = True) -> tuple[LatentSet, Path]:
+    """The train split of ``data_dir`` encoded once by the RVAE whose weights' digest is ``digest``
+    (:func:`cmtool.model.checkpoint.weights_digest`; ``rvae_loader()`` returns it, with its encoder) into
+    ``data_dir/latents/<digest>/``, and that folder: the latents of data other than the RVAE was trained on, e.g. for
+    training the shipped chain further on new data."""
     out_dir = Path(data_dir) / "latents" / digest
     if not (out_dir / "train.npz").is_file():
         encode_split(rvae_loader(), data_dir, "train", out_dir / "train.npz", device, digest, progress=progress)

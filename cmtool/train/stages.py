@@ -270,7 +270,7 @@ class _DiffusionStage(Stage):
             raise CmtoolError(f"{self.rvae_run}: not a finished RVAE run (no latent scale); finish it with "
                               "`cmtool train rvae --resume`")
         self.scale = float(self.rvae_config["latent_scale"])
-        self.rvae_weights = ckpt.weights_digest(ckpt.resolve(self.rvae_run))  # checked where the model samples
+        self.rvae_weights = ckpt.weights_digest(ckpt.resolve(self.rvae_run))  # its latents' key; checked in sampling
         self.latent_dir = latent_dir(self.rvae_run, self.rvae_config)
         self.schedule = NoiseSchedule(recipe.diffusion)
         self.shift_px = 0  # train.sd_shift_m in SD raster pixels (controlnet stage)
@@ -346,7 +346,7 @@ class DiTStage(_DiffusionStage):
         data = _path(recipe.train.data, "data", recipe.path) if recipe.train.data else None
         if data is not None and data.resolve() != Path(self.rvae_config.get("data", "")).resolve():
             # other data than the RVAE's (e.g. the shipped DiT trained further on real roads): encoded once
-            self.latents, self.latent_dir = data_latents(self.rvae, self.rvae_run, data, self.device)
+            self.latents, self.latent_dir = data_latents(self.rvae, self.rvae_weights, data, self.device)
         else:
             self.latents = read_latents(self.latent_dir, "train")
         self.init_from = ckpt.resolve(recipe.train.init_from).resolve() if recipe.train.init_from else None
@@ -446,7 +446,7 @@ class ControlNetStage(_DiffusionStage):
                               "build` into a new folder")
         self.shift_px = round(recipe.train.sd_shift_m / px_m)
         if Path(self.rvae_config.get("data", "")).resolve() != self.data_dir.resolve():  # not the RVAE's own data
-            self.latents, self.latent_dir = data_latents(self.rvae, self.rvae_run, self.data_dir, self.device)
+            self.latents, self.latent_dir = data_latents(self.rvae, self.rvae_weights, self.data_dir, self.device)
         else:
             self.latents = read_latents(self.latent_dir, "train")
         self.branch_from = ckpt.resolve(recipe.train.branch_from).resolve() if recipe.train.branch_from else None
